@@ -1,0 +1,157 @@
+//! The zenoh side of TACOS: opening a session from typed settings, and publishing / decoding
+//! messages through the one wire codec. Kept apart from `tacos-shared`, which does no I/O.
+
+use serde::Serialize;
+use serde::de::DeserializeOwned;
+use std::path::PathBuf;
+use tacos_shared::codec::{self, CodecError};
+use tacos_shared::keys::Keys;
+use tacos_shared::SwarmId;
+use zenoh::Session;
+use zenoh::qos::{CongestionControl, Priority};
+use zenoh::sample::Sample;
+
+#[derive(Debug, thiserror::Error)]
+pub enum BusError {
+    #[error("zenoh configuration {key}: {reason}")]
+    Config { key: String, reason: String },
+    #[error("could not open the zenoh session: {0}")]
+    Open(String),
+    #[error("zenoh {what} on {key}: {reason}")]
+    Declare { what: &'static str, key: String, reason: String },
+    #[error("zenoh put on {key}: {reason}")]
+    Put { key: String, reason: String },
+    #[error(transparent)]
+    Codec(#[from] CodecError),
+}
+
+/// How this process joins the swarm's zenoh network. Shared by every TACOS binary.
+#[derive(Debug, Clone, clap::Args)]
+pub struct BusArgs {
+    /// The swarm's name: every key starts with `tacos/<swarm>/`.
+    #[arg(long, default_value = "default", env = "TACOS_SWARM")]
+    pub swarm: SwarmId,
+    /// Endpoints to connect to (e.g. `tcp/192.168.1.10:7447`), repeatable.
+    #[arg(long = "zenoh-connect", value_name = "ENDPOINT")]
+    pub connect: Vec<String>,
+    /// Endpoints to listen on (e.g. `tcp/0.0.0.0:7447`), repeatable.
+    #[arg(long = "zenoh-listen", value_name = "ENDPOINT")]
+    pub listen: Vec<String>,
+    /// Join as a client of a zenohd router instead of as a peer.
+    #[arg(long = "zenoh-client")]
+    pub client: bool,
+    /// Discover peers by UDP multicast on the LAN (off by default: set endpoints instead).
+    #[arg(long = "zenoh-multicast")]
+    pub multicast: bool,
+    /// A zenoh JSON5 configuration file (TLS, access control; see deploy/); flags override it.
+    #[arg(long = "zenoh-config", value_name = "FILE")]
+    pub config_file: Option<PathBuf>,
+}
+
+impl BusArgs {
+    /// Settings for a process on loopback that connects to `connect` (tests, the demo).
+    pub fn loopback(swarm: SwarmId, listen: Option<String>, connect: Vec<String>) -> Self {
+        BusArgs {
+            swarm,
+            connect,
+            listen: listen.into_iter().collect(),
+            client: false,
+            multicast: false,
+            config_file: None,
+        }
+    }
+
+    pub fn keys(&self) -> Keys {
+        Keys::new(&self.swarm)
+    }
+
+    /// The zenoh configuration these settings describe.
+    pub fn zenoh_config(&self) -> Result<zenoh::Config, BusError> {
+        let mut config = match &self.config_file {
+            Some(path) => zenoh::Config::from_file(path).map_err(|e| BusError::Config {
+                key: path.display().to_string(),
+                reason: e.to_string(),
+            })?,
+            None => zenoh::Config::default(),
+        };
+        let mut set = |key: &str, value: String| {
+            config
+                .insert_json5(key, &value)
+                .map_err(|e| BusError::Config { key: key.to_owned(), reason: e.to_string() })
+        };
+        let json_list = |items: &[String]| {
+            format!("[{}]", items.iter().map(|s| format!("{s:?}")).collect::<Vec<_>>().join(","))
+        };
+        set("mode", if self.client { "\"client\"".into() } else { "\"peer\"".into() })?;
+        if self.config_file.is_none() || self.multicast {
+            set("scouting/multicast/enabled", self.multicast.to_string())?;
+        }
+        if !self.connect.is_empty() {
+            set("connect/endpoints", json_list(&self.connect))?;
+        }
+        if !self.listen.is_empty() {
+            set("listen/endpoints", json_list(&self.listen))?;
+        } else if self.config_file.is_none() && !self.client {
+            // Peers must be reachable by the others that gossip discovers; an ephemeral port on
+            // loopback keeps a default run off the network.
+            set("listen/endpoints", "[\"tcp/127.0.0.1:0\"]".into())?;
+        }
+        Ok(config)
+    }
+
+    pub async fn open(&self) -> Result<Session, BusError> {
+        let config = self.zenoh_config()?;
+        zenoh::open(config).await.map_err(|e| BusError::Open(e.to_string()))
+    }
+}
+
+/// Encodes `value` and puts it on `key`. `urgent` marks commands: reliable, never dropped,
+/// sent at once at high priority; telemetry may be dropped under congestion instead.
+pub async fn put<T: Serialize>(session: &Session, key: &str, value: &T, urgent: bool) -> Result<(), BusError> {
+    let bytes = codec::encode(value)?;
+    let builder = session.put(key, bytes);
+    let builder = if urgent {
+        builder.congestion_control(CongestionControl::Block).priority(Priority::InteractiveHigh).express(true)
+    } else {
+        builder.congestion_control(CongestionControl::Drop).priority(Priority::Data)
+    };
+    builder.await.map_err(|e| BusError::Put { key: key.to_owned(), reason: e.to_string() })
+}
+
+/// Decodes a sample's payload with the wire codec.
+pub fn decode<T: DeserializeOwned>(sample: &Sample) -> Result<T, CodecError> {
+    codec::decode(&sample.payload().to_bytes())
+}
+
+/// Declares a subscriber, mapping the error.
+pub async fn subscribe(
+    session: &Session,
+    key: &str,
+) -> Result<zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<Sample>>, BusError> {
+    session
+        .declare_subscriber(key.to_owned())
+        .await
+        .map_err(|e| BusError::Declare { what: "subscriber", key: key.to_owned(), reason: e.to_string() })
+}
+
+/// Declares this process's liveliness token on `key`; dropping it (or dying) withdraws it.
+pub async fn declare_alive(session: &Session, key: &str) -> Result<zenoh::liveliness::LivelinessToken, BusError> {
+    session
+        .liveliness()
+        .declare_token(key.to_owned())
+        .await
+        .map_err(|e| BusError::Declare { what: "liveliness token", key: key.to_owned(), reason: e.to_string() })
+}
+
+/// Subscribes to liveliness changes under `key` (with the current state first).
+pub async fn watch_alive(
+    session: &Session,
+    key: &str,
+) -> Result<zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<Sample>>, BusError> {
+    session
+        .liveliness()
+        .declare_subscriber(key.to_owned())
+        .history(true)
+        .await
+        .map_err(|e| BusError::Declare { what: "liveliness subscriber", key: key.to_owned(), reason: e.to_string() })
+}
