@@ -73,6 +73,11 @@ impl Keys {
         format!("{}/sim/faults", self.prefix)
     }
 
+    /// ground → drones: `GroundHeartbeat`, a few times a second; its silence drives the failsafe.
+    pub fn ground_heartbeat(&self) -> String {
+        format!("{}/ground/heartbeat", self.prefix)
+    }
+
     /// sitl → tests, demo checks, evaluation: `SimTruth`.
     pub fn sim_truth(&self) -> String {
         format!("{}/sim/truth", self.prefix)

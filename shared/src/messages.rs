@@ -203,3 +203,10 @@ pub struct SimTruth {
     /// Count of ticks on which a vehicle was inside an obstacle inflated by the drone radius.
     pub obstacle_breaches: u64,
 }
+
+/// Sent by every ground station process on `ground/heartbeat` several times a second. A drone
+/// that hears none for its configured time holds, then lands.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GroundHeartbeat {
+    pub counter: u64,
+}

@@ -72,7 +72,7 @@ pub struct TargetSpec {
     pub motion: TargetMotion,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum FaultKind {
     /// The vehicle stops answering for good (power loss): no heartbeat, no telemetry.

@@ -155,3 +155,21 @@ pub async fn watch_alive(
         .await
         .map_err(|e| BusError::Declare { what: "liveliness subscriber", key: key.to_owned(), reason: e.to_string() })
 }
+
+/// Loads a scenario given on a command line: a built-in name (`city`, `lab`) or a TOML file path.
+pub fn load_scenario(arg: &str) -> Result<tacos_shared::scenario::Scenario, ScenarioLoadError> {
+    use tacos_shared::scenario::{BUILTIN, Scenario};
+    if BUILTIN.contains(&arg) {
+        return Ok(Scenario::builtin(arg)?);
+    }
+    let text = std::fs::read_to_string(arg).map_err(|e| ScenarioLoadError::Read { path: arg.to_owned(), reason: e.to_string() })?;
+    Ok(Scenario::from_toml(&text)?)
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ScenarioLoadError {
+    #[error("cannot read scenario {path}: {reason} (built-in scenarios: city, lab)")]
+    Read { path: String, reason: String },
+    #[error(transparent)]
+    Invalid(#[from] tacos_shared::scenario::ScenarioError),
+}

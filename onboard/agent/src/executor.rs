@@ -1,0 +1,588 @@
+//! The action executor: one drone's mode machine (unavailable → idle → flying ⇄ tracking),
+//! one action at a time, turned into autopilot commands and a setpoint reference.
+//!
+//! Pure: it is fed actions, vehicle state, command results and the time, and returns what to
+//! send. The task shell (`runtime`) does the I/O.
+
+use crate::profile::{ReferenceState, StraightLine};
+use tacos_shared::action::{Action, ActionCommand, mode_forbids};
+use tacos_shared::ipc::{CommandKind, CommandOutcome, CommandResultSample, CommandSample, VehicleStateSample};
+use tacos_shared::messages::{ActionProgress, ActionState, FailsafeStage, FailureReason};
+use tacos_shared::px4_mode::Px4Mode;
+use tacos_shared::scenario::FlightLimits;
+use tacos_shared::world::World;
+use tacos_shared::{DroneMode, Vec3};
+
+/// After an offboard switch is accepted, PX4's heartbeat (1 Hz) may still show the old mode for
+/// this long; only after it do we believe a non-offboard mode means PX4 left offboard.
+const MODE_REPORT_GRACE_S: f64 = 1.6;
+
+/// What the executor knows of the vehicle, from `tacos-px4`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct VehicleView {
+    pub link_ok: bool,
+    pub armed: bool,
+    pub px4: Px4Mode,
+    pub landed: bool,
+    pub position: Vec3,
+    pub velocity: Vec3,
+}
+
+impl From<&VehicleStateSample> for VehicleView {
+    fn from(s: &VehicleStateSample) -> Self {
+        VehicleView {
+            link_ok: s.link_ok != 0,
+            armed: s.armed != 0,
+            px4: s.mode(),
+            landed: s.landed != 0,
+            position: s.position(),
+            velocity: s.velocity(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum TakeoffStep {
+    Arming,
+    Commanding,
+    Climbing,
+    Offboarding,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+enum Task {
+    /// Nothing commanded: the reference follows the vehicle.
+    Idle,
+    Takeoff { step: TakeoffStep, ground_z: f64, deadline: f64 },
+    Goto { line: StraightLine, deadline: f64 },
+    /// Airborne at `hold_point` under offboard control.
+    Hold,
+    Land { accepted: bool, deadline: f64 },
+}
+
+/// What one tick asks the shell to send.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct TickOutput {
+    /// The reference to stream (world ENU), or `None` while the vehicle is unknown.
+    pub reference: Option<ReferenceState>,
+    pub commands: Vec<CommandSample>,
+}
+
+#[derive(Debug, Clone)]
+pub struct ExecutorConfig {
+    pub limits: FlightLimits,
+    pub world: World,
+    /// A goto is done when the vehicle is this close to its goal (and slow).
+    pub arrive_tolerance: f64,
+}
+
+impl ExecutorConfig {
+    pub fn new(limits: FlightLimits, world: World) -> Self {
+        let arrive_tolerance = (2.0 * limits.drone_radius).max(0.2);
+        ExecutorConfig { limits, world, arrive_tolerance }
+    }
+}
+
+pub struct Executor {
+    cfg: ExecutorConfig,
+    vehicle: Option<VehicleView>,
+    task: Task,
+    hold_point: Option<Vec3>,
+    progress: Option<ActionProgress>,
+    awaiting: Option<CommandSample>,
+    outbox: Vec<CommandSample>,
+    next_command_seq: u64,
+    offboard_since: Option<f64>,
+    failsafe: Option<FailsafeStage>,
+}
+
+impl Executor {
+    pub fn new(cfg: ExecutorConfig) -> Self {
+        Executor {
+            cfg,
+            vehicle: None,
+            task: Task::Idle,
+            hold_point: None,
+            progress: None,
+            awaiting: None,
+            outbox: Vec::new(),
+            next_command_seq: 1,
+            offboard_since: None,
+            failsafe: None,
+        }
+    }
+
+    pub fn vehicle(&self) -> Option<&VehicleView> {
+        self.vehicle.as_ref()
+    }
+
+    pub fn progress(&self) -> Option<&ActionProgress> {
+        self.progress.as_ref()
+    }
+
+    pub fn failsafe(&self) -> Option<FailsafeStage> {
+        self.failsafe
+    }
+
+    /// The paper's mode of this drone.
+    pub fn mode(&self) -> DroneMode {
+        match &self.vehicle {
+            None => DroneMode::Unavailable,
+            Some(v) if !v.link_ok => DroneMode::Unavailable,
+            Some(v) if !v.armed => DroneMode::Idle,
+            Some(_) => DroneMode::Flying,
+        }
+    }
+
+    fn airborne(&self) -> bool {
+        self.vehicle.is_some_and(|v| v.link_ok && v.armed && !v.landed)
+    }
+
+    fn request(&mut self, kind: CommandKind, param: f64) {
+        let command = CommandSample::new(self.next_command_seq, kind, param);
+        self.next_command_seq += 1;
+        self.awaiting = Some(command);
+        self.outbox.push(command);
+    }
+
+    fn finish(&mut self, state: ActionState) {
+        if let Some(p) = self.progress.as_mut().filter(|p| !p.state.is_finished()) {
+            p.state = state;
+        }
+    }
+
+    fn fail(&mut self, reason: FailureReason) {
+        self.finish(ActionState::Failed(reason));
+        self.awaiting = None;
+        self.task = if self.airborne() { Task::Hold } else { Task::Idle };
+        if self.airborne() && self.hold_point.is_none() {
+            self.hold_point = self.vehicle.map(|v| v.position);
+        }
+    }
+
+    fn set_running(&mut self, progress: f32) {
+        if let Some(p) = self.progress.as_mut().filter(|p| !p.state.is_finished()) {
+            p.state = ActionState::Running { progress };
+        }
+    }
+
+    fn in_offboard(&self) -> bool {
+        self.vehicle.is_some_and(|v| v.px4 == Px4Mode::Offboard)
+    }
+
+    /// Asks for offboard unless PX4 is already there or the request is in flight.
+    fn ensure_offboard(&mut self) {
+        let pending = self.awaiting.is_some_and(|c| c.kind() == Some(CommandKind::Offboard));
+        if !self.in_offboard() && !pending {
+            self.request(CommandKind::Offboard, 0.0);
+        }
+    }
+
+    /// A new action from the ground. Returns false when it repeats the current one (same seq)
+    /// and was ignored.
+    pub fn on_command(&mut self, command: &ActionCommand, now: f64) -> bool {
+        if self.progress.as_ref().is_some_and(|p| p.seq == command.seq) {
+            return false;
+        }
+        // Whatever ran before is replaced; the ground sees the newer seq in the status.
+        self.progress = Some(ActionProgress::started(command));
+        self.awaiting = None;
+        if let Some(why) = mode_forbids(&command.action, self.mode()) {
+            self.finish(ActionState::Failed(FailureReason::InvalidForMode(why.to_owned())));
+            return true;
+        }
+        let Some(vehicle) = self.vehicle else {
+            self.finish(ActionState::Failed(FailureReason::AutopilotLinkLost));
+            return true;
+        };
+        let limits = self.cfg.limits;
+        match &command.action {
+            Action::ArmTakeoff => {
+                let deadline = now + 30.0 + limits.takeoff_altitude / 0.5;
+                self.task = Task::Takeoff { step: TakeoffStep::Arming, ground_z: vehicle.position.z, deadline };
+                self.request(CommandKind::Arm, 0.0);
+            }
+            Action::Goto { target } => {
+                let radius = self.cfg.limits.drone_radius;
+                if let Err(why) = self.cfg.world.check_point(target, radius) {
+                    self.fail(FailureReason::Unreachable(why.to_string()));
+                    return true;
+                }
+                let from = self.hold_point.unwrap_or(vehicle.position);
+                if let Some(obstacle) = self.cfg.world.segment_blocked_by(&from, target, radius) {
+                    let why = format!("the straight path crosses {}", obstacle.name);
+                    self.fail(FailureReason::Unreachable(why));
+                    return true;
+                }
+                let line = StraightLine::new(from, *target, now, limits.max_speed * 0.8, limits.max_accel * 0.8);
+                let deadline = now + line.duration() * 1.5 + 15.0;
+                self.task = Task::Goto { line, deadline };
+                self.ensure_offboard();
+            }
+            Action::Hold => {
+                if self.airborne() {
+                    self.hold_point = Some(vehicle.position);
+                    self.task = Task::Hold;
+                    self.ensure_offboard();
+                    if self.in_offboard() {
+                        self.finish(ActionState::Done);
+                    }
+                } else {
+                    self.finish(ActionState::Done);
+                }
+            }
+            Action::Land => {
+                self.task = Task::Land { accepted: false, deadline: now + 60.0 + vehicle.position.z / 0.5 };
+                self.request(CommandKind::Land, 0.0);
+            }
+            Action::StopTracking => {
+                // Not tracking (the mode gate let it through as flying): holding is the result.
+                self.hold_point = Some(vehicle.position);
+                self.task = Task::Hold;
+                self.finish(ActionState::Done);
+            }
+            Action::StartTracking { target } => {
+                self.fail(FailureReason::Unreachable(format!(
+                    "no tracker runs on this drone, so {target} cannot be followed"
+                )));
+            }
+        }
+        true
+    }
+
+    /// New vehicle state from the writer.
+    pub fn on_vehicle(&mut self, state: &VehicleStateSample) {
+        self.vehicle = Some(VehicleView::from(state));
+    }
+
+    /// The writer has gone quiet: treat the autopilot link as lost until state arrives again.
+    pub fn on_writer_silent(&mut self) {
+        if let Some(v) = self.vehicle.as_mut() {
+            v.link_ok = false;
+        }
+    }
+
+    /// A command result from the writer.
+    pub fn on_result(&mut self, result: &CommandResultSample, now: f64) {
+        let Some(awaiting) = self.awaiting.filter(|c| c.seq == result.seq) else {
+            return; // a result for a command we no longer wait on
+        };
+        self.awaiting = None;
+        let kind = awaiting.kind();
+        match result.outcome() {
+            Some(CommandOutcome::Accepted) => {}
+            Some(CommandOutcome::Rejected) => {
+                let why = format!("{kind:?} refused (MAV_RESULT {})", result.mav_result);
+                return self.fail(FailureReason::Rejected(why));
+            }
+            Some(CommandOutcome::TimedOut) => return self.fail(FailureReason::TimedOut),
+            Some(CommandOutcome::LinkLost) => return self.fail(FailureReason::AutopilotLinkLost),
+            Some(CommandOutcome::Unsupported) | None => {
+                return self.fail(FailureReason::Rejected(format!("{kind:?} not supported by the writer")));
+            }
+        }
+        if kind == Some(CommandKind::Offboard) {
+            self.offboard_since = Some(now);
+        }
+        match (&mut self.task, kind) {
+            (Task::Takeoff { step, .. }, Some(CommandKind::Arm)) if *step == TakeoffStep::Arming => {
+                *step = TakeoffStep::Commanding;
+                let altitude = self.cfg.limits.takeoff_altitude;
+                self.request(CommandKind::Takeoff, altitude);
+            }
+            (Task::Takeoff { step, .. }, Some(CommandKind::Takeoff)) if *step == TakeoffStep::Commanding => {
+                *step = TakeoffStep::Climbing;
+            }
+            (Task::Takeoff { step, .. }, Some(CommandKind::Offboard)) if *step == TakeoffStep::Offboarding => {
+                self.task = Task::Hold;
+                self.finish(ActionState::Done);
+            }
+            (Task::Hold, Some(CommandKind::Offboard)) => self.finish(ActionState::Done),
+            (Task::Land { accepted, .. }, Some(CommandKind::Land)) => *accepted = true,
+            _ => {}
+        }
+    }
+
+    /// Engages, escalates or clears the failsafe (`None` = the ground is heard again).
+    pub fn set_failsafe(&mut self, stage: Option<FailsafeStage>, now: f64) {
+        if stage == self.failsafe {
+            return;
+        }
+        self.failsafe = stage;
+        let Some(stage) = stage else { return };
+        if !self.airborne() {
+            return;
+        }
+        let vehicle_z = self.vehicle.map_or(0.0, |v| v.position.z);
+        match stage {
+            FailsafeStage::Holding => {
+                self.fail(FailureReason::Failsafe("ground silent: holding".into()));
+                self.hold_point = self.vehicle.map(|v| v.position);
+                self.task = Task::Hold;
+                self.ensure_offboard();
+            }
+            FailsafeStage::Landing => {
+                self.fail(FailureReason::Failsafe("ground silent: landing".into()));
+                self.task = Task::Land { accepted: false, deadline: now + 60.0 + vehicle_z / 0.5 };
+                self.request(CommandKind::Land, 0.0);
+            }
+        }
+    }
+
+    /// Advances the task; returns the reference to stream and the commands to send.
+    pub fn tick(&mut self, now: f64) -> TickOutput {
+        let Some(vehicle) = self.vehicle else {
+            return TickOutput::default();
+        };
+        if !vehicle.link_ok {
+            if self.progress.as_ref().is_some_and(|p| !p.state.is_finished()) {
+                self.fail(FailureReason::AutopilotLinkLost);
+            }
+            self.task = Task::Idle;
+        }
+        self.advance(vehicle, now);
+        let reference = match &self.task {
+            Task::Goto { line, .. } => line.sample(now),
+            Task::Hold | Task::Takeoff { step: TakeoffStep::Offboarding, .. } => {
+                still(self.hold_point.unwrap_or(vehicle.position))
+            }
+            _ => still(vehicle.position),
+        };
+        TickOutput { reference: Some(reference), commands: std::mem::take(&mut self.outbox) }
+    }
+
+    fn left_offboard(&self, vehicle: &VehicleView, now: f64) -> bool {
+        let settled = self.offboard_since.is_some_and(|t| now - t > MODE_REPORT_GRACE_S);
+        let pending = self.awaiting.is_some_and(|c| c.kind() == Some(CommandKind::Offboard));
+        settled && !pending && vehicle.px4 != Px4Mode::Offboard
+    }
+
+    fn advance(&mut self, vehicle: VehicleView, now: f64) {
+        let limits = self.cfg.limits;
+        match self.task.clone() {
+            Task::Idle => {
+                if !vehicle.armed {
+                    self.hold_point = None;
+                }
+            }
+            Task::Takeoff { step, ground_z, deadline } => {
+                if now > deadline {
+                    return self.fail(FailureReason::TimedOut);
+                }
+                let goal_z = ground_z + limits.takeoff_altitude;
+                let reached = vehicle.position.z >= goal_z - (0.1 * limits.takeoff_altitude).max(0.1);
+                self.set_running((((vehicle.position.z - ground_z) / limits.takeoff_altitude).clamp(0.0, 1.0) * 0.9) as f32);
+                if step == TakeoffStep::Climbing && reached {
+                    self.hold_point = Some(Vec3::new(vehicle.position.x, vehicle.position.y, goal_z));
+                    self.task = Task::Takeoff { step: TakeoffStep::Offboarding, ground_z, deadline };
+                    self.request(CommandKind::Offboard, 0.0);
+                }
+            }
+            Task::Goto { line, deadline } => {
+                let target = line.target();
+                if self.left_offboard(&vehicle, now) {
+                    self.hold_point = Some(vehicle.position);
+                    return self.fail(FailureReason::Rejected(format!("the autopilot left offboard for {:?}", vehicle.px4)));
+                }
+                let close = (vehicle.position - target).norm() <= self.cfg.arrive_tolerance;
+                let slow = vehicle.velocity.norm() <= (0.1 * limits.max_speed).max(0.2);
+                if line.is_finished(now) && close && slow {
+                    self.hold_point = Some(target);
+                    self.task = Task::Hold;
+                    self.finish(ActionState::Done);
+                } else if now > deadline {
+                    self.hold_point = Some(vehicle.position);
+                    self.fail(FailureReason::TimedOut);
+                } else {
+                    self.set_running(line.progress(now).min(0.99));
+                }
+            }
+            Task::Hold => {
+                if self.hold_point.is_none() {
+                    self.hold_point = Some(vehicle.position);
+                }
+                if !vehicle.armed {
+                    self.task = Task::Idle;
+                }
+            }
+            Task::Land { accepted, deadline } => {
+                if accepted && !vehicle.armed {
+                    self.hold_point = None;
+                    self.task = Task::Idle;
+                    self.finish(ActionState::Done);
+                } else if now > deadline {
+                    self.fail(FailureReason::TimedOut);
+                } else if accepted {
+                    let progress = 1.0 - (vehicle.position.z / limits.takeoff_altitude.max(0.1)).clamp(0.0, 1.0);
+                    self.set_running((progress * 0.95) as f32);
+                }
+            }
+        }
+    }
+}
+
+fn still(position: Vec3) -> ReferenceState {
+    ReferenceState { position, velocity: Vec3::zeros(), acceleration: Vec3::zeros() }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tacos_shared::scenario::Scenario;
+
+    fn lab() -> Executor {
+        let s = Scenario::builtin("city").expect("city");
+        Executor::new(ExecutorConfig::new(s.limits, s.world))
+    }
+
+    fn state(position: Vec3, armed: bool, mode: Px4Mode) -> VehicleStateSample {
+        VehicleStateSample {
+            link_ok: 1,
+            armed: u32::from(armed),
+            custom_mode: mode.custom_mode(),
+            landed: u32::from(position.z < 0.1),
+            position: position.into(),
+            ..Default::default()
+        }
+    }
+
+    fn accept(ex: &mut Executor, cmd: &CommandSample, now: f64) {
+        let r = CommandResultSample { seq: cmd.seq, kind: cmd.kind, outcome: CommandOutcome::Accepted as u32, ..Default::default() };
+        ex.on_result(&r, now);
+    }
+
+    fn cmd(seq: u64, action: Action) -> ActionCommand {
+        ActionCommand { seq, task_id: None, action }
+    }
+
+    fn state_of(ex: &Executor) -> ActionState {
+        ex.progress().map(|p| p.state.clone()).expect("an action")
+    }
+
+    #[test]
+    fn takeoff_arms_climbs_then_switches_to_offboard() {
+        let mut ex = lab();
+        let home = Vec3::new(-50.0, -132.5, 0.0);
+        ex.on_vehicle(&state(home, false, Px4Mode::Hold));
+        assert_eq!(ex.mode(), DroneMode::Idle);
+        assert!(ex.on_command(&cmd(1, Action::ArmTakeoff), 0.0));
+        let out = ex.tick(0.0);
+        assert_eq!(out.commands.len(), 1);
+        assert_eq!(out.commands[0].kind(), Some(CommandKind::Arm));
+        accept(&mut ex, &out.commands[0], 0.1);
+        let out = ex.tick(0.1);
+        assert_eq!(out.commands[0].kind(), Some(CommandKind::Takeoff));
+        assert_eq!(out.commands[0].param, 10.0);
+        accept(&mut ex, &out.commands[0], 0.2);
+        ex.on_vehicle(&state(home + Vec3::new(0.0, 0.0, 5.0), true, Px4Mode::Takeoff));
+        assert!(ex.tick(1.0).commands.is_empty());
+        assert!(matches!(state_of(&ex), ActionState::Running { .. }));
+        ex.on_vehicle(&state(home + Vec3::new(0.0, 0.0, 9.95), true, Px4Mode::Hold));
+        let out = ex.tick(3.0);
+        assert_eq!(out.commands[0].kind(), Some(CommandKind::Offboard));
+        assert_eq!(out.reference.map(|r| r.position.z), Some(10.0));
+        accept(&mut ex, &out.commands[0], 3.1);
+        assert_eq!(state_of(&ex), ActionState::Done);
+        assert_eq!(ex.mode(), DroneMode::Flying);
+    }
+
+    #[test]
+    fn goto_before_takeoff_is_refused_by_mode() {
+        let mut ex = lab();
+        ex.on_vehicle(&state(Vec3::new(-50.0, -132.5, 0.0), false, Px4Mode::Hold));
+        ex.on_command(&cmd(1, Action::Goto { target: Vec3::new(0.0, -100.0, 10.0) }), 0.0);
+        assert!(matches!(state_of(&ex), ActionState::Failed(FailureReason::InvalidForMode(_))));
+        assert!(ex.tick(0.0).commands.is_empty());
+    }
+
+    #[test]
+    fn goto_into_or_through_a_skyscraper_is_unreachable() {
+        let mut ex = lab();
+        ex.on_vehicle(&state(Vec3::new(-40.0, -40.0, 10.0), true, Px4Mode::Offboard));
+        ex.on_command(&cmd(1, Action::Goto { target: Vec3::new(-18.0, -18.0, 10.0) }), 0.0);
+        assert!(matches!(state_of(&ex), ActionState::Failed(FailureReason::Unreachable(_))));
+        ex.on_command(&cmd(2, Action::Goto { target: Vec3::new(40.0, 40.0, 10.0) }), 0.0);
+        match state_of(&ex) {
+            ActionState::Failed(FailureReason::Unreachable(why)) => assert!(why.contains("skyscraper"), "{why}"),
+            other => panic!("{other:?}"),
+        }
+        ex.on_command(&cmd(3, Action::Goto { target: Vec3::new(-40.0, 400.0, 10.0) }), 0.0);
+        assert!(matches!(state_of(&ex), ActionState::Failed(FailureReason::Unreachable(_))));
+    }
+
+    #[test]
+    fn goto_streams_a_limited_reference_and_completes_on_arrival() {
+        let mut ex = lab();
+        let start = Vec3::new(-40.0, -100.0, 10.0);
+        let goal = Vec3::new(-40.0, -80.0, 10.0);
+        ex.on_vehicle(&state(start, true, Px4Mode::Offboard));
+        ex.on_command(&cmd(5, Action::Goto { target: goal }), 0.0);
+        assert!(ex.tick(0.0).commands.is_empty(), "already in offboard");
+        let mid = ex.tick(2.0).reference.expect("reference");
+        assert!(mid.position.y > start.y && mid.position.y < goal.y);
+        assert!(mid.velocity.norm() <= 8.0);
+        ex.on_vehicle(&state(goal, true, Px4Mode::Offboard));
+        ex.tick(100.0);
+        assert_eq!(state_of(&ex), ActionState::Done);
+        assert_eq!(ex.tick(101.0).reference.map(|r| r.position), Some(goal));
+    }
+
+    #[test]
+    fn rejected_and_timed_out_commands_fail_the_action() {
+        let mut ex = lab();
+        ex.on_vehicle(&state(Vec3::new(-50.0, -132.5, 0.0), false, Px4Mode::Hold));
+        ex.on_command(&cmd(1, Action::ArmTakeoff), 0.0);
+        let arm = ex.tick(0.0).commands[0];
+        ex.on_result(&CommandResultSample { seq: arm.seq, kind: arm.kind, outcome: CommandOutcome::Rejected as u32, mav_result: 1, _reserved: 0 }, 0.5);
+        assert!(matches!(state_of(&ex), ActionState::Failed(FailureReason::Rejected(_))));
+        ex.on_command(&cmd(2, Action::ArmTakeoff), 1.0);
+        let arm = ex.tick(1.0).commands[0];
+        ex.on_result(&CommandResultSample { seq: arm.seq, kind: arm.kind, outcome: CommandOutcome::TimedOut as u32, ..Default::default() }, 4.0);
+        assert_eq!(state_of(&ex), ActionState::Failed(FailureReason::TimedOut));
+    }
+
+    #[test]
+    fn leaving_offboard_mid_goto_fails_it_and_link_loss_makes_the_drone_unavailable() {
+        let mut ex = lab();
+        let start = Vec3::new(-40.0, -100.0, 10.0);
+        ex.on_vehicle(&state(start, true, Px4Mode::Hold));
+        ex.on_command(&cmd(1, Action::Goto { target: Vec3::new(-40.0, -60.0, 10.0) }), 0.0);
+        let off = ex.tick(0.0).commands[0];
+        accept(&mut ex, &off, 0.1);
+        ex.on_vehicle(&state(start, true, Px4Mode::Offboard));
+        ex.tick(1.0);
+        ex.on_vehicle(&state(start, true, Px4Mode::Hold));
+        ex.tick(3.0);
+        assert!(matches!(state_of(&ex), ActionState::Failed(FailureReason::Rejected(_))));
+
+        let mut lost = state(start, true, Px4Mode::Hold);
+        lost.link_ok = 0;
+        ex.on_vehicle(&lost);
+        ex.tick(4.0);
+        assert_eq!(ex.mode(), DroneMode::Unavailable);
+    }
+
+    #[test]
+    fn repeated_sequence_numbers_are_ignored() {
+        let mut ex = lab();
+        ex.on_vehicle(&state(Vec3::new(-50.0, -132.5, 0.0), false, Px4Mode::Hold));
+        assert!(ex.on_command(&cmd(7, Action::ArmTakeoff), 0.0));
+        assert!(!ex.on_command(&cmd(7, Action::ArmTakeoff), 0.1));
+        assert_eq!(ex.tick(0.2).commands.len(), 1);
+    }
+
+    #[test]
+    fn failsafe_holds_then_lands() {
+        let mut ex = lab();
+        let p = Vec3::new(-40.0, -100.0, 10.0);
+        ex.on_vehicle(&state(p, true, Px4Mode::Offboard));
+        ex.on_command(&cmd(1, Action::Goto { target: Vec3::new(-40.0, -60.0, 10.0) }), 0.0);
+        ex.tick(0.5);
+        ex.set_failsafe(Some(FailsafeStage::Holding), 1.0);
+        assert!(matches!(state_of(&ex), ActionState::Failed(FailureReason::Failsafe(_))));
+        assert_eq!(ex.tick(1.1).reference.map(|r| r.position), Some(p));
+        ex.set_failsafe(Some(FailsafeStage::Landing), 5.0);
+        let out = ex.tick(5.0);
+        assert_eq!(out.commands.last().and_then(|c| c.kind()), Some(CommandKind::Land));
+    }
+}

@@ -1,0 +1,60 @@
+//! `tacos-onboard`: one drone's autonomy process (see the library for what it does).
+
+use anyhow::Context;
+use clap::Parser;
+use tacos_bus::BusArgs;
+use tacos_onboard::OnboardConfig;
+use tacos_shared::DroneId;
+
+#[derive(Debug, Parser)]
+#[command(version, about = "TACOS onboard autonomy for one drone")]
+struct Args {
+    #[command(flatten)]
+    bus: BusArgs,
+    /// This drone's id.
+    #[arg(long)]
+    drone: DroneId,
+    /// Built-in scenario (city, lab) or a scenario TOML file: the world and flight limits.
+    #[arg(long, default_value = "city")]
+    scenario: String,
+    /// Seconds of ground silence before holding.
+    #[arg(long, default_value_t = 3.0)]
+    failsafe_hold_s: f64,
+    /// Seconds of ground silence before landing.
+    #[arg(long, default_value_t = 30.0)]
+    failsafe_land_s: f64,
+}
+
+fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
+        .with_writer(std::io::stderr)
+        .init();
+    let args = Args::parse();
+    let scenario = tacos_bus::load_scenario(&args.scenario)?;
+    let mut cfg = OnboardConfig::new(args.bus, args.drone, scenario);
+    cfg.failsafe_hold_s = args.failsafe_hold_s;
+    cfg.failsafe_land_s = args.failsafe_land_s;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    runtime.block_on(tacos_onboard::run(cfg, shutdown_signal()))?;
+    Ok(())
+}
+
+async fn shutdown_signal() {
+    use tokio::signal::unix::{SignalKind, signal};
+    match signal(SignalKind::terminate()) {
+        Ok(mut term) => {
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => {}
+                _ = term.recv() => {}
+            }
+        }
+        Err(_) => {
+            let _ = tokio::signal::ctrl_c().await;
+        }
+    }
+}

@@ -1,0 +1,201 @@
+//! The task shell around the executor: zenoh in and out, iceoryx2 to the writer, the clock.
+
+use crate::executor::{Executor, ExecutorConfig};
+use crate::failsafe::FailsafeTimer;
+use std::future::Future;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use tacos_bus::{BusArgs, BusError};
+use tacos_ipc::{IpcError, IpcNode};
+use tacos_shared::ActionCommand;
+use tacos_shared::DroneId;
+use tacos_shared::ipc::SetpointSample;
+use tacos_shared::messages::{DroneStatus, GroundHeartbeat};
+use tacos_shared::scenario::Scenario;
+use tokio::time::MissedTickBehavior;
+use tracing::{info, info_span, warn, Instrument};
+
+#[derive(Debug, Clone)]
+pub struct OnboardConfig {
+    pub bus: BusArgs,
+    pub drone: DroneId,
+    pub scenario: Scenario,
+    /// Setpoint and executor rate.
+    pub control_rate_hz: f64,
+    /// Status publication rate (≥ 10 Hz).
+    pub status_rate_hz: f64,
+    /// Ground silent this long → hold.
+    pub failsafe_hold_s: f64,
+    /// Ground silent this long → land.
+    pub failsafe_land_s: f64,
+    /// No vehicle state from the writer for this long → autopilot link treated as lost.
+    pub writer_timeout_s: f64,
+}
+
+impl OnboardConfig {
+    pub fn new(bus: BusArgs, drone: DroneId, scenario: Scenario) -> Self {
+        OnboardConfig {
+            bus,
+            drone,
+            scenario,
+            control_rate_hz: 50.0,
+            status_rate_hz: 20.0,
+            failsafe_hold_s: 3.0,
+            failsafe_land_s: 30.0,
+            writer_timeout_s: 1.0,
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum OnboardError {
+    #[error(transparent)]
+    Bus(#[from] BusError),
+    #[error(transparent)]
+    Ipc(#[from] IpcError),
+    #[error("the zenoh subscriber for {0} closed")]
+    SubscriberClosed(String),
+}
+
+fn unix_nanos() -> u64 {
+    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
+}
+
+/// Runs the drone until `shutdown` completes.
+pub async fn run(cfg: OnboardConfig, shutdown: impl Future<Output = ()>) -> Result<(), OnboardError> {
+    let span = info_span!("drone", id = %cfg.drone);
+    run_inner(cfg, shutdown).instrument(span).await
+}
+
+async fn run_inner(cfg: OnboardConfig, shutdown: impl Future<Output = ()>) -> Result<(), OnboardError> {
+    let keys = cfg.bus.keys();
+    let drone = cfg.drone.clone();
+    let session = cfg.bus.open().await?;
+    let actions = tacos_bus::subscribe(&session, &keys.action(&drone)).await?;
+    let heartbeats = tacos_bus::subscribe(&session, &keys.ground_heartbeat()).await?;
+    let ipc = IpcNode::new(&cfg.bus.swarm, &drone)?;
+    let ports = ipc.onboard_ports()?;
+    // Declared last: the ground sees the drone only once it can take actions.
+    let _alive = tacos_bus::declare_alive(&session, &keys.alive(&drone)).await?;
+    info!(swarm = %cfg.bus.swarm, "onboard up");
+
+    let origin = Instant::now();
+    let now = || origin.elapsed().as_secs_f64();
+    let mut executor = Executor::new(ExecutorConfig::new(cfg.scenario.limits, cfg.scenario.world.clone()));
+    let mut failsafe = FailsafeTimer::new(cfg.failsafe_hold_s, cfg.failsafe_land_s, now());
+    let mut control = tokio::time::interval(Duration::from_secs_f64(1.0 / cfg.control_rate_hz));
+    control.set_missed_tick_behavior(MissedTickBehavior::Skip);
+    let status_every = (cfg.control_rate_hz / cfg.status_rate_hz).round().max(1.0) as u64;
+    let status_key = keys.status(&drone);
+
+    let mut ticks: u64 = 0;
+    let mut status_counter: u64 = 0;
+    let mut malformed_actions: u64 = 0;
+    let mut malformed_heartbeats: u64 = 0;
+    let mut setpoint_seq: u64 = 0;
+    let mut last_state_at: Option<f64> = None;
+    let mut ipc_errors: u64 = 0;
+    let mut publish_now = false;
+    tokio::pin!(shutdown);
+
+    loop {
+        tokio::select! {
+            _ = &mut shutdown => break,
+            sample = actions.recv_async() => {
+                let sample = sample.map_err(|_| OnboardError::SubscriberClosed(keys.action(&drone)))?;
+                match tacos_bus::decode::<ActionCommand>(&sample) {
+                    Ok(command) => {
+                        if executor.on_command(&command, now()) {
+                            info!(seq = command.seq, action = %command.action, "action received");
+                            publish_now = true;
+                        }
+                    }
+                    Err(e) => {
+                        malformed_actions += 1;
+                        warn!(error = %e, count = malformed_actions, "malformed action ignored");
+                        publish_now = true;
+                    }
+                }
+            }
+            sample = heartbeats.recv_async() => {
+                let sample = sample.map_err(|_| OnboardError::SubscriberClosed(keys.ground_heartbeat()))?;
+                match tacos_bus::decode::<GroundHeartbeat>(&sample) {
+                    Ok(_) => failsafe.heard(now()),
+                    Err(e) => {
+                        malformed_heartbeats += 1;
+                        if malformed_heartbeats.is_power_of_two() {
+                            warn!(error = %e, count = malformed_heartbeats, "malformed ground heartbeat ignored");
+                        }
+                    }
+                }
+            }
+            _ = control.tick() => {
+                let t = now();
+                let step = (|| -> Result<(), IpcError> {
+                    for result in ports.results.drain()? {
+                        executor.on_result(&result, t);
+                    }
+                    if let Some(state) = ports.state.latest()? {
+                        executor.on_vehicle(&state);
+                        last_state_at = Some(t);
+                    }
+                    if last_state_at.is_some_and(|at| t - at > cfg.writer_timeout_s) {
+                        executor.on_writer_silent();
+                    }
+                    let before = executor.failsafe();
+                    executor.set_failsafe(failsafe.stage(t), t);
+                    if executor.failsafe() != before {
+                        warn!(stage = ?executor.failsafe(), silence_s = failsafe.silence(t), "failsafe changed");
+                    }
+                    let out = executor.tick(t);
+                    for command in out.commands {
+                        ports.send_command(command)?;
+                    }
+                    if let Some(reference) = out.reference {
+                        setpoint_seq += 1;
+                        ports.send_setpoint(SetpointSample {
+                            seq: setpoint_seq,
+                            stamp_ns: unix_nanos(),
+                            position: reference.position.into(),
+                            velocity: reference.velocity.into(),
+                            acceleration: reference.acceleration.into(),
+                            yaw: f64::NAN,
+                        })?;
+                    }
+                    Ok(())
+                })();
+                if let Err(e) = step {
+                    ipc_errors += 1;
+                    if ipc_errors.is_power_of_two() {
+                        warn!(error = %e, count = ipc_errors, "iceoryx2 exchange with the writer failed");
+                    }
+                }
+                ticks += 1;
+                if ticks % status_every == 0 {
+                    publish_now = true;
+                }
+            }
+        }
+        if publish_now {
+            publish_now = false;
+            status_counter += 1;
+            let vehicle = executor.vehicle().copied();
+            let status = DroneStatus {
+                drone: drone.clone(),
+                counter: status_counter,
+                mode: executor.mode(),
+                armed: vehicle.is_some_and(|v| v.armed),
+                position: vehicle.map(|v| v.position).unwrap_or_default(),
+                velocity: vehicle.map(|v| v.velocity).unwrap_or_default(),
+                autopilot_link: vehicle.is_some_and(|v| v.link_ok),
+                action: executor.progress().cloned(),
+                failsafe: executor.failsafe(),
+                malformed_actions,
+            };
+            if let Err(e) = tacos_bus::put(&session, &status_key, &status, false).await {
+                warn!(error = %e, "status not published");
+            }
+        }
+    }
+    info!("onboard shutting down");
+    Ok(())
+}

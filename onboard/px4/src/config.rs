@@ -1,0 +1,176 @@
+//! The writer's configuration: typed, validated, built by the binary from its flags.
+
+use std::net::SocketAddr;
+use std::time::Duration;
+use tacos_shared::frames::Home;
+use tacos_shared::{DroneId, SwarmId, Vec3};
+
+/// Slowest accepted setpoint stream: PX4 needs > 2 Hz to enter offboard; we keep a wide margin.
+pub const MIN_STREAM_RATE_HZ: f64 = 20.0;
+/// Fastest accepted setpoint stream (more only loads the link).
+pub const MAX_STREAM_RATE_HZ: f64 = 500.0;
+
+/// How the writer reaches the autopilot.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MavlinkLink {
+    /// Bind this address and answer whoever sends to it (the autopilot's address is learnt from
+    /// its packets), as MAVSDK's `udp://:14540` does with PX4 SITL.
+    UdpIn(SocketAddr),
+    /// Send to this address from an ephemeral local port.
+    UdpOut(SocketAddr),
+}
+
+impl std::str::FromStr for MavlinkLink {
+    type Err = ConfigError;
+
+    fn from_str(raw: &str) -> Result<Self, ConfigError> {
+        let bad = |why: &str| ConfigError::Link { raw: raw.to_owned(), reason: why.to_owned() };
+        let (scheme, addr) = raw.split_once(':').ok_or_else(|| bad("expected udpin:HOST:PORT or udpout:HOST:PORT"))?;
+        let addr: SocketAddr = addr.parse().map_err(|e| bad(&format!("{e} (expected an IP address and port, e.g. 127.0.0.1:14540)")))?;
+        match scheme {
+            "udpin" => Ok(MavlinkLink::UdpIn(addr)),
+            "udpout" => {
+                if addr.port() == 0 || addr.ip().is_unspecified() {
+                    return Err(bad("udpout needs a concrete address and port to send to"));
+                }
+                Ok(MavlinkLink::UdpOut(addr))
+            }
+            other => Err(bad(&format!("unknown scheme {other:?}; use udpin or udpout"))),
+        }
+    }
+}
+
+impl std::fmt::Display for MavlinkLink {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            MavlinkLink::UdpIn(a) => write!(f, "udpin:{a}"),
+            MavlinkLink::UdpOut(a) => write!(f, "udpout:{a}"),
+        }
+    }
+}
+
+/// Parses a home given as `X,Y,Z` (world ENU metres).
+pub fn parse_home(raw: &str) -> Result<Home, ConfigError> {
+    let bad = |why: String| ConfigError::Home { raw: raw.to_owned(), reason: why };
+    let parts: Vec<&str> = raw.split(',').map(str::trim).collect();
+    if parts.len() != 3 {
+        return Err(bad(format!("expected X,Y,Z, got {} value(s)", parts.len())));
+    }
+    let mut xyz = [0.0; 3];
+    for (slot, part) in xyz.iter_mut().zip(&parts) {
+        let v: f64 = part.parse().map_err(|e| bad(format!("{part:?}: {e}")))?;
+        if !v.is_finite() {
+            return Err(bad(format!("{part:?} is not finite")));
+        }
+        *slot = v;
+    }
+    Ok(Home::new(Vec3::from(xyz)))
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ConfigError {
+    #[error("bad --mavlink {raw:?}: {reason}")]
+    Link { raw: String, reason: String },
+    #[error("bad --home {raw:?}: {reason}")]
+    Home { raw: String, reason: String },
+    #[error("--stream-rate-hz {0} is outside [{MIN_STREAM_RATE_HZ}, {MAX_STREAM_RATE_HZ}]")]
+    StreamRate(f64),
+    #[error("--onboard-timeout-ms must be at least 1")]
+    OnboardTimeout,
+    #[error("--sysid {0} must be 1..=255")]
+    SysId(u32),
+}
+
+/// Everything one writer needs.
+#[derive(Debug, Clone)]
+pub struct WriterConfig {
+    pub swarm: SwarmId,
+    pub drone: DroneId,
+    /// The vehicle's NED origin in world ENU.
+    pub home: Home,
+    pub link: MavlinkLink,
+    /// SET_POSITION_TARGET_LOCAL_NED rate.
+    pub stream_rate_hz: f64,
+    /// No setpoint from the planner for this long → stream a hold.
+    pub onboard_timeout: Duration,
+    /// Our MAVLink system id (PX4 SITL's MAVSDK convention is 245 for an onboard computer).
+    pub sysid: u8,
+}
+
+impl WriterConfig {
+    /// Checks the numbers; the ids and addresses were checked when parsed.
+    pub fn new(
+        swarm: SwarmId,
+        drone: DroneId,
+        home: Home,
+        link: MavlinkLink,
+        stream_rate_hz: f64,
+        onboard_timeout_ms: u64,
+        sysid: u32,
+    ) -> Result<Self, ConfigError> {
+        if !(MIN_STREAM_RATE_HZ..=MAX_STREAM_RATE_HZ).contains(&stream_rate_hz) {
+            return Err(ConfigError::StreamRate(stream_rate_hz));
+        }
+        if onboard_timeout_ms == 0 {
+            return Err(ConfigError::OnboardTimeout);
+        }
+        let sysid = u8::try_from(sysid).ok().filter(|s| *s != 0).ok_or(ConfigError::SysId(sysid))?;
+        Ok(WriterConfig {
+            swarm,
+            drone,
+            home,
+            link,
+            stream_rate_hz,
+            onboard_timeout: Duration::from_millis(onboard_timeout_ms),
+            sysid,
+        })
+    }
+
+    pub fn stream_period(&self) -> Duration {
+        Duration::from_secs_f64(1.0 / self.stream_rate_hz)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn links_parse() {
+        assert_eq!("udpin:127.0.0.1:14540".parse::<MavlinkLink>(), Ok(MavlinkLink::UdpIn(SocketAddr::from(([127, 0, 0, 1], 14540)))));
+        assert_eq!("udpin:0.0.0.0:14540".parse::<MavlinkLink>().map(|l| l.to_string()), Ok("udpin:0.0.0.0:14540".to_owned()));
+        assert!(matches!("udpout:10.0.0.2:14580".parse::<MavlinkLink>(), Ok(MavlinkLink::UdpOut(_))));
+        for bad in ["", "udp:127.0.0.1:1", "udpin:localhost:14540", "udpin:127.0.0.1", "udpout:0.0.0.0:14540", "udpout:127.0.0.1:0", "serial:/dev/ttyS0"] {
+            assert!(bad.parse::<MavlinkLink>().is_err(), "{bad:?} was accepted");
+        }
+    }
+
+    #[test]
+    fn homes_parse() {
+        assert_eq!(parse_home("10,-20.5, 3").map(|h| h.enu), Ok(Vec3::new(10.0, -20.5, 3.0)));
+        for bad in ["", "1,2", "1,2,3,4", "1,x,3", "1,NaN,3", "1,inf,3"] {
+            assert!(parse_home(bad).is_err(), "{bad:?} was accepted");
+        }
+    }
+
+    #[test]
+    fn numbers_are_checked() {
+        let ok = |rate, timeout, sysid| {
+            WriterConfig::new(
+                SwarmId::new("s").map_err(|_| ConfigError::OnboardTimeout)?,
+                DroneId::new("alfa").map_err(|_| ConfigError::OnboardTimeout)?,
+                Home::new(Vec3::zeros()),
+                MavlinkLink::UdpIn(SocketAddr::from(([127, 0, 0, 1], 14540))),
+                rate,
+                timeout,
+                sysid,
+            )
+        };
+        assert!(ok(50.0, 500, 245).is_ok());
+        assert_eq!(ok(10.0, 500, 245).err(), Some(ConfigError::StreamRate(10.0)));
+        assert_eq!(ok(f64::NAN, 500, 245).err().map(|e| matches!(e, ConfigError::StreamRate(_))), Some(true));
+        assert_eq!(ok(50.0, 0, 245).err(), Some(ConfigError::OnboardTimeout));
+        assert_eq!(ok(50.0, 500, 0).err(), Some(ConfigError::SysId(0)));
+        assert_eq!(ok(50.0, 500, 256).err(), Some(ConfigError::SysId(256)));
+    }
+}

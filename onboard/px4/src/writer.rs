@@ -1,0 +1,442 @@
+//! The shell: a UDP socket, the iceoryx2 ports and two threads around the pure parts.
+//!
+//! - The stream thread (the caller's) waits on the iceoryx2 wake-up with a timeout equal to the
+//!   time to the next stream tick, drains setpoints and commands, runs the command machine and
+//!   sends HEARTBEAT (1 Hz), SET_POSITION_TARGET_LOCAL_NED (stream rate, and at once for a new
+//!   setpoint) and COMMAND_LONG.
+//! - The receive thread decodes every datagram from the autopilot, tracks the vehicle, queues
+//!   acks for the stream thread and publishes the vehicle state (on every LOCAL_POSITION_NED,
+//!   on link changes, and at least every 200 ms).
+
+use crate::Px4Error;
+use crate::commands::{CommandEvent, CommandRunner};
+use crate::config::{MavlinkLink, WriterConfig};
+use crate::convert::to_ned;
+use crate::mav::{self, Datagram, Encoder};
+use crate::ratelimit::RateLimit;
+use crate::reference::{ReferenceKeeper, Source};
+use crate::vehicle::{HeartbeatVerdict, LinkChange, VehicleTracker};
+use mavlink::dialects::common::{MavAutopilot, MavMessage};
+use std::io::ErrorKind;
+use std::net::{Ipv4Addr, Ipv6Addr, SocketAddr, UdpSocket};
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+use tacos_ipc::{IpcNode, WriterPorts};
+use tacos_shared::Vec3;
+use tacos_shared::ipc::CommandResultSample;
+use tracing::{debug, info, warn};
+
+/// The receive thread's socket timeout: how quickly it notices shutdown and link loss.
+const RECV_TIMEOUT: Duration = Duration::from_millis(50);
+/// Vehicle state is published at least this often, position or not.
+const STATE_PERIOD: Duration = Duration::from_millis(200);
+const HEARTBEAT_PERIOD: Duration = Duration::from_secs(1);
+const LOG_INTERVAL: Duration = Duration::from_secs(5);
+
+/// Counters of one run, returned when the writer stops.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct RunSummary {
+    pub setpoints_sent: u64,
+    pub setpoints_rejected: u64,
+    pub commands_done: u64,
+    pub datagrams_received: u64,
+    pub datagrams_malformed: u64,
+    pub states_published: u64,
+}
+
+/// What both threads share.
+struct Shared {
+    vehicle: VehicleTracker,
+    /// Where the autopilot is (udpin: learnt from its packets).
+    peer: Option<SocketAddr>,
+    /// (MAV_CMD, MAV_RESULT) of COMMAND_ACKs not yet seen by the stream thread.
+    acks: Vec<(u32, u8)>,
+}
+
+struct Ctx<'a> {
+    config: &'a WriterConfig,
+    socket: UdpSocket,
+    ports: WriterPorts,
+    shared: Mutex<Shared>,
+    epoch: Instant,
+    /// Set by the binary's signal handler.
+    shutdown: &'a AtomicBool,
+    /// Set when either thread ends, so the other one ends too.
+    stop: AtomicBool,
+    datagrams: AtomicU64,
+    malformed: AtomicU64,
+    states: AtomicU64,
+}
+
+impl Ctx<'_> {
+    fn stopping(&self) -> bool {
+        self.shutdown.load(Ordering::Relaxed) || self.stop.load(Ordering::Relaxed)
+    }
+
+    /// The shared state; a panic in the other thread while it held the lock leaves the data
+    /// usable (every update is a plain assignment), so poisoning is ignored.
+    fn shared(&self) -> std::sync::MutexGuard<'_, Shared> {
+        self.shared.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+    }
+}
+
+fn open_socket(link: MavlinkLink) -> Result<(UdpSocket, Option<SocketAddr>), Px4Error> {
+    let (bind, peer) = match link {
+        MavlinkLink::UdpIn(addr) => (addr, None),
+        MavlinkLink::UdpOut(addr) => {
+            let any = if addr.is_ipv4() {
+                SocketAddr::from((Ipv4Addr::UNSPECIFIED, 0))
+            } else {
+                SocketAddr::from((Ipv6Addr::UNSPECIFIED, 0))
+            };
+            (any, Some(addr))
+        }
+    };
+    let socket = UdpSocket::bind(bind).map_err(|source| Px4Error::Bind { addr: bind, source })?;
+    socket.set_read_timeout(Some(RECV_TIMEOUT)).map_err(Px4Error::Socket)?;
+    Ok((socket, peer))
+}
+
+/// Runs one writer until `shutdown` is set (or a fatal error). Binds the socket first, so a port
+/// in use fails at once.
+pub fn run(config: &WriterConfig, shutdown: &AtomicBool) -> Result<RunSummary, Px4Error> {
+    let (socket, peer) = open_socket(config.link)?;
+    let local = socket.local_addr().map_err(Px4Error::Socket)?;
+    let node = IpcNode::new(&config.swarm, &config.drone)?;
+    let ports = node.writer_ports()?;
+    let epoch = Instant::now();
+    info!(%local, link = %config.link, home = ?config.home.enu, rate_hz = config.stream_rate_hz, "MAVLink writer up");
+    let ctx = Ctx {
+        config,
+        socket,
+        ports,
+        shared: Mutex::new(Shared { vehicle: VehicleTracker::new(config.home, epoch), peer, acks: Vec::new() }),
+        epoch,
+        shutdown,
+        stop: AtomicBool::new(false),
+        datagrams: AtomicU64::new(0),
+        malformed: AtomicU64::new(0),
+        states: AtomicU64::new(0),
+    };
+    let (stream_result, receive_result) = std::thread::scope(|scope| {
+        let receiver = scope.spawn(|| {
+            let r = receive_loop(&ctx);
+            ctx.stop.store(true, Ordering::Relaxed);
+            r
+        });
+        let s = stream_loop(&ctx);
+        ctx.stop.store(true, Ordering::Relaxed);
+        let r = receiver.join().unwrap_or(Err(Px4Error::ThreadPanicked));
+        (s, r)
+    });
+    let mut summary = stream_result?;
+    receive_result?;
+    summary.datagrams_received = ctx.datagrams.load(Ordering::Relaxed);
+    summary.datagrams_malformed = ctx.malformed.load(Ordering::Relaxed);
+    summary.states_published = ctx.states.load(Ordering::Relaxed);
+    let shared = ctx.shared();
+    if shared.vehicle.mode() == tacos_shared::px4_mode::Px4Mode::Offboard && shared.vehicle.link_ok(Instant::now()) {
+        warn!("stopping while the vehicle is in OFFBOARD: PX4 will run its offboard-loss failsafe");
+    }
+    Ok(summary)
+}
+
+// ---- stream thread -------------------------------------------------------------------------
+
+struct Stream<'a> {
+    ctx: &'a Ctx<'a>,
+    encoder: Encoder,
+    keeper: ReferenceKeeper,
+    runner: CommandRunner,
+    summary: RunSummary,
+    last_source: Option<Source>,
+    send_log: RateLimit,
+    ipc_log: RateLimit,
+    reject_log: RateLimit,
+}
+
+impl Stream<'_> {
+    fn send(&mut self, peer: SocketAddr, msg: &MavMessage, now: Instant) -> bool {
+        let bytes = self.encoder.encode(msg);
+        if bytes.is_empty() {
+            return false;
+        }
+        match self.ctx.socket.send_to(&bytes, peer) {
+            Ok(_) => true,
+            Err(e) => {
+                if let Some(skipped) = self.send_log.allow(now) {
+                    warn!(%peer, error = %e, skipped, "MAVLink send failed");
+                }
+                false
+            }
+        }
+    }
+
+    fn publish_result(&mut self, result: CommandResultSample, now: Instant) {
+        self.summary.commands_done += 1;
+        info!(seq = result.seq, kind = result.kind, outcome = ?result.outcome(), mav_result = result.mav_result, "command done");
+        if let Err(e) = self.ctx.ports.publish_result(result)
+            && let Some(skipped) = self.ipc_log.allow(now)
+        {
+            warn!(error = %e, skipped, "cannot publish a command result");
+        }
+    }
+
+    /// Takes setpoints and commands from the planner; true when a new setpoint was accepted.
+    fn drain_ipc(&mut self, now: Instant) -> bool {
+        let mut fresh = false;
+        match self.ctx.ports.setpoints.drain() {
+            Ok(samples) => {
+                for sp in samples {
+                    match self.keeper.offer(&sp, now) {
+                        Ok(()) => fresh = true,
+                        Err(e) => {
+                            if let Some(skipped) = self.reject_log.allow(now) {
+                                warn!(%e, total = self.keeper.rejected(), skipped, "setpoint rejected");
+                            }
+                        }
+                    }
+                }
+            }
+            Err(e) => {
+                if let Some(skipped) = self.ipc_log.allow(now) {
+                    warn!(error = %e, skipped, "cannot receive setpoints");
+                }
+            }
+        }
+        match self.ctx.ports.commands.drain() {
+            Ok(commands) => {
+                for cmd in commands {
+                    info!(seq = cmd.seq, kind = cmd.kind, param = cmd.param, "command received");
+                    if let Some(result) = self.runner.submit(cmd) {
+                        self.publish_result(result, now);
+                    }
+                }
+            }
+            Err(e) => {
+                if let Some(skipped) = self.ipc_log.allow(now) {
+                    warn!(error = %e, skipped, "cannot receive commands");
+                }
+            }
+        }
+        fresh
+    }
+
+    fn stream_setpoint(&mut self, now: Instant, peer: Option<SocketAddr>, target: Option<(u8, u8)>, view: Option<crate::reference::VehicleView>) {
+        let Some(reference) = self.keeper.current(now, view) else { return };
+        if self.last_source != Some(reference.source) {
+            match reference.source {
+                Source::Planner => info!("streaming the planner's setpoints"),
+                Source::HoldLastSetpoint => warn!(
+                    position = ?reference.reference.position,
+                    timeout_ms = self.ctx.config.onboard_timeout.as_millis(),
+                    "planner silent: streaming a hold at its last setpoint"
+                ),
+                Source::HoldVehicle => info!(position = ?reference.reference.position, "no setpoint yet: streaming a hold at the vehicle's position"),
+            }
+            self.last_source = Some(reference.source);
+        }
+        let (Some(peer), Some((sysid, compid))) = (peer, target) else { return };
+        let ned = to_ned(&self.ctx.config.home, &reference.reference);
+        let boot_ms = now.saturating_duration_since(self.ctx.epoch).as_millis() as u32; // wraps after 49 days, as PX4's does
+        let msg = mav::set_position_target(&ned, boot_ms, sysid, compid);
+        if self.send(peer, &msg, now) {
+            self.summary.setpoints_sent += 1;
+        }
+    }
+}
+
+fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
+    let period = ctx.config.stream_period();
+    let mut s = Stream {
+        ctx,
+        encoder: Encoder::new(ctx.config.sysid),
+        keeper: ReferenceKeeper::new(ctx.config.onboard_timeout),
+        runner: CommandRunner::new(),
+        summary: RunSummary::default(),
+        last_source: None,
+        send_log: RateLimit::new(LOG_INTERVAL),
+        ipc_log: RateLimit::new(LOG_INTERVAL),
+        reject_log: RateLimit::new(LOG_INTERVAL),
+    };
+    let start = Instant::now();
+    let mut next_tick = start;
+    let mut next_heartbeat = start;
+    while !ctx.stopping() {
+        let now = Instant::now();
+        let fresh = s.drain_ipc(now);
+
+        let (acks, link_ok, target, view, peer) = {
+            let mut shared = ctx.shared();
+            let acks = std::mem::take(&mut shared.acks);
+            let ap = shared.vehicle.autopilot();
+            (acks, shared.vehicle.link_ok(now), ap.map(|a| (a.sysid, a.compid)), shared.vehicle.view(), shared.peer)
+        };
+
+        for (command, result) in acks {
+            let Ok(command) = u16::try_from(command) else { continue };
+            if let Some(done) = s.runner.on_ack(command, result, now) {
+                s.publish_result(done, now);
+            }
+        }
+        let reachable = link_ok && peer.is_some() && target.is_some();
+        for event in s.runner.poll(now, reachable) {
+            match event {
+                CommandEvent::Done(result) => s.publish_result(result, now),
+                CommandEvent::Send(cmd) => {
+                    let (Some(peer), Some((sysid, compid))) = (peer, target) else { continue };
+                    debug!(command = cmd.command, confirmation = cmd.confirmation, "COMMAND_LONG");
+                    if let Some(msg) = mav::command_long(&cmd, sysid, compid) {
+                        s.send(peer, &msg, now);
+                    }
+                }
+            }
+        }
+
+        if now >= next_heartbeat {
+            if let Some(peer) = peer {
+                s.send(peer, &mav::heartbeat(), now);
+            }
+            next_heartbeat += HEARTBEAT_PERIOD;
+            if next_heartbeat <= now {
+                next_heartbeat = now + HEARTBEAT_PERIOD;
+            }
+        }
+
+        if fresh || now >= next_tick {
+            s.stream_setpoint(now, peer, target, view);
+            // A new setpoint restarts the period; a late tick does not cause a burst.
+            next_tick = if fresh { now + period } else { next_tick + period };
+            if next_tick <= now {
+                next_tick = now + period;
+            }
+        }
+
+        let mut deadline = next_tick.min(next_heartbeat);
+        if let Some(d) = s.runner.next_deadline() {
+            deadline = deadline.min(d);
+        }
+        let timeout = deadline.saturating_duration_since(Instant::now());
+        if let Err(e) = ctx.ports.wait_for_wakeup(timeout) {
+            // Without the event the stream must still keep its rate: pace on the clock instead.
+            if let Some(skipped) = s.ipc_log.allow(now) {
+                warn!(error = %e, skipped, "iceoryx2 wake-up failed; pacing on the clock");
+            }
+            std::thread::sleep(timeout);
+        }
+    }
+    s.summary.setpoints_rejected = s.keeper.rejected();
+    Ok(s.summary)
+}
+
+// ---- receive thread ------------------------------------------------------------------------
+
+fn receive_loop(ctx: &Ctx<'_>) -> Result<(), Px4Error> {
+    // Larger than any datagram a MAVLink endpoint sends (several frames of ≤ 280 bytes).
+    let mut buf = vec![0u8; 65_536];
+    let mut last_state = Instant::now();
+    let mut malformed_log = RateLimit::new(LOG_INTERVAL);
+    let mut ipc_log = RateLimit::new(LOG_INTERVAL);
+    let mut foreign_log = RateLimit::new(Duration::from_secs(60));
+    while !ctx.stopping() {
+        let received = match ctx.socket.recv_from(&mut buf) {
+            Ok((n, from)) => Some((n, from)),
+            Err(e) if matches!(
+                e.kind(),
+                ErrorKind::WouldBlock | ErrorKind::TimedOut | ErrorKind::Interrupted | ErrorKind::ConnectionRefused | ErrorKind::ConnectionReset
+            ) => None,
+            Err(e) => return Err(Px4Error::Socket(e)),
+        };
+        let now = Instant::now();
+        let mut publish = false;
+        if let Some((n, from)) = received {
+            ctx.datagrams.fetch_add(1, Ordering::Relaxed);
+            let datagram = mav::decode_datagram(buf.get(..n).unwrap_or_default());
+            if datagram.is_malformed() {
+                let total = ctx.malformed.fetch_add(1, Ordering::Relaxed) + 1;
+                if let Some(skipped) = malformed_log.allow(now) {
+                    warn!(%from, bytes = n, parse_errors = datagram.parse_errors, total, skipped, "malformed MAVLink datagram");
+                }
+            }
+            publish = handle_datagram(ctx, datagram, from, now, &mut foreign_log);
+        }
+        let sample = {
+            let mut shared = ctx.shared();
+            match shared.vehicle.update_link(now) {
+                Some(LinkChange::Up) => {
+                    info!(autopilot = ?shared.vehicle.autopilot(), peer = ?shared.peer, "autopilot link up");
+                    publish = true;
+                }
+                Some(LinkChange::Lost) => {
+                    warn!("autopilot link lost: no heartbeat for 3 s");
+                    publish = true;
+                }
+                None => {}
+            }
+            (publish || now.saturating_duration_since(last_state) >= STATE_PERIOD).then(|| shared.vehicle.sample(now))
+        };
+        if let Some(sample) = sample {
+            last_state = now;
+            match ctx.ports.publish_state(sample) {
+                Ok(()) => {
+                    ctx.states.fetch_add(1, Ordering::Relaxed);
+                }
+                Err(e) => {
+                    if let Some(skipped) = ipc_log.allow(now) {
+                        warn!(error = %e, skipped, "cannot publish the vehicle state");
+                    }
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Applies one datagram to the shared state; true when a new position arrived.
+fn handle_datagram(ctx: &Ctx<'_>, datagram: Datagram, from: SocketAddr, now: Instant, foreign_log: &mut RateLimit) -> bool {
+    let mut position = false;
+    let mut shared = ctx.shared();
+    let udpin = matches!(ctx.config.link, MavlinkLink::UdpIn(_));
+    if udpin && shared.peer.is_none() && !datagram.messages.is_empty() {
+        info!(%from, "first MAVLink packet: replying to its sender");
+        shared.peer = Some(from);
+    }
+    for (header, msg) in datagram.messages {
+        let Ok(sysid) = u8::try_from(header.system_id) else { continue };
+        let compid = header.component_id;
+        match msg {
+            MavMessage::HEARTBEAT(hb) => {
+                if hb.autopilot == MavAutopilot::MAV_AUTOPILOT_INVALID {
+                    continue; // a GCS or another companion computer
+                }
+                match shared.vehicle.on_heartbeat(now, sysid, compid, hb.base_mode.bits(), hb.custom_mode) {
+                    HeartbeatVerdict::Ours => {
+                        if udpin && shared.peer != Some(from) {
+                            info!(%from, "autopilot heartbeats now come from a new address");
+                            shared.peer = Some(from);
+                        }
+                    }
+                    HeartbeatVerdict::Foreign => {
+                        if let Some(skipped) = foreign_log.allow(now) {
+                            debug!(sysid, compid, skipped, "ignoring a heartbeat from another system");
+                        }
+                    }
+                }
+            }
+            _ if !shared.vehicle.is_autopilot(sysid, compid) => {}
+            MavMessage::LOCAL_POSITION_NED(p) => {
+                let ned = Vec3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+                let vel = Vec3::new(f64::from(p.vx), f64::from(p.vy), f64::from(p.vz));
+                if ned.iter().chain(vel.iter()).all(|c| c.is_finite()) {
+                    shared.vehicle.on_local_position(ned, vel);
+                    position = true;
+                }
+            }
+            MavMessage::EXTENDED_SYS_STATE(s) => shared.vehicle.on_extended_sys_state(s.landed_state as u8),
+            MavMessage::COMMAND_ACK(ack) => shared.acks.push((mav::command_id(ack.command), ack.result as u8)),
+            _ => {}
+        }
+    }
+    position
+}

@@ -1,0 +1,305 @@
+//! Test kit for the writer's integration tests: unique ids, free ports, the real binary as a
+//! child process, a minimal autopilot over a real UDP socket, and deadline-bounded waits.
+#![allow(dead_code)] // each test file uses a different part of the kit
+
+use mavlink::dialects::common::{
+    COMMAND_ACK_DATA, HEARTBEAT_DATA, LOCAL_POSITION_NED_DATA, MavAutopilot, MavMessage, MavModeFlag, MavResult,
+    MavState, MavType,
+};
+use mavlink::{MavHeader, MavlinkReader};
+use std::net::{SocketAddr, UdpSocket};
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+use tacos_shared::{DroneId, SwarmId};
+
+pub fn unique_swarm(tag: &str) -> SwarmId {
+    static COUNTER: AtomicU32 = AtomicU32::new(0);
+    let n = COUNTER.fetch_add(1, Ordering::Relaxed);
+    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.subsec_nanos()).unwrap_or(0);
+    let raw = format!("{tag}{}x{n}x{nanos}", std::process::id());
+    SwarmId::new(raw.chars().take(32).collect::<String>()).expect("a valid swarm id")
+}
+
+pub fn drone() -> DroneId {
+    DroneId::new("alfa").expect("a valid drone id")
+}
+
+/// A UDP port that was free a moment ago.
+pub fn free_udp_port() -> u16 {
+    UdpSocket::bind("127.0.0.1:0").and_then(|s| s.local_addr()).map(|a| a.port()).expect("a free port")
+}
+
+/// Polls `probe` until it returns `Some` or `timeout` passes.
+pub fn poll_until<T>(timeout: Duration, mut probe: impl FnMut() -> Option<T>) -> Option<T> {
+    let deadline = Instant::now() + timeout;
+    loop {
+        if let Some(v) = probe() {
+            return Some(v);
+        }
+        if Instant::now() >= deadline {
+            return None;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
+/// The real `tacos-px4` binary; killed when dropped. Its log goes to a file named in failures.
+pub struct WriterProcess {
+    pub child: Child,
+    pub port: u16,
+    pub log: PathBuf,
+}
+
+impl WriterProcess {
+    pub fn start(swarm: &SwarmId, home: &str, port: u16, extra: &[&str]) -> WriterProcess {
+        let log = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("tacos-px4-{swarm}.log"));
+        let log_file = std::fs::File::create(&log).expect("creating the writer's log file");
+        let child = Command::new(env!("CARGO_BIN_EXE_tacos-px4"))
+            .args(["--swarm", swarm.as_str(), "--drone", "alfa", "--home", home])
+            .args(["--mavlink", &format!("udpin:127.0.0.1:{port}")])
+            .args(extra)
+            .env("RUST_LOG", "debug")
+            .stdout(Stdio::null())
+            .stderr(log_file)
+            .spawn()
+            .expect("starting tacos-px4");
+        WriterProcess { child, port, log }
+    }
+
+    pub fn addr(&self) -> SocketAddr {
+        SocketAddr::from(([127, 0, 0, 1], self.port))
+    }
+
+    pub fn log_text(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+}
+
+impl Drop for WriterProcess {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// How the fake autopilot answers COMMAND_LONG.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum AckPolicy {
+    Accept,
+    Ignore,
+    Answer(MavResult),
+}
+
+pub struct Received {
+    pub at: Instant,
+    pub header: MavHeader,
+    pub msg: MavMessage,
+}
+
+pub struct ApState {
+    pub received: Vec<Received>,
+    pub heartbeats: bool,
+    pub ack: AckPolicy,
+    /// Sent as LOCAL_POSITION_NED at 10 Hz when set.
+    pub position_ned: Option<[f32; 3]>,
+    pub custom_mode: u32,
+    pub armed: bool,
+    pub decode_errors: usize,
+}
+
+struct Inner {
+    socket: UdpSocket,
+    writer: SocketAddr,
+    stop: AtomicBool,
+    state: Mutex<ApState>,
+    changed: Condvar,
+}
+
+/// A minimal PX4 (system 1, component 1) on a real UDP socket, run by a background thread:
+/// heartbeats at 4 Hz (while enabled), positions at 10 Hz (when set), acks per policy, and a log
+/// of everything the writer sent.
+pub struct FakeAutopilot {
+    inner: Arc<Inner>,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl FakeAutopilot {
+    pub fn start(writer: SocketAddr) -> FakeAutopilot {
+        let socket = UdpSocket::bind("127.0.0.1:0").expect("binding the fake autopilot");
+        socket.set_read_timeout(Some(Duration::from_millis(10))).expect("read timeout");
+        let inner = Arc::new(Inner {
+            socket,
+            writer,
+            stop: AtomicBool::new(false),
+            state: Mutex::new(ApState {
+                received: Vec::new(),
+                heartbeats: true,
+                ack: AckPolicy::Accept,
+                position_ned: None,
+                custom_mode: tacos_shared::px4_mode::Px4Mode::Hold.custom_mode(),
+                armed: false,
+                decode_errors: 0,
+            }),
+            changed: Condvar::new(),
+        });
+        let thread = std::thread::spawn({
+            let inner = Arc::clone(&inner);
+            move || run_autopilot(&inner)
+        });
+        FakeAutopilot { inner, thread: Some(thread) }
+    }
+
+    pub fn state(&self) -> MutexGuard<'_, ApState> {
+        self.inner.state.lock().expect("autopilot state")
+    }
+
+    /// Sends raw bytes to the writer (to test its handling of garbage).
+    pub fn send_raw(&self, bytes: &[u8]) {
+        self.inner.socket.send_to(bytes, self.inner.writer).expect("send");
+    }
+
+    /// Waits (bounded) until `pred` holds on the state; returns what `pred` returned.
+    pub fn wait_for<T>(&self, timeout: Duration, mut pred: impl FnMut(&ApState) -> Option<T>) -> Option<T> {
+        let deadline = Instant::now() + timeout;
+        let mut guard = self.state();
+        loop {
+            if let Some(v) = pred(&guard) {
+                return Some(v);
+            }
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return None;
+            }
+            guard = self.inner.changed.wait_timeout(guard, left).expect("autopilot state").0;
+        }
+    }
+}
+
+impl Drop for FakeAutopilot {
+    fn drop(&mut self) {
+        self.inner.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+fn run_autopilot(inner: &Inner) {
+    let mut seq = 0u8;
+    let mut send = |msg: &MavMessage| {
+        let header = MavHeader { system_id: 1, component_id: 1, sequence: seq };
+        seq = seq.wrapping_add(1);
+        let mut buf = Vec::new();
+        if mavlink::write_v2_msg(&mut buf, header, msg).is_ok() {
+            let _ = inner.socket.send_to(&buf, inner.writer);
+        }
+    };
+    let mut next_heartbeat = Instant::now();
+    let mut next_position = Instant::now();
+    let mut buf = vec![0u8; 65_536];
+    let boot = Instant::now();
+    while !inner.stop.load(Ordering::Relaxed) {
+        let now = Instant::now();
+        let (heartbeat, position) = {
+            let s = inner.state.lock().expect("autopilot state");
+            let hb = (s.heartbeats && now >= next_heartbeat).then(|| {
+                let mut base = MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED;
+                if s.armed {
+                    base |= MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED;
+                }
+                MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+                    custom_mode: s.custom_mode,
+                    mavtype: MavType::MAV_TYPE_QUADROTOR,
+                    autopilot: MavAutopilot::MAV_AUTOPILOT_PX4,
+                    base_mode: base,
+                    system_status: MavState::MAV_STATE_STANDBY,
+                    mavlink_version: 3,
+                })
+            });
+            let pos = s.position_ned.filter(|_| now >= next_position).map(|[x, y, z]| {
+                MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
+                    time_boot_ms: boot.elapsed().as_millis() as u32,
+                    x,
+                    y,
+                    z,
+                    vx: 0.0,
+                    vy: 0.0,
+                    vz: 0.0,
+                })
+            });
+            (hb, pos)
+        };
+        if let Some(hb) = heartbeat {
+            send(&hb);
+            next_heartbeat = now + Duration::from_millis(250);
+        }
+        if let Some(p) = position {
+            send(&p);
+            next_position = now + Duration::from_millis(100);
+        }
+        let Ok((n, _from)) = inner.socket.recv_from(&mut buf) else { continue };
+        let at = Instant::now();
+        let mut reader = MavlinkReader::new(&buf[..n]);
+        let mut replies = Vec::new();
+        {
+            let mut s = inner.state.lock().expect("autopilot state");
+            let mut decoded = 0;
+            loop {
+                match reader.read_any_message::<MavMessage>() {
+                    Ok((header, msg)) => {
+                        decoded += 1;
+                        if let MavMessage::COMMAND_LONG(cmd) = &msg {
+                            let result = match s.ack {
+                                AckPolicy::Accept => Some(MavResult::MAV_RESULT_ACCEPTED),
+                                AckPolicy::Ignore => None,
+                                AckPolicy::Answer(r) => Some(r),
+                            };
+                            if let Some(result) = result {
+                                if result == MavResult::MAV_RESULT_ACCEPTED && cmd.command as u32 == 400 {
+                                    s.armed = cmd.param1 == 1.0;
+                                }
+                                replies.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA { command: cmd.command, result }));
+                            }
+                        }
+                        s.received.push(Received { at, header, msg });
+                    }
+                    Err(mavlink::error::MessageReadError::Parse(_)) => s.decode_errors += 1,
+                    Err(_) => break,
+                }
+            }
+            if decoded == 0 {
+                s.decode_errors += 1;
+            }
+        }
+        inner.changed.notify_all();
+        for r in replies {
+            send(&r);
+        }
+    }
+}
+
+/// The SET_POSITION_TARGET_LOCAL_NED messages received, with their arrival times.
+pub fn setpoints(s: &ApState) -> Vec<(Instant, mavlink::dialects::common::SET_POSITION_TARGET_LOCAL_NED_DATA)> {
+    s.received
+        .iter()
+        .filter_map(|r| match &r.msg {
+            MavMessage::SET_POSITION_TARGET_LOCAL_NED(sp) => Some((r.at, sp.clone())),
+            _ => None,
+        })
+        .collect()
+}
+
+/// The COMMAND_LONG messages received.
+pub fn command_longs(s: &ApState) -> Vec<(Instant, mavlink::dialects::common::COMMAND_LONG_DATA)> {
+    s.received
+        .iter()
+        .filter_map(|r| match &r.msg {
+            MavMessage::COMMAND_LONG(c) => Some((r.at, c.clone())),
+            _ => None,
+        })
+        .collect()
+}

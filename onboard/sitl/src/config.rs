@@ -1,0 +1,112 @@
+//! What one simulator run is made of: the scenario, how many vehicles, their ports, the speed.
+
+use crate::error::SitlError;
+use tacos_bus::BusArgs;
+use tacos_shared::scenario::{DroneSlot, Scenario};
+
+/// PX4 SITL instance i sends to 14540+i (where the offboard API / the writer listens).
+pub const DEFAULT_MAVLINK_BASE_PORT: u16 = 14540;
+/// PX4 SITL instance i binds 14580+i locally.
+pub const DEFAULT_SITL_BASE_PORT: u16 = 14580;
+
+/// Everything [`crate::run`] needs; built by the binary from its flags, or by a test directly.
+#[derive(Debug, Clone)]
+pub struct SitlConfig {
+    pub scenario: Scenario,
+    /// Vehicles to simulate: slots `0..drones` of the scenario (slot i = vehicle i).
+    pub drones: usize,
+    /// Vehicle i sends its MAVLink to `127.0.0.1:(mavlink_base_port + i)` until it hears from a peer.
+    pub mavlink_base_port: u16,
+    /// Vehicle i binds `127.0.0.1:(sitl_base_port + i)`.
+    pub sitl_base_port: u16,
+    /// Sim seconds per wall second.
+    pub speed: f64,
+    pub bus: BusArgs,
+}
+
+impl SitlConfig {
+    /// A configuration with PX4's default ports and real-time speed.
+    pub fn new(scenario: Scenario, drones: usize, bus: BusArgs) -> Self {
+        SitlConfig {
+            scenario,
+            drones,
+            mavlink_base_port: DEFAULT_MAVLINK_BASE_PORT,
+            sitl_base_port: DEFAULT_SITL_BASE_PORT,
+            speed: 1.0,
+            bus,
+        }
+    }
+
+    /// Checks the numbers and returns the drone slots to simulate.
+    pub fn validate(&self) -> Result<&[DroneSlot], SitlError> {
+        if !(self.speed.is_finite() && self.speed > 0.0 && self.speed <= 100.0) {
+            return Err(SitlError::Config(format!("--speed must be in (0, 100], got {}", self.speed)));
+        }
+        if self.drones == 0 {
+            return Err(SitlError::Config("--drones must be at least 1".into()));
+        }
+        let slots = self.scenario.first_drones(self.drones).map_err(SitlError::Config)?;
+        let last = self.drones - 1;
+        for (base, flag) in [(self.mavlink_base_port, "--mavlink-base-port"), (self.sitl_base_port, "--sitl-base-port")] {
+            if base == 0 || usize::from(base) + last > usize::from(u16::MAX) {
+                return Err(SitlError::Config(format!("{flag} {base} + {last} is not a valid port")));
+            }
+        }
+        let (a, b) = (usize::from(self.mavlink_base_port), usize::from(self.sitl_base_port));
+        if a.max(b) - a.min(b) <= last {
+            return Err(SitlError::Config(format!(
+                "the MAVLink port ranges {a}..={} and {b}..={} overlap",
+                a + last,
+                b + last
+            )));
+        }
+        Ok(slots)
+    }
+
+    pub fn mavlink_port(&self, vehicle: usize) -> u16 {
+        port_at(self.mavlink_base_port, vehicle)
+    }
+
+    pub fn sitl_port(&self, vehicle: usize) -> u16 {
+        port_at(self.sitl_base_port, vehicle)
+    }
+}
+
+/// `base + i`, saturating (validated beforehand by [`SitlConfig::validate`]).
+fn port_at(base: u16, i: usize) -> u16 {
+    u16::try_from(i).ok().and_then(|i| base.checked_add(i)).unwrap_or(u16::MAX)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tacos_shared::SwarmId;
+
+    fn config(drones: usize) -> SitlConfig {
+        let scenario = Scenario::builtin("lab").expect("lab is valid");
+        let bus = BusArgs::loopback(SwarmId::new("t").expect("valid"), None, vec![]);
+        SitlConfig::new(scenario, drones, bus)
+    }
+
+    #[test]
+    fn defaults_are_px4s_ports() {
+        let c = config(3);
+        assert_eq!(c.validate().map(|s| s.len()).ok(), Some(3));
+        assert_eq!((c.mavlink_port(2), c.sitl_port(2)), (14542, 14582));
+    }
+
+    #[test]
+    fn bad_settings_are_refused() {
+        assert!(config(4).validate().is_err(), "lab has three slots");
+        assert!(config(0).validate().is_err());
+        let mut c = config(3);
+        c.sitl_base_port = 14542;
+        assert!(c.validate().is_err(), "overlapping ranges");
+        let mut c = config(3);
+        c.speed = 0.0;
+        assert!(c.validate().is_err());
+        let mut c = config(3);
+        c.sitl_base_port = u16::MAX;
+        assert!(c.validate().is_err());
+    }
+}

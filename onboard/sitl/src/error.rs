@@ -1,0 +1,18 @@
+//! The library's error type.
+
+use tacos_bus::BusError;
+
+#[derive(Debug, thiserror::Error)]
+pub enum SitlError {
+    #[error("{0}")]
+    Config(String),
+    #[error("cannot bind UDP {addr} for vehicle {drone} (port in use?): {source}")]
+    Bind {
+        drone: String,
+        addr: std::net::SocketAddr,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error(transparent)]
+    Bus(#[from] BusError),
+}

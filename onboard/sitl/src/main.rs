@@ -1,0 +1,78 @@
+//! `tacos-sitl`: PX4 SITL stand-in and world simulator. See the library for what it does.
+
+use anyhow::Context;
+use clap::Parser;
+use tacos_bus::{BusArgs, load_scenario};
+use tacos_sitl::config::{DEFAULT_MAVLINK_BASE_PORT, DEFAULT_SITL_BASE_PORT};
+use tacos_sitl::SitlConfig;
+use tracing_subscriber::EnvFilter;
+
+/// Simulates N PX4 vehicles (MAVLink over UDP, ports like PX4 SITL) and the world around them.
+#[derive(Debug, Parser)]
+#[command(name = "tacos-sitl", version)]
+struct Cli {
+    /// A built-in scenario (`city`, `lab`) or the path of a scenario TOML file.
+    #[arg(long)]
+    scenario: String,
+    /// How many vehicles: the scenario's first N drone slots.
+    #[arg(long)]
+    drones: usize,
+    /// Vehicle i sends MAVLink to 127.0.0.1:(this + i) (where the writer listens).
+    #[arg(long, default_value_t = DEFAULT_MAVLINK_BASE_PORT)]
+    mavlink_base_port: u16,
+    /// Vehicle i binds 127.0.0.1:(this + i).
+    #[arg(long, default_value_t = DEFAULT_SITL_BASE_PORT)]
+    sitl_base_port: u16,
+    /// Simulated seconds per wall-clock second.
+    #[arg(long, default_value_t = 1.0)]
+    speed: f64,
+    #[command(flatten)]
+    bus: BusArgs,
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info")))
+        .init();
+    let cli = Cli::parse();
+    let scenario = load_scenario(&cli.scenario).with_context(|| format!("loading scenario {:?}", cli.scenario))?;
+    let config = SitlConfig {
+        scenario,
+        drones: cli.drones,
+        mavlink_base_port: cli.mavlink_base_port,
+        sitl_base_port: cli.sitl_base_port,
+        speed: cli.speed,
+        bus: cli.bus,
+    };
+    tacos_sitl::run(config, shutdown_signal()).await.context("tacos-sitl")?;
+    Ok(())
+}
+
+/// Completes on SIGINT or SIGTERM.
+async fn shutdown_signal() {
+    let interrupt = async {
+        if let Err(e) = tokio::signal::ctrl_c().await {
+            tracing::warn!("cannot listen for Ctrl-C: {e}");
+            std::future::pending::<()>().await;
+        }
+    };
+    #[cfg(unix)]
+    let terminate = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut term) => {
+                term.recv().await;
+            }
+            Err(e) => {
+                tracing::warn!("cannot listen for SIGTERM: {e}");
+                std::future::pending::<()>().await;
+            }
+        }
+    };
+    #[cfg(not(unix))]
+    let terminate = std::future::pending::<()>();
+    tokio::select! {
+        () = interrupt => tracing::info!("interrupted"),
+        () = terminate => tracing::info!("terminated"),
+    }
+}

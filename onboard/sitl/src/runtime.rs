@@ -1,0 +1,296 @@
+//! The I/O shell around [`Simulation`]: one UDP socket per vehicle (like PX4 SITL instance i),
+//! the zenoh session, and the wall clock. One task owns the simulation; per-vehicle receive
+//! tasks only hand datagrams over.
+
+use crate::config::SitlConfig;
+use crate::error::SitlError;
+use crate::link::{self, AUTOPILOT_COMPONENT, Handled};
+use crate::sim::Simulation;
+use mavlink::MavHeader;
+use mavlink::dialects::common::MavMessage;
+use serde::Serialize;
+use std::future::Future;
+use std::io::ErrorKind;
+use std::net::{Ipv4Addr, SocketAddr};
+use std::sync::Arc;
+use std::time::Duration;
+use tacos_bus::BusError;
+use tacos_shared::messages::FaultRequest;
+use tokio::net::UdpSocket;
+use tokio::sync::mpsc;
+use tokio::task::JoinSet;
+use tokio::time::{Instant, MissedTickBehavior};
+use tracing::{Instrument, debug, info, info_span, warn};
+
+/// The physics tick (wall clock).
+const TICK: Duration = Duration::from_millis(10);
+/// After a stall (a suspended process, a loaded machine), catch up at most this much wall time
+/// at once rather than jumping the vehicles.
+const MAX_CATCH_UP: f64 = 0.1;
+const HEARTBEAT_PERIOD: Duration = Duration::from_secs(1);
+const LOCAL_POSITION_PERIOD: Duration = Duration::from_millis(20);
+const EXTENDED_SYS_STATE_PERIOD: Duration = Duration::from_millis(200);
+const TARGETS_PERIOD: Duration = Duration::from_millis(50);
+const TRUTH_PERIOD: Duration = Duration::from_millis(100);
+/// Large enough for several MAVLink frames in one datagram.
+const DATAGRAM_BYTES: usize = 8192;
+
+/// Runs the simulator until `shutdown` completes: binds every vehicle's UDP port, joins the
+/// zenoh network, then simulates and talks. Returns an error only for set-up failures (bad
+/// configuration, a port in use, zenoh not opening); trouble while running is logged.
+pub async fn run(config: SitlConfig, shutdown: impl Future<Output = ()>) -> Result<(), SitlError> {
+    let slots = config.validate()?.to_vec();
+    let mut links = Vec::with_capacity(slots.len());
+    for (i, slot) in slots.iter().enumerate() {
+        let local = SocketAddr::from((Ipv4Addr::LOCALHOST, config.sitl_port(i)));
+        let socket = UdpSocket::bind(local)
+            .await
+            .map_err(|source| SitlError::Bind { drone: slot.id.to_string(), addr: local, source })?;
+        links.push(VehicleLink {
+            socket: Arc::new(socket),
+            peer: SocketAddr::from((Ipv4Addr::LOCALHOST, config.mavlink_port(i))),
+            local,
+            system_id: u32::try_from(i + 1).unwrap_or(u32::MAX),
+            sequence: 0,
+            last_state: None,
+        });
+    }
+    let session = config.bus.open().await?;
+    let keys = config.bus.keys();
+    let faults = tacos_bus::subscribe(&session, &keys.sim_faults()).await?;
+    let mut sim = Simulation::new(&config.scenario, &slots);
+
+    let (tx, mut rx) = mpsc::channel::<Datagram>(1024);
+    let mut receivers = JoinSet::new();
+    for (i, (slot, link)) in slots.iter().zip(&links).enumerate() {
+        let span = info_span!("vehicle", drone = %slot.id);
+        receivers.spawn(receive(i, link.socket.clone(), tx.clone()).instrument(span));
+    }
+    drop(tx);
+
+    let ports: Vec<String> =
+        slots.iter().zip(&links).map(|(s, l)| format!("{} {}→{}", s.id, l.local, l.peer.port())).collect();
+    info!(
+        scenario = %config.scenario.name,
+        swarm = %config.bus.swarm,
+        speed = config.speed,
+        "all {} vehicles up: {}",
+        links.len(),
+        ports.join(", ")
+    );
+
+    let (events_key, targets_key, truth_key) = (keys.events(), keys.targets(), keys.sim_truth());
+    let mut shell = Shell { session: &session, publish_errors: 0 };
+    let mut ticker = tokio::time::interval(TICK);
+    ticker.set_missed_tick_behavior(MissedTickBehavior::Delay);
+    let start = Instant::now();
+    let mut last = start;
+    let mut heartbeat = Every::new(HEARTBEAT_PERIOD, start);
+    let mut local_position = Every::new(LOCAL_POSITION_PERIOD, start);
+    let mut sys_state = Every::new(EXTENDED_SYS_STATE_PERIOD, start);
+    let mut targets = Every::new(TARGETS_PERIOD, start);
+    let mut truth = Every::new(TRUTH_PERIOD, start);
+    let mut faults_open = true;
+    let mut malformed_faults = 0u64;
+    tokio::pin!(shutdown);
+
+    loop {
+        tokio::select! {
+            () = &mut shutdown => break,
+            Some(datagram) = rx.recv() => {
+                if let Some(link) = links.get_mut(datagram.vehicle) {
+                    on_datagram(&mut sim, link, datagram);
+                }
+            }
+            sample = faults.recv_async(), if faults_open => match sample {
+                Ok(sample) => match tacos_bus::decode::<FaultRequest>(&sample) {
+                    Ok(request) => match sim.inject(&request.drone, request.fault) {
+                        Some(event) => {
+                            info!("{event}");
+                            shell.publish_urgent(&events_key, &event).await;
+                        }
+                        None => warn!(drone = %request.drone, "fault request for a drone this run does not simulate"),
+                    },
+                    Err(e) => {
+                        malformed_faults += 1;
+                        warn!(count = malformed_faults, "malformed fault request ignored: {e}");
+                    }
+                },
+                Err(e) => {
+                    warn!("fault subscriber closed: {e}");
+                    faults_open = false;
+                }
+            },
+            _ = ticker.tick() => {
+                let now = Instant::now();
+                let wall_dt = now.duration_since(last).as_secs_f64().min(MAX_CATCH_UP);
+                last = now;
+                for event in sim.advance(wall_dt * config.speed) {
+                    info!("{event}");
+                    shell.publish_urgent(&events_key, &event).await;
+                }
+                let (hb, lp, ss) = (heartbeat.due(now), local_position.due(now), sys_state.due(now));
+                for (i, link) in links.iter_mut().enumerate() {
+                    send_telemetry(&sim, i, link, hb, lp, ss);
+                }
+                if targets.due(now) {
+                    shell.publish(&targets_key, &sim.targets_message()).await;
+                }
+                if truth.due(now) {
+                    shell.publish(&truth_key, &sim.truth()).await;
+                }
+            }
+        }
+    }
+
+    receivers.shutdown().await;
+    if let Err(e) = session.close().await {
+        debug!("closing the zenoh session: {e}");
+    }
+    info!(sim_time = sim.time(), "simulator stopped");
+    Ok(())
+}
+
+/// One datagram received on vehicle `vehicle`'s port.
+struct Datagram {
+    vehicle: usize,
+    from: SocketAddr,
+    bytes: Vec<u8>,
+}
+
+/// Forwards every datagram arriving on `socket` until the simulator goes away.
+async fn receive(vehicle: usize, socket: Arc<UdpSocket>, tx: mpsc::Sender<Datagram>) {
+    let mut buf = vec![0u8; DATAGRAM_BYTES];
+    loop {
+        match socket.recv_from(&mut buf).await {
+            Ok((n, from)) => {
+                let bytes = buf.get(..n).unwrap_or_default().to_vec();
+                if tx.send(Datagram { vehicle, from, bytes }).await.is_err() {
+                    return;
+                }
+            }
+            // ICMP "port unreachable" from an earlier send, reported on some systems: harmless.
+            Err(e) if matches!(e.kind(), ErrorKind::ConnectionRefused | ErrorKind::ConnectionReset | ErrorKind::Interrupted) => {}
+            Err(e) => {
+                warn!("UDP receive failed, vehicle deaf from now on: {e}");
+                return;
+            }
+        }
+    }
+}
+
+/// Vehicle i's end of its MAVLink link.
+struct VehicleLink {
+    socket: Arc<UdpSocket>,
+    /// Where telemetry goes: the configured remote port until a packet arrives, then the source
+    /// of the latest packet (PX4 does the same).
+    peer: SocketAddr,
+    local: SocketAddr,
+    system_id: u32,
+    sequence: u8,
+    /// (custom_mode, armed) in the last heartbeat, to send one at once when either changes.
+    last_state: Option<(u32, bool)>,
+}
+
+impl VehicleLink {
+    fn send(&mut self, message: &MavMessage) {
+        let header = MavHeader { system_id: self.system_id, component_id: AUTOPILOT_COMPONENT, sequence: self.sequence };
+        self.sequence = self.sequence.wrapping_add(1);
+        let bytes = link::encode(header, message);
+        // UDP is lossy anyway: a full socket buffer drops the frame rather than stalling the
+        // simulation.
+        match self.socket.try_send_to(&bytes, self.peer) {
+            Ok(_) => {}
+            Err(e) if e.kind() == ErrorKind::WouldBlock => {}
+            Err(e) => debug!(peer = %self.peer, "MAVLink send failed: {e}"),
+        }
+    }
+}
+
+fn on_datagram(sim: &mut Simulation, link: &mut VehicleLink, datagram: Datagram) {
+    // A dead vehicle or a dropped link hears nothing.
+    if !sim.link_up(datagram.vehicle) {
+        return;
+    }
+    link.peer = datagram.from;
+    let (messages, bad) = link::decode_datagram(&datagram.bytes);
+    if bad > 0 {
+        debug!(vehicle = datagram.vehicle, bad, "unparsable MAVLink frames skipped");
+    }
+    for (_, message) in messages {
+        if let Some(Handled::Command { command, result, ack }) = sim.handle_mavlink(datagram.vehicle, &message) {
+            let drone = sim.vehicles().get(datagram.vehicle).map(|v| v.id.to_string()).unwrap_or_default();
+            info!(%drone, "{command:?} → {result:?}");
+            link.send(&ack);
+        }
+    }
+}
+
+fn send_telemetry(sim: &Simulation, i: usize, link: &mut VehicleLink, heartbeat: bool, position: bool, sys_state: bool) {
+    if !sim.link_up(i) {
+        return;
+    }
+    let Some(v) = sim.vehicles().get(i).map(|v| &v.vehicle) else { return };
+    let state = (v.custom_mode(), v.armed());
+    if heartbeat || link.last_state != Some(state) {
+        link.last_state = Some(state);
+        link.send(&link::heartbeat(v));
+    }
+    if position {
+        link.send(&link::local_position(v));
+    }
+    if sys_state {
+        link.send(&link::extended_sys_state(v));
+    }
+}
+
+/// The zenoh side of the loop.
+struct Shell<'a> {
+    session: &'a zenoh::Session,
+    publish_errors: u64,
+}
+
+impl Shell<'_> {
+    async fn publish<T: Serialize>(&mut self, key: &str, value: &T) {
+        let result = tacos_bus::put(self.session, key, value, false).await;
+        self.check(result);
+    }
+
+    async fn publish_urgent<T: Serialize>(&mut self, key: &str, value: &T) {
+        let result = tacos_bus::put(self.session, key, value, true).await;
+        self.check(result);
+    }
+
+    fn check(&mut self, result: Result<(), BusError>) {
+        if let Err(e) = result {
+            self.publish_errors += 1;
+            // Logged at 1, 2, 4, 8 … so a broken session does not flood the log.
+            if self.publish_errors.is_power_of_two() {
+                warn!(count = self.publish_errors, "zenoh publish failed: {e}");
+            }
+        }
+    }
+}
+
+/// A fixed-rate schedule on the wall clock.
+struct Every {
+    period: Duration,
+    next: Instant,
+}
+
+impl Every {
+    fn new(period: Duration, start: Instant) -> Self {
+        Every { period, next: start }
+    }
+
+    fn due(&mut self, now: Instant) -> bool {
+        if now < self.next {
+            return false;
+        }
+        self.next += self.period;
+        if self.next <= now {
+            self.next = now + self.period;
+        }
+        true
+    }
+}

@@ -1,0 +1,111 @@
+//! Running safety statistics for `SimTruth`: closest approach between airborne vehicles, closest
+//! approach to an obstacle, and how many simulation steps broke either margin.
+
+use tacos_shared::Vec3;
+use tacos_shared::world::Ellipsoid;
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct SafetyStats {
+    /// Infinity until two vehicles have been airborne together.
+    pub min_pair_distance: f64,
+    /// Infinity until a vehicle has been airborne (or when there are no obstacles).
+    pub min_obstacle_clearance: f64,
+    pub separation_breaches: u64,
+    pub obstacle_breaches: u64,
+}
+
+impl Default for SafetyStats {
+    fn default() -> Self {
+        SafetyStats {
+            min_pair_distance: f64::INFINITY,
+            min_obstacle_clearance: f64::INFINITY,
+            separation_breaches: 0,
+            obstacle_breaches: 0,
+        }
+    }
+}
+
+/// What the statistics are measured against.
+#[derive(Debug, Clone)]
+pub struct SafetyRules {
+    pub obstacles: Vec<Ellipsoid>,
+    /// The obstacles grown by the drone radius.
+    pub inflated: Vec<Ellipsoid>,
+    pub safety_distance: f64,
+}
+
+impl SafetyRules {
+    pub fn new(obstacles: &[Ellipsoid], drone_radius: f64, safety_distance: f64) -> Self {
+        SafetyRules {
+            obstacles: obstacles.to_vec(),
+            inflated: obstacles.iter().map(|o| o.inflated(drone_radius)).collect(),
+            safety_distance,
+        }
+    }
+}
+
+impl SafetyStats {
+    /// Folds in one simulation step; `airborne` are the world positions of the vehicles in the air.
+    /// A step counts one separation breach however many pairs are too close, and likewise for
+    /// obstacles.
+    pub fn update(&mut self, airborne: &[Vec3], rules: &SafetyRules) {
+        let mut too_close = false;
+        for (i, a) in airborne.iter().enumerate() {
+            for b in airborne.iter().skip(i + 1) {
+                let d = (a - b).norm();
+                self.min_pair_distance = self.min_pair_distance.min(d);
+                too_close |= d < rules.safety_distance;
+            }
+        }
+        if too_close {
+            self.separation_breaches += 1;
+        }
+        let mut inside = false;
+        for p in airborne {
+            for o in &rules.obstacles {
+                self.min_obstacle_clearance = self.min_obstacle_clearance.min(o.clearance_lower_bound(p));
+            }
+            inside |= rules.inflated.iter().any(|o| o.contains(p));
+        }
+        if inside {
+            self.obstacle_breaches += 1;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rules() -> SafetyRules {
+        let tower = Ellipsoid::from_semi_axes("tower", Vec3::zeros(), Vec3::new(5.0, 5.0, 30.0), 0.0).expect("valid");
+        SafetyRules::new(&[tower], 0.5, 2.0)
+    }
+
+    #[test]
+    fn nothing_airborne_leaves_the_stats_untouched() {
+        let mut s = SafetyStats::default();
+        s.update(&[], &rules());
+        assert_eq!(s, SafetyStats::default());
+    }
+
+    #[test]
+    fn pairs_and_obstacles_are_measured() {
+        let rules = rules();
+        let mut s = SafetyStats::default();
+        s.update(&[Vec3::new(20.0, 0.0, 5.0), Vec3::new(23.0, 0.0, 5.0)], &rules);
+        assert!((s.min_pair_distance - 3.0).abs() < 1e-12);
+        assert_eq!((s.separation_breaches, s.obstacle_breaches), (0, 0));
+        assert!(s.min_obstacle_clearance > 10.0 && s.min_obstacle_clearance.is_finite());
+
+        s.update(&[Vec3::new(20.0, 0.0, 5.0), Vec3::new(21.0, 0.0, 5.0)], &rules);
+        assert_eq!(s.separation_breaches, 1);
+        // 5.3 m from the centre: outside the tower (5 m) but inside it grown by 0.5 m.
+        s.update(&[Vec3::new(5.3, 0.0, 0.0)], &rules);
+        assert_eq!(s.obstacle_breaches, 1);
+        assert!(s.min_obstacle_clearance > 0.0 && s.min_obstacle_clearance <= 0.3 + 1e-9);
+        // Running minima do not go back up.
+        s.update(&[Vec3::new(40.0, 0.0, 5.0), Vec3::new(0.0, 40.0, 5.0)], &rules);
+        assert!((s.min_pair_distance - 1.0).abs() < 1e-12);
+    }
+}
