@@ -1,0 +1,12 @@
+//! `tacos-ground`: the ground station.
+//!
+//! It follows the swarm (`swarm`, `link`), checks every action before it leaves (`safety`),
+//! and runs the simulated demo (`launch`, `demo`). The LLM layers and the terminal build on
+//! these pieces.
+
+pub mod demo;
+pub mod launch;
+pub mod link;
+pub mod safety;
+pub mod swarm;
+pub mod table;

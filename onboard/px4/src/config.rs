@@ -24,9 +24,18 @@ impl std::str::FromStr for MavlinkLink {
     type Err = ConfigError;
 
     fn from_str(raw: &str) -> Result<Self, ConfigError> {
-        let bad = |why: &str| ConfigError::Link { raw: raw.to_owned(), reason: why.to_owned() };
-        let (scheme, addr) = raw.split_once(':').ok_or_else(|| bad("expected udpin:HOST:PORT or udpout:HOST:PORT"))?;
-        let addr: SocketAddr = addr.parse().map_err(|e| bad(&format!("{e} (expected an IP address and port, e.g. 127.0.0.1:14540)")))?;
+        let bad = |why: &str| ConfigError::Link {
+            raw: raw.to_owned(),
+            reason: why.to_owned(),
+        };
+        let (scheme, addr) = raw
+            .split_once(':')
+            .ok_or_else(|| bad("expected udpin:HOST:PORT or udpout:HOST:PORT"))?;
+        let addr: SocketAddr = addr.parse().map_err(|e| {
+            bad(&format!(
+                "{e} (expected an IP address and port, e.g. 127.0.0.1:14540)"
+            ))
+        })?;
         match scheme {
             "udpin" => Ok(MavlinkLink::UdpIn(addr)),
             "udpout" => {
@@ -35,7 +44,9 @@ impl std::str::FromStr for MavlinkLink {
                 }
                 Ok(MavlinkLink::UdpOut(addr))
             }
-            other => Err(bad(&format!("unknown scheme {other:?}; use udpin or udpout"))),
+            other => Err(bad(&format!(
+                "unknown scheme {other:?}; use udpin or udpout"
+            ))),
         }
     }
 }
@@ -51,7 +62,10 @@ impl std::fmt::Display for MavlinkLink {
 
 /// Parses a home given as `X,Y,Z` (world ENU metres).
 pub fn parse_home(raw: &str) -> Result<Home, ConfigError> {
-    let bad = |why: String| ConfigError::Home { raw: raw.to_owned(), reason: why };
+    let bad = |why: String| ConfigError::Home {
+        raw: raw.to_owned(),
+        reason: why,
+    };
     let parts: Vec<&str> = raw.split(',').map(str::trim).collect();
     if parts.len() != 3 {
         return Err(bad(format!("expected X,Y,Z, got {} value(s)", parts.len())));
@@ -114,7 +128,10 @@ impl WriterConfig {
         if onboard_timeout_ms == 0 {
             return Err(ConfigError::OnboardTimeout);
         }
-        let sysid = u8::try_from(sysid).ok().filter(|s| *s != 0).ok_or(ConfigError::SysId(sysid))?;
+        let sysid = u8::try_from(sysid)
+            .ok()
+            .filter(|s| *s != 0)
+            .ok_or(ConfigError::SysId(sysid))?;
         Ok(WriterConfig {
             swarm,
             drone,
@@ -137,17 +154,42 @@ mod tests {
 
     #[test]
     fn links_parse() {
-        assert_eq!("udpin:127.0.0.1:14540".parse::<MavlinkLink>(), Ok(MavlinkLink::UdpIn(SocketAddr::from(([127, 0, 0, 1], 14540)))));
-        assert_eq!("udpin:0.0.0.0:14540".parse::<MavlinkLink>().map(|l| l.to_string()), Ok("udpin:0.0.0.0:14540".to_owned()));
-        assert!(matches!("udpout:10.0.0.2:14580".parse::<MavlinkLink>(), Ok(MavlinkLink::UdpOut(_))));
-        for bad in ["", "udp:127.0.0.1:1", "udpin:localhost:14540", "udpin:127.0.0.1", "udpout:0.0.0.0:14540", "udpout:127.0.0.1:0", "serial:/dev/ttyS0"] {
+        assert_eq!(
+            "udpin:127.0.0.1:14540".parse::<MavlinkLink>(),
+            Ok(MavlinkLink::UdpIn(SocketAddr::from((
+                [127, 0, 0, 1],
+                14540
+            ))))
+        );
+        assert_eq!(
+            "udpin:0.0.0.0:14540"
+                .parse::<MavlinkLink>()
+                .map(|l| l.to_string()),
+            Ok("udpin:0.0.0.0:14540".to_owned())
+        );
+        assert!(matches!(
+            "udpout:10.0.0.2:14580".parse::<MavlinkLink>(),
+            Ok(MavlinkLink::UdpOut(_))
+        ));
+        for bad in [
+            "",
+            "udp:127.0.0.1:1",
+            "udpin:localhost:14540",
+            "udpin:127.0.0.1",
+            "udpout:0.0.0.0:14540",
+            "udpout:127.0.0.1:0",
+            "serial:/dev/ttyS0",
+        ] {
             assert!(bad.parse::<MavlinkLink>().is_err(), "{bad:?} was accepted");
         }
     }
 
     #[test]
     fn homes_parse() {
-        assert_eq!(parse_home("10,-20.5, 3").map(|h| h.enu), Ok(Vec3::new(10.0, -20.5, 3.0)));
+        assert_eq!(
+            parse_home("10,-20.5, 3").map(|h| h.enu),
+            Ok(Vec3::new(10.0, -20.5, 3.0))
+        );
         for bad in ["", "1,2", "1,2,3,4", "1,x,3", "1,NaN,3", "1,inf,3"] {
             assert!(parse_home(bad).is_err(), "{bad:?} was accepted");
         }
@@ -167,8 +209,16 @@ mod tests {
             )
         };
         assert!(ok(50.0, 500, 245).is_ok());
-        assert_eq!(ok(10.0, 500, 245).err(), Some(ConfigError::StreamRate(10.0)));
-        assert_eq!(ok(f64::NAN, 500, 245).err().map(|e| matches!(e, ConfigError::StreamRate(_))), Some(true));
+        assert_eq!(
+            ok(10.0, 500, 245).err(),
+            Some(ConfigError::StreamRate(10.0))
+        );
+        assert_eq!(
+            ok(f64::NAN, 500, 245)
+                .err()
+                .map(|e| matches!(e, ConfigError::StreamRate(_))),
+            Some(true)
+        );
         assert_eq!(ok(50.0, 0, 245).err(), Some(ConfigError::OnboardTimeout));
         assert_eq!(ok(50.0, 500, 0).err(), Some(ConfigError::SysId(0)));
         assert_eq!(ok(50.0, 500, 256).err(), Some(ConfigError::SysId(256)));

@@ -19,7 +19,12 @@ pub struct EnuReference {
 impl EnuReference {
     /// Hold still at `position` (velocity and acceleration zero), keeping `yaw`.
     pub fn hold(position: Vec3, yaw: Option<f64>) -> Self {
-        EnuReference { position, velocity: Vec3::zeros(), acceleration: Vec3::zeros(), yaw }
+        EnuReference {
+            position,
+            velocity: Vec3::zeros(),
+            acceleration: Vec3::zeros(),
+            yaw,
+        }
     }
 }
 
@@ -82,17 +87,27 @@ mod tests {
             yaw: Some(FRAC_PI_2), // facing north
         };
         let ned = to_ned(&home, &goal);
-        assert!(close(&ned.position, &Vec3::new(7.0, 12.0, -10.0)), "{:?}", ned.position);
+        assert!(
+            close(&ned.position, &Vec3::new(7.0, 12.0, -10.0)),
+            "{:?}",
+            ned.position
+        );
         assert!(ned.position.x > 0.0 && ned.position.y > 0.0 && ned.position.z < 0.0);
         assert!(close(&ned.velocity, &Vec3::new(2.0, 1.0, -0.5)));
         assert!(close(&ned.acceleration, &Vec3::new(0.2, -0.1, 0.3)));
-        assert!(ned.yaw.is_some_and(|y| y.abs() < 1e-12), "north is NED yaw 0");
+        assert!(
+            ned.yaw.is_some_and(|y| y.abs() < 1e-12),
+            "north is NED yaw 0"
+        );
     }
 
     #[test]
     fn the_home_itself_is_the_ned_origin() {
         let home = Home::new(Vec3::new(60.0, -120.0, 0.0));
-        let ned = to_ned(&home, &EnuReference::hold(Vec3::new(60.0, -120.0, 0.0), None));
+        let ned = to_ned(
+            &home,
+            &EnuReference::hold(Vec3::new(60.0, -120.0, 0.0), None),
+        );
         assert!(close(&ned.position, &Vec3::zeros()));
     }
 
@@ -103,6 +118,10 @@ mod tests {
         let with_yaw = to_ned(&home, &EnuReference::hold(Vec3::zeros(), Some(0.3)));
         assert_eq!(type_mask(&no_yaw), mask::YAW_IGNORE | mask::YAW_RATE_IGNORE);
         assert_eq!(type_mask(&with_yaw), mask::YAW_RATE_IGNORE);
-        assert_eq!(type_mask(&with_yaw) & mask::PVA_AND_FORCE, 0, "position, velocity, acceleration all used");
+        assert_eq!(
+            type_mask(&with_yaw) & mask::PVA_AND_FORCE,
+            0,
+            "position, velocity, acceleration all used"
+        );
     }
 }

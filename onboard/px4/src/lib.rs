@@ -28,8 +28,13 @@ use std::net::SocketAddr;
 pub enum Px4Error {
     #[error(transparent)]
     Config(#[from] ConfigError),
-    #[error("cannot bind UDP {addr}: {source} (is another tacos-px4, MAVSDK or QGroundControl using this port?)")]
-    Bind { addr: SocketAddr, source: std::io::Error },
+    #[error(
+        "cannot bind UDP {addr}: {source} (is another tacos-px4, MAVSDK or QGroundControl using this port?)"
+    )]
+    Bind {
+        addr: SocketAddr,
+        source: std::io::Error,
+    },
     #[error("UDP socket: {0}")]
     Socket(std::io::Error),
     #[error(transparent)]

@@ -2,6 +2,7 @@
 
 use anyhow::Context;
 use clap::Parser;
+use std::io::IsTerminal;
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 use tacos_px4::{MavlinkLink, WriterConfig, parse_home};
@@ -39,8 +40,11 @@ struct Args {
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     tracing_subscriber::fmt()
-        .with_env_filter(EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info")))
+        .with_env_filter(
+            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info")),
+        )
         .with_writer(std::io::stderr)
+        .with_ansi(std::io::stderr().is_terminal())
         .init();
 
     let config = WriterConfig::new(
@@ -58,7 +62,8 @@ fn main() -> anyhow::Result<()> {
     for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
         signal_hook::flag::register_conditional_shutdown(signal, 1, Arc::clone(&shutdown))
             .context("installing a signal handler")?;
-        signal_hook::flag::register(signal, Arc::clone(&shutdown)).context("installing a signal handler")?;
+        signal_hook::flag::register(signal, Arc::clone(&shutdown))
+            .context("installing a signal handler")?;
     }
 
     let span = tracing::info_span!("px4", drone = %config.drone, swarm = %config.swarm);

@@ -4,8 +4,8 @@
 use crate::commands::{CommandLong, mav_cmd};
 use crate::convert::{NedTarget, type_mask};
 use mavlink::dialects::common::{
-    COMMAND_LONG_DATA, HEARTBEAT_DATA, MavAutopilot, MavCmd, MavFrame, MavMessage, MavModeFlag, MavState, MavType,
-    PositionTargetTypemask, SET_POSITION_TARGET_LOCAL_NED_DATA,
+    COMMAND_LONG_DATA, HEARTBEAT_DATA, MavAutopilot, MavCmd, MavFrame, MavMessage, MavModeFlag,
+    MavState, MavType, PositionTargetTypemask, SET_POSITION_TARGET_LOCAL_NED_DATA,
 };
 use mavlink::{MavHeader, MavlinkReader, error::MessageReadError};
 
@@ -28,7 +28,11 @@ impl Encoder {
 
     /// Frames `msg` as MAVLink v2 from (our sysid, component 191), with the next sequence number.
     pub fn encode(&mut self, msg: &MavMessage) -> Vec<u8> {
-        let header = MavHeader { system_id: u32::from(self.sysid), component_id: OUR_COMPONENT, sequence: self.sequence };
+        let header = MavHeader {
+            system_id: u32::from(self.sysid),
+            component_id: OUR_COMPONENT,
+            sequence: self.sequence,
+        };
         self.sequence = self.sequence.wrapping_add(1);
         let mut out = Vec::with_capacity(64);
         // Writing into a Vec cannot fail; an error here would be a mavlink-crate bug, and the
@@ -53,7 +57,12 @@ pub fn heartbeat() -> MavMessage {
 }
 
 /// SET_POSITION_TARGET_LOCAL_NED for `target` (already in the vehicle's NED frame).
-pub fn set_position_target(target: &NedTarget, time_boot_ms: u32, target_system: u8, target_component: u8) -> MavMessage {
+pub fn set_position_target(
+    target: &NedTarget,
+    time_boot_ms: u32,
+    target_system: u8,
+    target_component: u8,
+) -> MavMessage {
     let f = |v: f64| v as f32;
     MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA {
         time_boot_ms,
@@ -86,7 +95,11 @@ fn mav_cmd(command: u16) -> Option<MavCmd> {
 }
 
 /// COMMAND_LONG for `cmd`; `None` for a command id this writer does not know.
-pub fn command_long(cmd: &CommandLong, target_system: u8, target_component: u8) -> Option<MavMessage> {
+pub fn command_long(
+    cmd: &CommandLong,
+    target_system: u8,
+    target_component: u8,
+) -> Option<MavMessage> {
     let [param1, param2, param3, param4, param5, param6, param7] = cmd.params;
     Some(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
         param1,
@@ -178,7 +191,10 @@ mod tests {
         }
         match &d.messages[2].1 {
             MavMessage::COMMAND_LONG(c) => {
-                assert_eq!((command_id(c.command), c.param1, c.confirmation), (400, 1.0, 0));
+                assert_eq!(
+                    (command_id(c.command), c.param1, c.confirmation),
+                    (400, 1.0, 0)
+                );
             }
             other => panic!("expected COMMAND_LONG, got {other:?}"),
         }
@@ -186,7 +202,12 @@ mod tests {
 
     #[test]
     fn garbage_is_malformed_not_a_panic() {
-        for junk in [&b""[..], b"hello", &[0xFD; 300], &[0xFD, 9, 0, 0, 0, 1, 1, 0, 0, 0, 1, 2, 3]] {
+        for junk in [
+            &b""[..],
+            b"hello",
+            &[0xFD; 300],
+            &[0xFD, 9, 0, 0, 0, 1, 1, 0, 0, 0, 1, 2, 3],
+        ] {
             assert!(decode_datagram(junk).is_malformed());
         }
         // A valid frame with one corrupted payload byte fails its CRC.

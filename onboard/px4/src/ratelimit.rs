@@ -12,13 +12,20 @@ pub struct RateLimit {
 
 impl RateLimit {
     pub fn new(interval: Duration) -> Self {
-        RateLimit { interval, last: None, suppressed: 0 }
+        RateLimit {
+            interval,
+            last: None,
+            suppressed: 0,
+        }
     }
 
     /// `Some(n)` when a line may be logged now, with `n` = how many were suppressed since the
     /// last one; `None` when this one is to be suppressed.
     pub fn allow(&mut self, now: Instant) -> Option<u64> {
-        if self.last.is_some_and(|t| now.saturating_duration_since(t) < self.interval) {
+        if self
+            .last
+            .is_some_and(|t| now.saturating_duration_since(t) < self.interval)
+        {
             self.suppressed += 1;
             return None;
         }

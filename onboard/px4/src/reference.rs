@@ -55,7 +55,12 @@ pub struct ReferenceKeeper {
 
 impl ReferenceKeeper {
     pub fn new(onboard_timeout: Duration) -> Self {
-        ReferenceKeeper { timeout: onboard_timeout, last: None, vehicle_hold: None, rejected: 0 }
+        ReferenceKeeper {
+            timeout: onboard_timeout,
+            last: None,
+            vehicle_hold: None,
+            rejected: 0,
+        }
     }
 
     /// Takes a setpoint from the planner, received at `now`.
@@ -64,7 +69,11 @@ impl ReferenceKeeper {
             self.rejected += 1;
             return Err(RejectedSetpoint { seq: sample.seq });
         }
-        let yaw = if sample.yaw.is_nan() { None } else { Some(sample.yaw) };
+        let yaw = if sample.yaw.is_nan() {
+            None
+        } else {
+            Some(sample.yaw)
+        };
         let reference = EnuReference {
             position: sample.position(),
             velocity: sample.velocity(),
@@ -81,12 +90,22 @@ impl ReferenceKeeper {
     }
 
     /// The reference to stream at `now`, if any.
-    pub fn current(&mut self, now: Instant, vehicle: Option<VehicleView>) -> Option<StreamReference> {
+    pub fn current(
+        &mut self,
+        now: Instant,
+        vehicle: Option<VehicleView>,
+    ) -> Option<StreamReference> {
         if let Some((reference, received)) = self.last {
             return Some(if now.saturating_duration_since(received) < self.timeout {
-                StreamReference { reference, source: Source::Planner }
+                StreamReference {
+                    reference,
+                    source: Source::Planner,
+                }
             } else {
-                StreamReference { reference: EnuReference::hold(reference.position, reference.yaw), source: Source::HoldLastSetpoint }
+                StreamReference {
+                    reference: EnuReference::hold(reference.position, reference.yaw),
+                    source: Source::HoldLastSetpoint,
+                }
             });
         }
         if let Some(v) = vehicle
@@ -94,8 +113,10 @@ impl ReferenceKeeper {
         {
             self.vehicle_hold = Some(v.position);
         }
-        self.vehicle_hold
-            .map(|p| StreamReference { reference: EnuReference::hold(p, None), source: Source::HoldVehicle })
+        self.vehicle_hold.map(|p| StreamReference {
+            reference: EnuReference::hold(p, None),
+            source: Source::HoldVehicle,
+        })
     }
 }
 
@@ -133,7 +154,10 @@ mod tests {
         assert!(k.offer(&moving(1, [1.0, 2.0, 3.0]), t0).is_ok());
         let live = k.current(ms(t0, 499), None);
         assert_eq!(live.map(|r| r.source), Some(Source::Planner));
-        assert_eq!(live.map(|r| r.reference.velocity), Some(Vec3::new(1.0, -2.0, 0.5)));
+        assert_eq!(
+            live.map(|r| r.reference.velocity),
+            Some(Vec3::new(1.0, -2.0, 0.5))
+        );
 
         let held = k.current(ms(t0, 500), None);
         assert_eq!(
@@ -144,13 +168,22 @@ mod tests {
             })
         );
         // Still a hold much later, and the vehicle's own position does not move it.
-        let later = k.current(ms(t0, 60_000), Some(VehicleView { position: Vec3::new(9.0, 9.0, 9.0), in_offboard: true }));
+        let later = k.current(
+            ms(t0, 60_000),
+            Some(VehicleView {
+                position: Vec3::new(9.0, 9.0, 9.0),
+                in_offboard: true,
+            }),
+        );
         assert_eq!(later, held);
 
         // The planner comes back: its setpoint is streamed again at once.
         assert!(k.offer(&moving(2, [4.0, 5.0, 6.0]), ms(t0, 60_001)).is_ok());
         let back = k.current(ms(t0, 60_001), None);
-        assert_eq!(back.map(|r| (r.source, r.reference.position)), Some((Source::Planner, Vec3::new(4.0, 5.0, 6.0))));
+        assert_eq!(
+            back.map(|r| (r.source, r.reference.position)),
+            Some((Source::Planner, Vec3::new(4.0, 5.0, 6.0)))
+        );
     }
 
     #[test]
@@ -158,7 +191,10 @@ mod tests {
         let t0 = Instant::now();
         let mut k = ReferenceKeeper::new(TIMEOUT);
         assert!(k.offer(&moving(1, [1.0, 2.0, 3.0]), t0).is_ok());
-        assert_eq!(k.offer(&moving(2, [f64::NAN, 2.0, 3.0]), t0), Err(RejectedSetpoint { seq: 2 }));
+        assert_eq!(
+            k.offer(&moving(2, [f64::NAN, 2.0, 3.0]), t0),
+            Err(RejectedSetpoint { seq: 2 })
+        );
         let mut inf_vel = moving(3, [0.0; 3]);
         inf_vel.velocity[2] = f64::INFINITY;
         assert!(k.offer(&inf_vel, t0).is_err());
@@ -166,7 +202,10 @@ mod tests {
         inf_yaw.yaw = f64::NEG_INFINITY;
         assert!(k.offer(&inf_yaw, t0).is_err());
         assert_eq!(k.rejected(), 3);
-        assert_eq!(k.current(t0, None).map(|r| r.reference.position), Some(Vec3::new(1.0, 2.0, 3.0)));
+        assert_eq!(
+            k.current(t0, None).map(|r| r.reference.position),
+            Some(Vec3::new(1.0, 2.0, 3.0))
+        );
 
         let mut nan_yaw = moving(5, [7.0, 7.0, 7.0]);
         nan_yaw.yaw = f64::NAN;
@@ -178,13 +217,32 @@ mod tests {
     fn before_any_setpoint_the_hold_follows_the_vehicle_until_offboard() {
         let t0 = Instant::now();
         let mut k = ReferenceKeeper::new(TIMEOUT);
-        let at = |x: f64, in_offboard| Some(VehicleView { position: Vec3::new(x, 0.0, 0.0), in_offboard });
-        let pos = |r: Option<StreamReference>| r.map(|r| (r.source, r.reference.position.x, r.reference.velocity));
-        assert_eq!(pos(k.current(t0, at(1.0, false))), Some((Source::HoldVehicle, 1.0, Vec3::zeros())));
-        assert_eq!(pos(k.current(t0, at(2.0, false))), Some((Source::HoldVehicle, 2.0, Vec3::zeros())));
+        let at = |x: f64, in_offboard| {
+            Some(VehicleView {
+                position: Vec3::new(x, 0.0, 0.0),
+                in_offboard,
+            })
+        };
+        let pos = |r: Option<StreamReference>| {
+            r.map(|r| (r.source, r.reference.position.x, r.reference.velocity))
+        };
+        assert_eq!(
+            pos(k.current(t0, at(1.0, false))),
+            Some((Source::HoldVehicle, 1.0, Vec3::zeros()))
+        );
+        assert_eq!(
+            pos(k.current(t0, at(2.0, false))),
+            Some((Source::HoldVehicle, 2.0, Vec3::zeros()))
+        );
         // In offboard the hold is latched where it was.
-        assert_eq!(pos(k.current(t0, at(3.0, true))), Some((Source::HoldVehicle, 2.0, Vec3::zeros())));
+        assert_eq!(
+            pos(k.current(t0, at(3.0, true))),
+            Some((Source::HoldVehicle, 2.0, Vec3::zeros()))
+        );
         // Vehicle position lost: keep the hold.
-        assert_eq!(pos(k.current(t0, None)), Some((Source::HoldVehicle, 2.0, Vec3::zeros())));
+        assert_eq!(
+            pos(k.current(t0, None)),
+            Some((Source::HoldVehicle, 2.0, Vec3::zeros()))
+        );
     }
 }

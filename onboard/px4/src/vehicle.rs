@@ -77,7 +77,14 @@ impl VehicleTracker {
 
     /// A HEARTBEAT from an autopilot (the caller checked MAV_AUTOPILOT is not INVALID). The first
     /// one from component 1 fixes the autopilot's system id.
-    pub fn on_heartbeat(&mut self, now: Instant, sysid: u8, compid: u8, base_mode: u8, custom_mode: u32) -> HeartbeatVerdict {
+    pub fn on_heartbeat(
+        &mut self,
+        now: Instant,
+        sysid: u8,
+        compid: u8,
+        base_mode: u8,
+        custom_mode: u32,
+    ) -> HeartbeatVerdict {
         if compid != crate::mav::AUTOPILOT_COMPONENT {
             return HeartbeatVerdict::Foreign;
         }
@@ -94,12 +101,16 @@ impl VehicleTracker {
 
     /// Whether a message from (`sysid`, `compid`) comes from our autopilot.
     pub fn is_autopilot(&self, sysid: u8, compid: u8) -> bool {
-        self.autopilot.is_some_and(|ap| ap.sysid == sysid && ap.compid == compid)
+        self.autopilot
+            .is_some_and(|ap| ap.sysid == sysid && ap.compid == compid)
     }
 
     /// LOCAL_POSITION_NED, in the vehicle's NED frame.
     pub fn on_local_position(&mut self, ned_position: Vec3, ned_velocity: Vec3) {
-        self.position = Some((self.home.ned_to_enu(&ned_position), ned_vector_to_enu(&ned_velocity)));
+        self.position = Some((
+            self.home.ned_to_enu(&ned_position),
+            ned_vector_to_enu(&ned_velocity),
+        ));
     }
 
     /// EXTENDED_SYS_STATE.landed_state.
@@ -112,7 +123,8 @@ impl VehicleTracker {
     }
 
     pub fn link_ok(&self, now: Instant) -> bool {
-        self.last_heartbeat.is_some_and(|t| now.saturating_duration_since(t) < LINK_TIMEOUT)
+        self.last_heartbeat
+            .is_some_and(|t| now.saturating_duration_since(t) < LINK_TIMEOUT)
     }
 
     /// Reports each change of the link state once.
@@ -135,14 +147,19 @@ impl VehicleTracker {
 
     /// What the reference keeper needs: the position (once known) and whether PX4 is in OFFBOARD.
     pub fn view(&self) -> Option<VehicleView> {
-        self.position.map(|(position, _)| VehicleView { position, in_offboard: self.mode() == Px4Mode::Offboard })
+        self.position.map(|(position, _)| VehicleView {
+            position,
+            in_offboard: self.mode() == Px4Mode::Offboard,
+        })
     }
 
     fn landed(&self) -> bool {
         match self.landed_state {
             Some(s) if s != landed_state::UNDEFINED => s == landed_state::ON_GROUND,
             // Nothing heard yet: a vehicle that has not reported is taken to be on its pad.
-            _ => self.position.is_none_or(|(p, _)| p.z - self.home.enu.z < LANDED_ALTITUDE_M),
+            _ => self
+                .position
+                .is_none_or(|(p, _)| p.z - self.home.enu.z < LANDED_ALTITUDE_M),
         }
     }
 
@@ -153,7 +170,8 @@ impl VehicleTracker {
             u64::try_from(now.saturating_duration_since(t).as_millis()).unwrap_or(NEVER)
         });
         VehicleStateSample {
-            stamp_ns: u64::try_from(now.saturating_duration_since(self.epoch).as_nanos()).unwrap_or(u64::MAX),
+            stamp_ns: u64::try_from(now.saturating_duration_since(self.epoch).as_nanos())
+                .unwrap_or(u64::MAX),
             link_ok: u32::from(self.link_ok(now)),
             armed: u32::from(self.armed()),
             custom_mode: self.custom_mode,
@@ -180,7 +198,10 @@ mod tests {
         assert!(!v.link_ok(t0));
         assert_eq!(v.update_link(t0), None, "never up, so nothing to report");
         assert_eq!(v.sample(t0).heartbeat_age_ms, NEVER);
-        assert_eq!(v.on_heartbeat(at(t0, 100), 1, 1, 0, 0), HeartbeatVerdict::Ours);
+        assert_eq!(
+            v.on_heartbeat(at(t0, 100), 1, 1, 0, 0),
+            HeartbeatVerdict::Ours
+        );
         assert_eq!(v.update_link(at(t0, 100)), Some(LinkChange::Up));
         assert_eq!(v.update_link(at(t0, 200)), None);
         assert_eq!(v.sample(at(t0, 3099)).link_ok, 1);
@@ -196,11 +217,21 @@ mod tests {
     fn only_the_first_autopilot_counts() {
         let t0 = Instant::now();
         let mut v = VehicleTracker::new(Home::new(Vec3::zeros()), t0);
-        assert_eq!(v.on_heartbeat(t0, 7, 191, 0, 0), HeartbeatVerdict::Foreign, "not an autopilot component");
+        assert_eq!(
+            v.on_heartbeat(t0, 7, 191, 0, 0),
+            HeartbeatVerdict::Foreign,
+            "not an autopilot component"
+        );
         assert_eq!(v.autopilot(), None);
         assert_eq!(v.on_heartbeat(t0, 7, 1, 0, 0), HeartbeatVerdict::Ours);
         assert_eq!(v.on_heartbeat(t0, 8, 1, 0, 0), HeartbeatVerdict::Foreign);
-        assert_eq!(v.autopilot(), Some(Autopilot { sysid: 7, compid: 1 }));
+        assert_eq!(
+            v.autopilot(),
+            Some(Autopilot {
+                sysid: 7,
+                compid: 1
+            })
+        );
         assert!(v.is_autopilot(7, 1) && !v.is_autopilot(8, 1) && !v.is_autopilot(7, 2));
     }
 
@@ -210,15 +241,31 @@ mod tests {
         let home = Home::new(Vec3::new(100.0, 50.0, 1.0));
         let mut v = VehicleTracker::new(home, t0);
         let s = v.sample(t0);
-        assert_eq!((s.position, s.landed), ([100.0, 50.0, 1.0], 1), "home until a position arrives");
-        v.on_heartbeat(t0, 1, 1, px4_mode::BASE_MODE_ARMED | 1, Px4Mode::Offboard.custom_mode());
+        assert_eq!(
+            (s.position, s.landed),
+            ([100.0, 50.0, 1.0], 1),
+            "home until a position arrives"
+        );
+        v.on_heartbeat(
+            t0,
+            1,
+            1,
+            px4_mode::BASE_MODE_ARMED | 1,
+            Px4Mode::Offboard.custom_mode(),
+        );
         // 10 m north, 5 m east, 8 m up of home; climbing at 1 m/s.
         v.on_local_position(Vec3::new(10.0, 5.0, -8.0), Vec3::new(0.0, 0.0, -1.0));
         let s = v.sample(at(t0, 250));
         assert_eq!(s.position, [105.0, 60.0, 9.0]);
         assert_eq!(s.velocity, [0.0, 0.0, 1.0]);
-        assert_eq!((s.armed, s.mode(), s.landed, s.stamp_ns), (1, Px4Mode::Offboard, 0, 250_000_000));
-        assert_eq!(v.view().map(|w| (w.position, w.in_offboard)), Some((Vec3::new(105.0, 60.0, 9.0), true)));
+        assert_eq!(
+            (s.armed, s.mode(), s.landed, s.stamp_ns),
+            (1, Px4Mode::Offboard, 0, 250_000_000)
+        );
+        assert_eq!(
+            v.view().map(|w| (w.position, w.in_offboard)),
+            Some((Vec3::new(105.0, 60.0, 9.0), true))
+        );
         // Low above home: landed by altitude …
         v.on_local_position(Vec3::new(10.0, 5.0, -0.1), Vec3::zeros());
         assert_eq!(v.sample(t0).landed, 1);

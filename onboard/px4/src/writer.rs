@@ -77,7 +77,9 @@ impl Ctx<'_> {
     /// The shared state; a panic in the other thread while it held the lock leaves the data
     /// usable (every update is a plain assignment), so poisoning is ignored.
     fn shared(&self) -> std::sync::MutexGuard<'_, Shared> {
-        self.shared.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+        self.shared
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
     }
 }
 
@@ -94,7 +96,9 @@ fn open_socket(link: MavlinkLink) -> Result<(UdpSocket, Option<SocketAddr>), Px4
         }
     };
     let socket = UdpSocket::bind(bind).map_err(|source| Px4Error::Bind { addr: bind, source })?;
-    socket.set_read_timeout(Some(RECV_TIMEOUT)).map_err(Px4Error::Socket)?;
+    socket
+        .set_read_timeout(Some(RECV_TIMEOUT))
+        .map_err(Px4Error::Socket)?;
     Ok((socket, peer))
 }
 
@@ -111,7 +115,11 @@ pub fn run(config: &WriterConfig, shutdown: &AtomicBool) -> Result<RunSummary, P
         config,
         socket,
         ports,
-        shared: Mutex::new(Shared { vehicle: VehicleTracker::new(config.home, epoch), peer, acks: Vec::new() }),
+        shared: Mutex::new(Shared {
+            vehicle: VehicleTracker::new(config.home, epoch),
+            peer,
+            acks: Vec::new(),
+        }),
         epoch,
         shutdown,
         stop: AtomicBool::new(false),
@@ -119,8 +127,10 @@ pub fn run(config: &WriterConfig, shutdown: &AtomicBool) -> Result<RunSummary, P
         malformed: AtomicU64::new(0),
         states: AtomicU64::new(0),
     };
+    let span = tracing::Span::current();
     let (stream_result, receive_result) = std::thread::scope(|scope| {
         let receiver = scope.spawn(|| {
+            let _guard = span.enter();
             let r = receive_loop(&ctx);
             ctx.stop.store(true, Ordering::Relaxed);
             r
@@ -136,7 +146,9 @@ pub fn run(config: &WriterConfig, shutdown: &AtomicBool) -> Result<RunSummary, P
     summary.datagrams_malformed = ctx.malformed.load(Ordering::Relaxed);
     summary.states_published = ctx.states.load(Ordering::Relaxed);
     let shared = ctx.shared();
-    if shared.vehicle.mode() == tacos_shared::px4_mode::Px4Mode::Offboard && shared.vehicle.link_ok(Instant::now()) {
+    if shared.vehicle.mode() == tacos_shared::px4_mode::Px4Mode::Offboard
+        && shared.vehicle.link_ok(Instant::now())
+    {
         warn!("stopping while the vehicle is in OFFBOARD: PX4 will run its offboard-loss failsafe");
     }
     Ok(summary)
@@ -193,7 +205,7 @@ impl Stream<'_> {
                         Ok(()) => fresh = true,
                         Err(e) => {
                             if let Some(skipped) = self.reject_log.allow(now) {
-                                warn!(%e, total = self.keeper.rejected(), skipped, "setpoint rejected");
+                                warn!(error = %e, total = self.keeper.rejected(), skipped, "setpoint rejected");
                             }
                         }
                     }
@@ -208,7 +220,12 @@ impl Stream<'_> {
         match self.ctx.ports.commands.drain() {
             Ok(commands) => {
                 for cmd in commands {
-                    info!(seq = cmd.seq, kind = cmd.kind, param = cmd.param, "command received");
+                    info!(
+                        seq = cmd.seq,
+                        kind = cmd.kind,
+                        param = cmd.param,
+                        "command received"
+                    );
                     if let Some(result) = self.runner.submit(cmd) {
                         self.publish_result(result, now);
                     }
@@ -223,8 +240,16 @@ impl Stream<'_> {
         fresh
     }
 
-    fn stream_setpoint(&mut self, now: Instant, peer: Option<SocketAddr>, target: Option<(u8, u8)>, view: Option<crate::reference::VehicleView>) {
-        let Some(reference) = self.keeper.current(now, view) else { return };
+    fn stream_setpoint(
+        &mut self,
+        now: Instant,
+        peer: Option<SocketAddr>,
+        target: Option<(u8, u8)>,
+        view: Option<crate::reference::VehicleView>,
+    ) {
+        let Some(reference) = self.keeper.current(now, view) else {
+            return;
+        };
         if self.last_source != Some(reference.source) {
             match reference.source {
                 Source::Planner => info!("streaming the planner's setpoints"),
@@ -233,11 +258,15 @@ impl Stream<'_> {
                     timeout_ms = self.ctx.config.onboard_timeout.as_millis(),
                     "planner silent: streaming a hold at its last setpoint"
                 ),
-                Source::HoldVehicle => info!(position = ?reference.reference.position, "no setpoint yet: streaming a hold at the vehicle's position"),
+                Source::HoldVehicle => {
+                    info!(position = ?reference.reference.position, "no setpoint yet: streaming a hold at the vehicle's position")
+                }
             }
             self.last_source = Some(reference.source);
         }
-        let (Some(peer), Some((sysid, compid))) = (peer, target) else { return };
+        let (Some(peer), Some((sysid, compid))) = (peer, target) else {
+            return;
+        };
         let ned = to_ned(&self.ctx.config.home, &reference.reference);
         let boot_ms = now.saturating_duration_since(self.ctx.epoch).as_millis() as u32; // wraps after 49 days, as PX4's does
         let msg = mav::set_position_target(&ned, boot_ms, sysid, compid);
@@ -271,11 +300,19 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
             let mut shared = ctx.shared();
             let acks = std::mem::take(&mut shared.acks);
             let ap = shared.vehicle.autopilot();
-            (acks, shared.vehicle.link_ok(now), ap.map(|a| (a.sysid, a.compid)), shared.vehicle.view(), shared.peer)
+            (
+                acks,
+                shared.vehicle.link_ok(now),
+                ap.map(|a| (a.sysid, a.compid)),
+                shared.vehicle.view(),
+                shared.peer,
+            )
         };
 
         for (command, result) in acks {
-            let Ok(command) = u16::try_from(command) else { continue };
+            let Ok(command) = u16::try_from(command) else {
+                continue;
+            };
             if let Some(done) = s.runner.on_ack(command, result, now) {
                 s.publish_result(done, now);
             }
@@ -285,8 +322,14 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
             match event {
                 CommandEvent::Done(result) => s.publish_result(result, now),
                 CommandEvent::Send(cmd) => {
-                    let (Some(peer), Some((sysid, compid))) = (peer, target) else { continue };
-                    debug!(command = cmd.command, confirmation = cmd.confirmation, "COMMAND_LONG");
+                    let (Some(peer), Some((sysid, compid))) = (peer, target) else {
+                        continue;
+                    };
+                    debug!(
+                        command = cmd.command,
+                        confirmation = cmd.confirmation,
+                        "COMMAND_LONG"
+                    );
                     if let Some(msg) = mav::command_long(&cmd, sysid, compid) {
                         s.send(peer, &msg, now);
                     }
@@ -307,7 +350,11 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
         if fresh || now >= next_tick {
             s.stream_setpoint(now, peer, target, view);
             // A new setpoint restarts the period; a late tick does not cause a burst.
-            next_tick = if fresh { now + period } else { next_tick + period };
+            next_tick = if fresh {
+                now + period
+            } else {
+                next_tick + period
+            };
             if next_tick <= now {
                 next_tick = now + period;
             }
@@ -342,10 +389,18 @@ fn receive_loop(ctx: &Ctx<'_>) -> Result<(), Px4Error> {
     while !ctx.stopping() {
         let received = match ctx.socket.recv_from(&mut buf) {
             Ok((n, from)) => Some((n, from)),
-            Err(e) if matches!(
-                e.kind(),
-                ErrorKind::WouldBlock | ErrorKind::TimedOut | ErrorKind::Interrupted | ErrorKind::ConnectionRefused | ErrorKind::ConnectionReset
-            ) => None,
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    ErrorKind::WouldBlock
+                        | ErrorKind::TimedOut
+                        | ErrorKind::Interrupted
+                        | ErrorKind::ConnectionRefused
+                        | ErrorKind::ConnectionReset
+                ) =>
+            {
+                None
+            }
             Err(e) => return Err(Px4Error::Socket(e)),
         };
         let now = Instant::now();
@@ -374,7 +429,8 @@ fn receive_loop(ctx: &Ctx<'_>) -> Result<(), Px4Error> {
                 }
                 None => {}
             }
-            (publish || now.saturating_duration_since(last_state) >= STATE_PERIOD).then(|| shared.vehicle.sample(now))
+            (publish || now.saturating_duration_since(last_state) >= STATE_PERIOD)
+                .then(|| shared.vehicle.sample(now))
         };
         if let Some(sample) = sample {
             last_state = now;
@@ -394,7 +450,13 @@ fn receive_loop(ctx: &Ctx<'_>) -> Result<(), Px4Error> {
 }
 
 /// Applies one datagram to the shared state; true when a new position arrived.
-fn handle_datagram(ctx: &Ctx<'_>, datagram: Datagram, from: SocketAddr, now: Instant, foreign_log: &mut RateLimit) -> bool {
+fn handle_datagram(
+    ctx: &Ctx<'_>,
+    datagram: Datagram,
+    from: SocketAddr,
+    now: Instant,
+    foreign_log: &mut RateLimit,
+) -> bool {
     let mut position = false;
     let mut shared = ctx.shared();
     let udpin = matches!(ctx.config.link, MavlinkLink::UdpIn(_));
@@ -403,14 +465,22 @@ fn handle_datagram(ctx: &Ctx<'_>, datagram: Datagram, from: SocketAddr, now: Ins
         shared.peer = Some(from);
     }
     for (header, msg) in datagram.messages {
-        let Ok(sysid) = u8::try_from(header.system_id) else { continue };
+        let Ok(sysid) = u8::try_from(header.system_id) else {
+            continue;
+        };
         let compid = header.component_id;
         match msg {
             MavMessage::HEARTBEAT(hb) => {
                 if hb.autopilot == MavAutopilot::MAV_AUTOPILOT_INVALID {
                     continue; // a GCS or another companion computer
                 }
-                match shared.vehicle.on_heartbeat(now, sysid, compid, hb.base_mode.bits(), hb.custom_mode) {
+                match shared.vehicle.on_heartbeat(
+                    now,
+                    sysid,
+                    compid,
+                    hb.base_mode.bits(),
+                    hb.custom_mode,
+                ) {
                     HeartbeatVerdict::Ours => {
                         if udpin && shared.peer != Some(from) {
                             info!(%from, "autopilot heartbeats now come from a new address");
@@ -419,7 +489,10 @@ fn handle_datagram(ctx: &Ctx<'_>, datagram: Datagram, from: SocketAddr, now: Ins
                     }
                     HeartbeatVerdict::Foreign => {
                         if let Some(skipped) = foreign_log.allow(now) {
-                            debug!(sysid, compid, skipped, "ignoring a heartbeat from another system");
+                            debug!(
+                                sysid,
+                                compid, skipped, "ignoring a heartbeat from another system"
+                            );
                         }
                     }
                 }
@@ -433,8 +506,12 @@ fn handle_datagram(ctx: &Ctx<'_>, datagram: Datagram, from: SocketAddr, now: Ins
                     position = true;
                 }
             }
-            MavMessage::EXTENDED_SYS_STATE(s) => shared.vehicle.on_extended_sys_state(s.landed_state as u8),
-            MavMessage::COMMAND_ACK(ack) => shared.acks.push((mav::command_id(ack.command), ack.result as u8)),
+            MavMessage::EXTENDED_SYS_STATE(s) => {
+                shared.vehicle.on_extended_sys_state(s.landed_state as u8)
+            }
+            MavMessage::COMMAND_ACK(ack) => shared
+                .acks
+                .push((mav::command_id(ack.command), ack.result as u8)),
             _ => {}
         }
     }

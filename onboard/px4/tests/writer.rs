@@ -8,7 +8,10 @@ use mavlink::dialects::common::{MavFrame, MavResult};
 use std::process::Command;
 use std::time::{Duration, Instant};
 use tacos_ipc::{IpcNode, OnboardPorts};
-use tacos_shared::ipc::{CommandKind, CommandOutcome, CommandResultSample, CommandSample, SetpointSample, VehicleStateSample};
+use tacos_shared::ipc::{
+    CommandKind, CommandOutcome, CommandResultSample, CommandSample, SetpointSample,
+    VehicleStateSample,
+};
 
 const START_TIMEOUT: Duration = Duration::from_secs(10);
 
@@ -29,18 +32,40 @@ impl Rig {
         let ports = node.onboard_ports().expect("onboard ports");
         let writer = WriterProcess::start(&swarm, "100,-50,2", free_udp_port(), &[]);
         let autopilot = FakeAutopilot::start(writer.addr());
-        let rig = Rig { writer, autopilot, ports, _node: node };
+        let rig = Rig {
+            writer,
+            autopilot,
+            ports,
+            _node: node,
+        };
         let up = rig.wait_state(START_TIMEOUT, |s| s.link_ok == 1);
-        assert!(up.is_some(), "writer never reported link_ok = 1; log:\n{}", rig.writer.log_text());
+        assert!(
+            up.is_some(),
+            "writer never reported link_ok = 1; log:\n{}",
+            rig.writer.log_text()
+        );
         rig
     }
 
-    fn wait_state(&self, timeout: Duration, pred: impl Fn(&VehicleStateSample) -> bool) -> Option<VehicleStateSample> {
-        poll_until(timeout, || self.ports.state.drain().ok()?.into_iter().find(|s| pred(s)))
+    fn wait_state(
+        &self,
+        timeout: Duration,
+        pred: impl Fn(&VehicleStateSample) -> bool,
+    ) -> Option<VehicleStateSample> {
+        poll_until(timeout, || {
+            self.ports.state.drain().ok()?.into_iter().find(|s| pred(s))
+        })
     }
 
     fn wait_result(&self, timeout: Duration, seq: u64) -> Option<CommandResultSample> {
-        poll_until(timeout, || self.ports.results.drain().ok()?.into_iter().find(|r| r.seq == seq))
+        poll_until(timeout, || {
+            self.ports
+                .results
+                .drain()
+                .ok()?
+                .into_iter()
+                .find(|r| r.seq == seq)
+        })
     }
 
     fn fail(&self, what: &str) -> String {
@@ -76,64 +101,133 @@ fn setpoints_stream_in_ned_at_rate_and_hold_when_the_planner_stops() {
     });
     let (header, hb) = hb.unwrap_or_else(|| panic!("{}", rig.fail("no heartbeat from the writer")));
     assert_eq!((header.system_id, header.component_id), (245, 191));
-    assert_eq!(hb.mavtype, mavlink::dialects::common::MavType::MAV_TYPE_ONBOARD_CONTROLLER);
-    assert!(setpoints(&rig.autopilot.state()).is_empty(), "streamed before any reference existed");
+    assert_eq!(
+        hb.mavtype,
+        mavlink::dialects::common::MavType::MAV_TYPE_ONBOARD_CONTROLLER
+    );
+    assert!(
+        setpoints(&rig.autopilot.state()).is_empty(),
+        "streamed before any reference existed"
+    );
 
     // The planner sends at 10 Hz for 1.5 s (pacing the sender, not synchronising).
     let t_start = Instant::now();
     let mut seq = 0;
     while t_start.elapsed() < Duration::from_millis(1500) {
         seq += 1;
-        rig.ports.send_setpoint(setpoint(seq)).expect("send setpoint");
+        rig.ports
+            .send_setpoint(setpoint(seq))
+            .expect("send setpoint");
         std::thread::sleep(Duration::from_millis(100));
     }
     let t_stop = Instant::now();
 
-    let live: Vec<_> = setpoints(&rig.autopilot.state()).into_iter().filter(|(at, _)| *at >= t_start + Duration::from_millis(200) && *at < t_stop).collect();
+    let live: Vec<_> = setpoints(&rig.autopilot.state())
+        .into_iter()
+        .filter(|(at, _)| *at >= t_start + Duration::from_millis(200) && *at < t_stop)
+        .collect();
     let window = (t_stop - t_start - Duration::from_millis(200)).as_secs_f64();
     let rate = live.len() as f64 / window;
     eprintln!("measured live stream rate: {rate:.1} Hz over {window:.2} s");
-    assert!(rate >= 20.0, "{}", rig.fail(&format!("stream rate {rate:.1} Hz")));
+    assert!(
+        rate >= 20.0,
+        "{}",
+        rig.fail(&format!("stream rate {rate:.1} Hz"))
+    );
     for (_, sp) in &live {
         // NED relative to home: +7 north, +12 east, 10 m up = -10 down.
-        assert!(close(sp.x, 7.0) && close(sp.y, 12.0) && close(sp.z, -10.0), "wrong NED position {sp:?}");
-        assert!(close(sp.vx, 2.0) && close(sp.vy, 1.0) && close(sp.vz, -0.5), "wrong NED velocity {sp:?}");
+        assert!(
+            close(sp.x, 7.0) && close(sp.y, 12.0) && close(sp.z, -10.0),
+            "wrong NED position {sp:?}"
+        );
+        assert!(
+            close(sp.vx, 2.0) && close(sp.vy, 1.0) && close(sp.vz, -0.5),
+            "wrong NED velocity {sp:?}"
+        );
         assert_eq!(sp.coordinate_frame, MavFrame::MAV_FRAME_LOCAL_NED);
         assert_eq!((sp.target_system, sp.target_component), (1, 1));
-        assert_eq!(sp.type_mask.bits(), 1024 | 2048, "PVA used, yaw (NaN) and yaw rate ignored");
+        assert_eq!(
+            sp.type_mask.bits(),
+            1024 | 2048,
+            "PVA used, yaw (NaN) and yaw rate ignored"
+        );
     }
 
     // The planner goes silent: the stream continues with a hold at the last position.
     let hold_seen = rig.autopilot.wait_for(Duration::from_secs(2), |s| {
-        setpoints(s).into_iter().find(|(at, sp)| *at > t_stop && sp.vx == 0.0 && sp.vy == 0.0 && sp.vz == 0.0).map(|(at, _)| at)
+        setpoints(s)
+            .into_iter()
+            .find(|(at, sp)| *at > t_stop && sp.vx == 0.0 && sp.vy == 0.0 && sp.vz == 0.0)
+            .map(|(at, _)| at)
     });
-    let hold_at = hold_seen.unwrap_or_else(|| panic!("{}", rig.fail("no hold after the planner stopped")));
+    let hold_at =
+        hold_seen.unwrap_or_else(|| panic!("{}", rig.fail("no hold after the planner stopped")));
     let held_for = hold_at - t_stop;
-    assert!(held_for >= Duration::from_millis(400), "hold came too early: {held_for:?}");
+    assert!(
+        held_for >= Duration::from_millis(400),
+        "hold came too early: {held_for:?}"
+    );
     // Keep watching for another second of hold.
     let until = hold_at + Duration::from_secs(1);
-    rig.autopilot.wait_for(Duration::from_secs(3), |s| setpoints(s).last().filter(|(at, _)| *at >= until).map(|_| ()));
-    let holds: Vec<_> = setpoints(&rig.autopilot.state()).into_iter().filter(|(at, _)| *at >= hold_at && *at < until).collect();
+    rig.autopilot.wait_for(Duration::from_secs(3), |s| {
+        setpoints(s)
+            .last()
+            .filter(|(at, _)| *at >= until)
+            .map(|_| ())
+    });
+    let holds: Vec<_> = setpoints(&rig.autopilot.state())
+        .into_iter()
+        .filter(|(at, _)| *at >= hold_at && *at < until)
+        .collect();
     let hold_rate = holds.len() as f64;
     eprintln!("measured hold stream rate: {hold_rate:.1} Hz");
-    assert!(hold_rate >= 20.0, "{}", rig.fail(&format!("hold stream rate {hold_rate} Hz")));
+    assert!(
+        hold_rate >= 20.0,
+        "{}",
+        rig.fail(&format!("hold stream rate {hold_rate} Hz"))
+    );
     for (_, sp) in &holds {
-        assert!(close(sp.x, 7.0) && close(sp.y, 12.0) && close(sp.z, -10.0), "hold moved: {sp:?}");
-        assert_eq!((sp.vx, sp.vy, sp.vz, sp.afx, sp.afy, sp.afz), (0.0, 0.0, 0.0, 0.0, 0.0, 0.0));
+        assert!(
+            close(sp.x, 7.0) && close(sp.y, 12.0) && close(sp.z, -10.0),
+            "hold moved: {sp:?}"
+        );
+        assert_eq!(
+            (sp.vx, sp.vy, sp.vz, sp.afx, sp.afy, sp.afz),
+            (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        );
     }
     // No gap anywhere in the stream from the first setpoint on (PX4 drops offboard after 1 s).
     let all = setpoints(&rig.autopilot.state());
-    let worst = all.windows(2).map(|w| w[1].0 - w[0].0).max().unwrap_or_default();
-    assert!(worst < Duration::from_millis(200), "stream paused for {worst:?}");
+    let worst = all
+        .windows(2)
+        .map(|w| w[1].0 - w[0].0)
+        .max()
+        .unwrap_or_default();
+    assert!(
+        worst < Duration::from_millis(200),
+        "stream paused for {worst:?}"
+    );
 
     // A non-finite setpoint is rejected: the hold stays.
     let mut bad = setpoint(1000);
     bad.position[0] = f64::NAN;
     rig.ports.send_setpoint(bad).expect("send");
     let t_bad = Instant::now();
-    rig.autopilot.wait_for(Duration::from_secs(2), |s| setpoints(s).iter().filter(|(at, _)| *at > t_bad).nth(10).map(|_| ()));
-    for (_, sp) in setpoints(&rig.autopilot.state()).iter().filter(|(at, _)| *at > t_bad) {
-        assert!(sp.x.is_finite() && close(sp.x, 7.0), "a NaN setpoint got through: {sp:?}");
+    rig.autopilot.wait_for(Duration::from_secs(2), |s| {
+        setpoints(s)
+            .iter()
+            .filter(|(at, _)| *at > t_bad)
+            .nth(10)
+            .map(|_| ())
+    });
+    for (_, sp) in setpoints(&rig.autopilot.state())
+        .iter()
+        .filter(|(at, _)| *at > t_bad)
+    {
+        assert!(
+            sp.x.is_finite() && close(sp.x, 7.0),
+            "a NaN setpoint got through: {sp:?}"
+        );
     }
 }
 
@@ -142,50 +236,121 @@ fn commands_are_acked_retried_and_timed_out() {
     let rig = Rig::start("cmd");
 
     // Accepted.
-    rig.ports.send_command(CommandSample::new(1, CommandKind::Arm, 0.0)).expect("send command");
-    let r = rig.wait_result(Duration::from_secs(3), 1).unwrap_or_else(|| panic!("{}", rig.fail("no result for arm")));
-    assert_eq!((r.kind, r.outcome(), r.mav_result), (CommandKind::Arm as u32, Some(CommandOutcome::Accepted), 0));
+    rig.ports
+        .send_command(CommandSample::new(1, CommandKind::Arm, 0.0))
+        .expect("send command");
+    let r = rig
+        .wait_result(Duration::from_secs(3), 1)
+        .unwrap_or_else(|| panic!("{}", rig.fail("no result for arm")));
+    assert_eq!(
+        (r.kind, r.outcome(), r.mav_result),
+        (CommandKind::Arm as u32, Some(CommandOutcome::Accepted), 0)
+    );
     let arms = command_longs(&rig.autopilot.state());
     assert_eq!(arms.len(), 1);
     let arm = &arms[0].1;
-    assert_eq!((arm.command as u32, arm.param1, arm.confirmation, arm.target_system, arm.target_component), (400, 1.0, 0, 1, 1));
+    assert_eq!(
+        (
+            arm.command as u32,
+            arm.param1,
+            arm.confirmation,
+            arm.target_system,
+            arm.target_component
+        ),
+        (400, 1.0, 0, 1, 1)
+    );
     // The armed heartbeat comes back as state.
-    assert!(rig.wait_state(Duration::from_secs(2), |s| s.armed == 1).is_some(), "{}", rig.fail("armed never reported"));
+    assert!(
+        rig.wait_state(Duration::from_secs(2), |s| s.armed == 1)
+            .is_some(),
+        "{}",
+        rig.fail("armed never reported")
+    );
 
     // Refused.
     rig.autopilot.state().ack = AckPolicy::Answer(MavResult::MAV_RESULT_DENIED);
-    rig.ports.send_command(CommandSample::new(2, CommandKind::Offboard, 0.0)).expect("send command");
-    let r = rig.wait_result(Duration::from_secs(3), 2).unwrap_or_else(|| panic!("{}", rig.fail("no result for offboard")));
-    assert_eq!((r.outcome(), r.mav_result), (Some(CommandOutcome::Rejected), 2));
+    rig.ports
+        .send_command(CommandSample::new(2, CommandKind::Offboard, 0.0))
+        .expect("send command");
+    let r = rig
+        .wait_result(Duration::from_secs(3), 2)
+        .unwrap_or_else(|| panic!("{}", rig.fail("no result for offboard")));
+    assert_eq!(
+        (r.outcome(), r.mav_result),
+        (Some(CommandOutcome::Rejected), 2)
+    );
 
     // Unanswered: three tries, one second apart, confirmation 0, 1, 2, then TimedOut.
     rig.autopilot.state().ack = AckPolicy::Ignore;
     let before = command_longs(&rig.autopilot.state()).len();
     let t0 = Instant::now();
-    rig.ports.send_command(CommandSample::new(3, CommandKind::Takeoff, 10.0)).expect("send command");
-    let r = rig.wait_result(Duration::from_secs(5), 3).unwrap_or_else(|| panic!("{}", rig.fail("no result for takeoff")));
+    rig.ports
+        .send_command(CommandSample::new(3, CommandKind::Takeoff, 10.0))
+        .expect("send command");
+    let r = rig
+        .wait_result(Duration::from_secs(5), 3)
+        .unwrap_or_else(|| panic!("{}", rig.fail("no result for takeoff")));
     let took = t0.elapsed();
-    assert_eq!((r.kind, r.outcome()), (CommandKind::Takeoff as u32, Some(CommandOutcome::TimedOut)));
-    assert!(took >= Duration::from_millis(2900) && took < Duration::from_millis(4000), "timed out after {took:?}");
-    let tries: Vec<_> = command_longs(&rig.autopilot.state()).into_iter().skip(before).collect();
-    assert_eq!(tries.iter().map(|(_, c)| c.confirmation).collect::<Vec<_>>(), vec![0, 1, 2]);
+    assert_eq!(
+        (r.kind, r.outcome()),
+        (CommandKind::Takeoff as u32, Some(CommandOutcome::TimedOut))
+    );
+    assert!(
+        took >= Duration::from_millis(2900) && took < Duration::from_millis(4000),
+        "timed out after {took:?}"
+    );
+    let tries: Vec<_> = command_longs(&rig.autopilot.state())
+        .into_iter()
+        .skip(before)
+        .collect();
+    assert_eq!(
+        tries
+            .iter()
+            .map(|(_, c)| c.confirmation)
+            .collect::<Vec<_>>(),
+        vec![0, 1, 2]
+    );
     for (_, c) in &tries {
         assert_eq!((c.command as u32, c.param7), (22, 10.0));
     }
     for w in tries.windows(2) {
         let gap = w[1].0 - w[0].0;
-        assert!(gap >= Duration::from_millis(900) && gap < Duration::from_millis(1300), "retry gap {gap:?}");
+        assert!(
+            gap >= Duration::from_millis(900) && gap < Duration::from_millis(1300),
+            "retry gap {gap:?}"
+        );
     }
 
     // Queued commands run in order once the autopilot answers again.
     rig.autopilot.state().ack = AckPolicy::Accept;
-    rig.ports.send_command(CommandSample::new(4, CommandKind::Hold, 0.0)).expect("send command");
-    rig.ports.send_command(CommandSample::new(5, CommandKind::Land, 0.0)).expect("send command");
-    let r4 = rig.wait_result(Duration::from_secs(3), 4).map(|r| r.outcome());
-    let r5 = rig.wait_result(Duration::from_secs(3), 5).map(|r| r.outcome());
-    assert_eq!((r4, r5), (Some(Some(CommandOutcome::Accepted)), Some(Some(CommandOutcome::Accepted))), "{}", rig.fail("hold/land"));
-    let hold = command_longs(&rig.autopilot.state()).into_iter().find(|(_, c)| c.command as u32 == 176 && c.param2 == 4.0);
-    assert_eq!(hold.map(|(_, c)| (c.param1, c.param2, c.param3)), Some((1.0, 4.0, 3.0)));
+    rig.ports
+        .send_command(CommandSample::new(4, CommandKind::Hold, 0.0))
+        .expect("send command");
+    rig.ports
+        .send_command(CommandSample::new(5, CommandKind::Land, 0.0))
+        .expect("send command");
+    let r4 = rig
+        .wait_result(Duration::from_secs(3), 4)
+        .map(|r| r.outcome());
+    let r5 = rig
+        .wait_result(Duration::from_secs(3), 5)
+        .map(|r| r.outcome());
+    assert_eq!(
+        (r4, r5),
+        (
+            Some(Some(CommandOutcome::Accepted)),
+            Some(Some(CommandOutcome::Accepted))
+        ),
+        "{}",
+        rig.fail("hold/land")
+    );
+    let hold = command_longs(&rig.autopilot.state())
+        .into_iter()
+        .find(|(_, c)| c.command as u32 == 176 && c.param2 == 4.0);
+    assert_eq!(
+        hold.map(|(_, c)| (c.param1, c.param2, c.param3)),
+        Some((1.0, 4.0, 3.0))
+    );
 }
 
 #[test]
@@ -194,13 +359,25 @@ fn link_loss_position_and_garbage() {
 
     // LOCAL_POSITION_NED 10 m north, 5 m east, 8 m up of home (100, -50, 2) → ENU (105, -40, 10).
     rig.autopilot.state().position_ned = Some([10.0, 5.0, -8.0]);
-    let s = rig.wait_state(Duration::from_secs(3), |s| s.position == [105.0, -40.0, 10.0]);
+    let s = rig.wait_state(Duration::from_secs(3), |s| {
+        s.position == [105.0, -40.0, 10.0]
+    });
     let s = s.unwrap_or_else(|| panic!("{}", rig.fail("position never reported in ENU")));
     assert_eq!((s.landed, s.link_ok), (0, 1));
+    // No setpoint ever came, so the writer now streams a hold where the vehicle is (in NED).
+    let hold = rig.autopilot.wait_for(Duration::from_secs(2), |s| {
+        setpoints(s)
+            .into_iter()
+            .find(|(_, sp)| (sp.x, sp.y, sp.z) == (10.0, 5.0, -8.0))
+            .map(|(_, sp)| sp)
+    });
+    let hold = hold.unwrap_or_else(|| panic!("{}", rig.fail("no hold at the vehicle's position")));
+    assert_eq!((hold.vx, hold.vy, hold.vz), (0.0, 0.0, 0.0));
 
     // Garbage is counted, not fatal.
     rig.autopilot.send_raw(b"definitely not mavlink");
-    rig.autopilot.send_raw(&[0xFD, 9, 0, 0, 0, 1, 1, 0, 0, 0, 1, 2, 3]);
+    rig.autopilot
+        .send_raw(&[0xFD, 9, 0, 0, 0, 1, 1, 0, 0, 0, 1, 2, 3]);
 
     // Heartbeats stop: link_ok 0 within ~3.5 s (and not long before 3 s).
     {
@@ -212,14 +389,24 @@ fn link_loss_position_and_garbage() {
     let lost = rig.wait_state(Duration::from_millis(4500), |s| s.link_ok == 0);
     let took = t0.elapsed();
     let lost = lost.unwrap_or_else(|| panic!("{}", rig.fail("link loss never reported")));
-    assert!(took <= Duration::from_millis(3600), "link loss reported after {took:?}");
-    assert!(took >= Duration::from_millis(2500), "link loss reported too early: {took:?}");
+    assert!(
+        took <= Duration::from_millis(3600),
+        "link loss reported after {took:?}"
+    );
+    assert!(
+        took >= Duration::from_millis(2500),
+        "link loss reported too early: {took:?}"
+    );
     assert!(lost.heartbeat_age_ms >= 2900, "{lost:?}");
 
     // With no link a command ends at once as LinkLost.
     let t1 = Instant::now();
-    rig.ports.send_command(CommandSample::new(9, CommandKind::Land, 0.0)).expect("send");
-    let r = rig.wait_result(Duration::from_secs(2), 9).unwrap_or_else(|| panic!("{}", rig.fail("no LinkLost result")));
+    rig.ports
+        .send_command(CommandSample::new(9, CommandKind::Land, 0.0))
+        .expect("send");
+    let r = rig
+        .wait_result(Duration::from_secs(2), 9)
+        .unwrap_or_else(|| panic!("{}", rig.fail("no LinkLost result")));
     assert_eq!(r.outcome(), Some(CommandOutcome::LinkLost));
     assert!(t1.elapsed() < Duration::from_millis(500));
 
@@ -230,35 +417,84 @@ fn link_loss_position_and_garbage() {
         count += rig.ports.state.drain().ok()?.len();
         (t2.elapsed() >= Duration::from_secs(1)).then_some(())
     });
-    assert!(count >= 4, "only {count} state samples in 1 s without position");
+    assert!(
+        count >= 4,
+        "only {count} state samples in 1 s without position"
+    );
 
     // Heartbeats return: link up again.
     rig.autopilot.state().heartbeats = true;
-    assert!(rig.wait_state(Duration::from_secs(2), |s| s.link_ok == 1).is_some(), "{}", rig.fail("link never came back"));
-    assert!(rig.writer.log_text().contains("malformed MAVLink datagram"), "{}", rig.fail("garbage not logged"));
+    assert!(
+        rig.wait_state(Duration::from_secs(2), |s| s.link_ok == 1)
+            .is_some(),
+        "{}",
+        rig.fail("link never came back")
+    );
+    assert!(
+        rig.writer.log_text().contains("malformed MAVLink datagram"),
+        "{}",
+        rig.fail("garbage not logged")
+    );
 }
 
 #[test]
 fn bad_arguments_and_a_port_in_use_fail_clearly() {
     let bin = env!("CARGO_BIN_EXE_tacos-px4");
-    let run = |args: &[&str]| Command::new(bin).args(args).env("RUST_LOG", "error").output().expect("running tacos-px4");
+    let run = |args: &[&str]| {
+        Command::new(bin)
+            .args(args)
+            .env("RUST_LOG", "error")
+            .output()
+            .expect("running tacos-px4")
+    };
 
     let out = run(&["--swarm", "s", "--drone", "alfa", "--home", "1,2"]);
     assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("--home"), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("--home"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 
-    let out = run(&["--swarm", "s", "--drone", "alfa", "--home", "0,0,0", "--mavlink", "tcp:1.2.3.4:5"]);
+    let out = run(&[
+        "--swarm",
+        "s",
+        "--drone",
+        "alfa",
+        "--home",
+        "0,0,0",
+        "--mavlink",
+        "tcp:1.2.3.4:5",
+    ]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--mavlink"));
 
-    let out = run(&["--swarm", "s", "--drone", "alfa", "--home", "0,0,0", "--stream-rate-hz", "5"]);
+    let out = run(&[
+        "--swarm",
+        "s",
+        "--drone",
+        "alfa",
+        "--home",
+        "0,0,0",
+        "--stream-rate-hz",
+        "5",
+    ]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("stream-rate-hz"));
 
     let taken = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
     let port = taken.local_addr().expect("addr").port();
     let swarm = unique_swarm("busy");
-    let out = run(&["--swarm", swarm.as_str(), "--drone", "alfa", "--home", "0,0,0", "--mavlink", &format!("udpin:127.0.0.1:{port}")]);
+    let out = run(&[
+        "--swarm",
+        swarm.as_str(),
+        "--drone",
+        "alfa",
+        "--home",
+        "0,0,0",
+        "--mavlink",
+        &format!("udpin:127.0.0.1:{port}"),
+    ]);
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("cannot bind UDP"), "{err}");
@@ -271,12 +507,68 @@ fn sigterm_stops_the_writer_cleanly() {
     // Up = it answers on its port with a heartbeat once an autopilot talks to it.
     let autopilot = FakeAutopilot::start(writer.addr());
     let up = autopilot.wait_for(START_TIMEOUT, |s| (!s.received.is_empty()).then_some(()));
-    assert!(up.is_some(), "writer never talked; log:\n{}", writer.log_text());
+    assert!(
+        up.is_some(),
+        "writer never talked; log:\n{}",
+        writer.log_text()
+    );
     let pid = writer.child.id().to_string();
-    let killed = Command::new("kill").args(["-TERM", &pid]).status().expect("kill");
+    let killed = Command::new("kill")
+        .args(["-TERM", &pid])
+        .status()
+        .expect("kill");
     assert!(killed.success());
-    let exited = poll_until(Duration::from_secs(3), || writer.child.try_wait().ok().flatten());
-    let status = exited.unwrap_or_else(|| panic!("writer did not stop on SIGTERM; log:\n{}", writer.log_text()));
-    assert!(status.success(), "exit status {status:?}; log:\n{}", writer.log_text());
+    let exited = poll_until(Duration::from_secs(3), || {
+        writer.child.try_wait().ok().flatten()
+    });
+    let status = exited.unwrap_or_else(|| {
+        panic!(
+            "writer did not stop on SIGTERM; log:\n{}",
+            writer.log_text()
+        )
+    });
+    assert!(
+        status.success(),
+        "exit status {status:?}; log:\n{}",
+        writer.log_text()
+    );
     assert!(writer.log_text().contains("stopped"));
+}
+
+#[test]
+fn udpout_sends_to_the_autopilot_from_an_ephemeral_port() {
+    let swarm = unique_swarm("out");
+    let node = IpcNode::new(&swarm, &drone()).expect("iceoryx2 node");
+    let ports = node.onboard_ports().expect("onboard ports");
+    let socket = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
+    let ap_addr = socket.local_addr().expect("addr");
+    let autopilot = FakeAutopilot::listen(socket);
+    let writer =
+        WriterProcess::start_with_link(&swarm, "0,0,0", &format!("udpout:{ap_addr}"), 0, &[]);
+    let up = poll_until(START_TIMEOUT, || {
+        ports
+            .state
+            .drain()
+            .ok()?
+            .into_iter()
+            .find(|s| s.link_ok == 1)
+    });
+    assert!(
+        up.is_some(),
+        "no link over udpout; log:\n{}",
+        writer.log_text()
+    );
+    ports
+        .send_setpoint(SetpointSample {
+            seq: 1,
+            position: [1.0, 2.0, 3.0],
+            yaw: f64::NAN,
+            ..Default::default()
+        })
+        .expect("send");
+    let sp = autopilot.wait_for(Duration::from_secs(2), |s| {
+        setpoints(s).first().map(|(_, sp)| sp.clone())
+    });
+    let sp = sp.unwrap_or_else(|| panic!("no setpoint over udpout; log:\n{}", writer.log_text()));
+    assert_eq!((sp.x, sp.y, sp.z), (2.0, 1.0, -3.0));
 }

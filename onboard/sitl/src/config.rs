@@ -40,19 +40,33 @@ impl SitlConfig {
     /// Checks the numbers and returns the drone slots to simulate.
     pub fn validate(&self) -> Result<&[DroneSlot], SitlError> {
         if !(self.speed.is_finite() && self.speed > 0.0 && self.speed <= 100.0) {
-            return Err(SitlError::Config(format!("--speed must be in (0, 100], got {}", self.speed)));
+            return Err(SitlError::Config(format!(
+                "--speed must be in (0, 100], got {}",
+                self.speed
+            )));
         }
         if self.drones == 0 {
             return Err(SitlError::Config("--drones must be at least 1".into()));
         }
-        let slots = self.scenario.first_drones(self.drones).map_err(SitlError::Config)?;
+        let slots = self
+            .scenario
+            .first_drones(self.drones)
+            .map_err(SitlError::Config)?;
         let last = self.drones - 1;
-        for (base, flag) in [(self.mavlink_base_port, "--mavlink-base-port"), (self.sitl_base_port, "--sitl-base-port")] {
+        for (base, flag) in [
+            (self.mavlink_base_port, "--mavlink-base-port"),
+            (self.sitl_base_port, "--sitl-base-port"),
+        ] {
             if base == 0 || usize::from(base) + last > usize::from(u16::MAX) {
-                return Err(SitlError::Config(format!("{flag} {base} + {last} is not a valid port")));
+                return Err(SitlError::Config(format!(
+                    "{flag} {base} + {last} is not a valid port"
+                )));
             }
         }
-        let (a, b) = (usize::from(self.mavlink_base_port), usize::from(self.sitl_base_port));
+        let (a, b) = (
+            usize::from(self.mavlink_base_port),
+            usize::from(self.sitl_base_port),
+        );
         if a.max(b) - a.min(b) <= last {
             return Err(SitlError::Config(format!(
                 "the MAVLink port ranges {a}..={} and {b}..={} overlap",
@@ -74,7 +88,10 @@ impl SitlConfig {
 
 /// `base + i`, saturating (validated beforehand by [`SitlConfig::validate`]).
 fn port_at(base: u16, i: usize) -> u16 {
-    u16::try_from(i).ok().and_then(|i| base.checked_add(i)).unwrap_or(u16::MAX)
+    u16::try_from(i)
+        .ok()
+        .and_then(|i| base.checked_add(i))
+        .unwrap_or(u16::MAX)
 }
 
 #[cfg(test)]

@@ -59,15 +59,31 @@ mod tests {
     #[test]
     fn detected_once_per_drone_when_close_and_low() {
         let limits = Scenario::builtin("lab").expect("valid").limits;
-        let (alfa, bravo) = (DroneId::new("alfa").expect("valid"), DroneId::new("bravo").expect("valid"));
+        let (alfa, bravo) = (
+            DroneId::new("alfa").expect("valid"),
+            DroneId::new("bravo").expect("valid"),
+        );
         let dog = ("dog", Some("small_park"), Vec3::new(-2.5, 2.5, 0.0));
         let mut d = Detector::default();
-        let at = |drone, x: f64, z: f64, can_see| Observer { drone, position: Vec3::new(x, 2.5, z), can_see };
+        let at = |drone, x: f64, z: f64, can_see| Observer {
+            drone,
+            position: Vec3::new(x, 2.5, z),
+            can_see,
+        };
 
         // Too far, too high, or not airborne: nothing.
-        assert!(d.check([dog], &[at(&alfa, -1.0, 1.0, true)], &limits).is_empty());
-        assert!(d.check([dog], &[at(&alfa, -2.5, 2.4, true)], &limits).is_empty());
-        assert!(d.check([dog], &[at(&alfa, -2.5, 1.0, false)], &limits).is_empty());
+        assert!(
+            d.check([dog], &[at(&alfa, -1.0, 1.0, true)], &limits)
+                .is_empty()
+        );
+        assert!(
+            d.check([dog], &[at(&alfa, -2.5, 2.4, true)], &limits)
+                .is_empty()
+        );
+        assert!(
+            d.check([dog], &[at(&alfa, -2.5, 1.0, false)], &limits)
+                .is_empty()
+        );
 
         let events = d.check([dog], &[at(&alfa, -2.2, 1.0, true)], &limits);
         assert_eq!(events.len(), 1);
@@ -75,7 +91,16 @@ mod tests {
             matches!(&events[0], WorldEvent::Detection { drone, target, landmark: Some(l), .. }
                 if drone == &alfa && target == "dog" && l == "small_park")
         );
-        assert!(d.check([dog], &[at(&alfa, -2.2, 1.0, true)], &limits).is_empty(), "once per drone");
-        assert_eq!(d.check([dog], &[at(&bravo, -2.5, 1.0, true)], &limits).len(), 1, "but each drone");
+        assert!(
+            d.check([dog], &[at(&alfa, -2.2, 1.0, true)], &limits)
+                .is_empty(),
+            "once per drone"
+        );
+        assert_eq!(
+            d.check([dog], &[at(&bravo, -2.5, 1.0, true)], &limits)
+                .len(),
+            1,
+            "but each drone"
+        );
     }
 }

@@ -73,7 +73,11 @@ mod tests {
     use super::*;
 
     fn spec(at_s: f64, kind: FaultKind) -> FaultSpec {
-        FaultSpec { at_s, drone: "alfa".into(), kind }
+        FaultSpec {
+            at_s,
+            drone: "alfa".into(),
+            kind,
+        }
     }
 
     #[test]
@@ -83,7 +87,10 @@ mod tests {
             spec(5.0, FaultKind::LinkDrops { duration_s: 3.0 }),
         ]);
         assert!(s.due(4.9).is_empty());
-        assert_eq!(s.due(5.0), vec![spec(5.0, FaultKind::LinkDrops { duration_s: 3.0 })]);
+        assert_eq!(
+            s.due(5.0),
+            vec![spec(5.0, FaultKind::LinkDrops { duration_s: 3.0 })]
+        );
         assert!(s.due(19.0).is_empty());
         assert_eq!(s.due(100.0).len(), 1);
         assert!(s.due(200.0).is_empty());

@@ -4,9 +4,9 @@
 use crate::motion::Reference;
 use crate::vehicle::{LandedState, Vehicle};
 use mavlink::dialects::common::{
-    COMMAND_ACK_DATA, EXTENDED_SYS_STATE_DATA, HEARTBEAT_DATA, LOCAL_POSITION_NED_DATA, MavAutopilot, MavCmd,
-    MavFrame, MavLandedState, MavMessage, MavModeFlag, MavResult, MavState, MavType, MavVtolState,
-    PositionTargetTypemask, SET_POSITION_TARGET_LOCAL_NED_DATA,
+    COMMAND_ACK_DATA, EXTENDED_SYS_STATE_DATA, HEARTBEAT_DATA, LOCAL_POSITION_NED_DATA,
+    MavAutopilot, MavCmd, MavFrame, MavLandedState, MavMessage, MavModeFlag, MavResult, MavState,
+    MavType, MavVtolState, PositionTargetTypemask, SET_POSITION_TARGET_LOCAL_NED_DATA,
 };
 use mavlink::{MavHeader, MavlinkReader};
 use tacos_shared::px4_mode::Px4Mode;
@@ -47,19 +47,27 @@ pub fn decode_datagram(bytes: &[u8]) -> (Vec<(MavHeader, MavMessage)>, usize) {
 /// HEARTBEAT as PX4 sends it.
 pub fn heartbeat(vehicle: &Vehicle) -> MavMessage {
     let mode = vehicle.mode();
-    let mut base = MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | MavModeFlag::MAV_MODE_FLAG_STABILIZE_ENABLED;
+    let mut base = MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        | MavModeFlag::MAV_MODE_FLAG_STABILIZE_ENABLED;
     match mode {
         Px4Mode::Takeoff | Px4Mode::Hold | Px4Mode::Land => {
-            base |= MavModeFlag::MAV_MODE_FLAG_GUIDED_ENABLED | MavModeFlag::MAV_MODE_FLAG_AUTO_ENABLED;
+            base |=
+                MavModeFlag::MAV_MODE_FLAG_GUIDED_ENABLED | MavModeFlag::MAV_MODE_FLAG_AUTO_ENABLED;
         }
         Px4Mode::Offboard => base |= MavModeFlag::MAV_MODE_FLAG_GUIDED_ENABLED,
-        Px4Mode::Manual | Px4Mode::Position => base |= MavModeFlag::MAV_MODE_FLAG_MANUAL_INPUT_ENABLED,
+        Px4Mode::Manual | Px4Mode::Position => {
+            base |= MavModeFlag::MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
+        }
         Px4Mode::Other { .. } => {}
     }
     if vehicle.armed() {
         base |= MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED;
     }
-    let system_status = if vehicle.landed() { MavState::MAV_STATE_STANDBY } else { MavState::MAV_STATE_ACTIVE };
+    let system_status = if vehicle.landed() {
+        MavState::MAV_STATE_STANDBY
+    } else {
+        MavState::MAV_STATE_ACTIVE
+    };
     MavMessage::HEARTBEAT(HEARTBEAT_DATA {
         custom_mode: vehicle.custom_mode(),
         mavtype: MavType::MAV_TYPE_QUADROTOR,
@@ -92,7 +100,10 @@ pub fn extended_sys_state(vehicle: &Vehicle) -> MavMessage {
         LandedState::InAir => MavLandedState::MAV_LANDED_STATE_IN_AIR,
         LandedState::Landing => MavLandedState::MAV_LANDED_STATE_LANDING,
     };
-    MavMessage::EXTENDED_SYS_STATE(EXTENDED_SYS_STATE_DATA { vtol_state: MavVtolState::MAV_VTOL_STATE_UNDEFINED, landed_state })
+    MavMessage::EXTENDED_SYS_STATE(EXTENDED_SYS_STATE_DATA {
+        vtol_state: MavVtolState::MAV_VTOL_STATE_UNDEFINED,
+        landed_state,
+    })
 }
 
 pub fn command_ack(command: MavCmd, result: MavResult) -> MavMessage {
@@ -107,8 +118,11 @@ fn time_boot_ms(seconds: f64) -> u32 {
 /// What an incoming message did, for the runtime's counters and logs.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Handled {
-    /// A command was executed; send this COMMAND_ACK back.
-    Command { command: MavCmd, result: MavResult, ack: MavMessage },
+    /// A command was executed; [`command_ack`] of the two is the reply.
+    Command {
+        command: MavCmd,
+        result: MavResult,
+    },
     Setpoint,
     /// A setpoint in a frame the simulator does not fly (PX4 ignores those too).
     IgnoredSetpoint,
@@ -121,17 +135,24 @@ pub fn handle(vehicle: &mut Vehicle, system_id: u8, message: &MavMessage) -> Han
     let for_us = |target: u8| target == 0 || target == system_id;
     match message {
         MavMessage::COMMAND_LONG(c) if for_us(c.target_system) => {
-            let params = [c.param1, c.param2, c.param3, c.param4, c.param5, c.param6, c.param7];
+            let params = [
+                c.param1, c.param2, c.param3, c.param4, c.param5, c.param6, c.param7,
+            ];
             let result = vehicle.handle_command(c.command, params);
-            Handled::Command { command: c.command, result, ack: command_ack(c.command, result) }
-        }
-        MavMessage::SET_POSITION_TARGET_LOCAL_NED(s) if for_us(s.target_system) => match setpoint_reference(s) {
-            Some(reference) => {
-                vehicle.handle_setpoint(reference);
-                Handled::Setpoint
+            Handled::Command {
+                command: c.command,
+                result,
             }
-            None => Handled::IgnoredSetpoint,
-        },
+        }
+        MavMessage::SET_POSITION_TARGET_LOCAL_NED(s) if for_us(s.target_system) => {
+            match setpoint_reference(s) {
+                Some(reference) => {
+                    vehicle.handle_setpoint(reference);
+                    Handled::Setpoint
+                }
+                None => Handled::IgnoredSetpoint,
+            }
+        }
         _ => Handled::NotForUs,
     }
 }
@@ -165,7 +186,12 @@ pub fn setpoint_reference(s: &SET_POSITION_TARGET_LOCAL_NED_DATA) -> Option<Refe
             pick(s.afz, M::POSITION_TARGET_TYPEMASK_AZ_IGNORE),
         ],
     };
-    let anything = reference.position.iter().chain(&reference.velocity).chain(&reference.acceleration).any(Option::is_some);
+    let anything = reference
+        .position
+        .iter()
+        .chain(&reference.velocity)
+        .chain(&reference.acceleration)
+        .any(Option::is_some);
     anything.then_some(reference)
 }
 
@@ -182,7 +208,11 @@ mod tests {
     }
 
     fn header(system_id: u32) -> MavHeader {
-        MavHeader { system_id, component_id: AUTOPILOT_COMPONENT, sequence: 7 }
+        MavHeader {
+            system_id,
+            component_id: AUTOPILOT_COMPONENT,
+            sequence: 7,
+        }
     }
 
     #[test]
@@ -195,11 +225,19 @@ mod tests {
         assert_eq!(bad, 0);
         assert_eq!(messages.len(), 2);
         assert_eq!(messages[0].0.system_id, 3);
-        let MavMessage::HEARTBEAT(hb) = &messages[0].1 else { panic!("{messages:?}") };
+        let MavMessage::HEARTBEAT(hb) = &messages[0].1 else {
+            panic!("{messages:?}")
+        };
         assert_eq!(Px4Mode::from_custom_mode(hb.custom_mode), Px4Mode::Hold);
         assert_eq!(hb.autopilot, MavAutopilot::MAV_AUTOPILOT_PX4);
-        assert!(hb.base_mode.contains(MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED));
-        assert!(!hb.base_mode.contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED));
+        assert!(
+            hb.base_mode
+                .contains(MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED)
+        );
+        assert!(
+            !hb.base_mode
+                .contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED)
+        );
         assert_eq!(hb.system_status, MavState::MAV_STATE_STANDBY);
     }
 
@@ -237,10 +275,10 @@ mod tests {
         assert_eq!(handle(&mut v, 1, &arm), Handled::NotForUs);
         assert!(!v.armed());
         match handle(&mut v, 2, &arm) {
-            Handled::Command { result, ack, .. } => {
+            Handled::Command { command, result } => {
                 assert_eq!(result, MavResult::MAV_RESULT_ACCEPTED);
                 assert_eq!(
-                    ack,
+                    command_ack(command, result),
                     MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
                         command: MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
                         result: MavResult::MAV_RESULT_ACCEPTED
@@ -250,8 +288,13 @@ mod tests {
             other => panic!("{other:?}"),
         }
         assert!(v.armed());
-        let MavMessage::HEARTBEAT(hb) = heartbeat(&v) else { panic!() };
-        assert!(hb.base_mode.contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED));
+        let MavMessage::HEARTBEAT(hb) = heartbeat(&v) else {
+            panic!()
+        };
+        assert!(
+            hb.base_mode
+                .contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED)
+        );
     }
 
     fn setpoint(mask: u16, frame: MavFrame) -> SET_POSITION_TARGET_LOCAL_NED_DATA {
@@ -279,15 +322,22 @@ mod tests {
     fn type_mask_selects_the_fields() {
         // Position only: velocity, acceleration, yaw and yaw rate ignored (what MAVSDK sends).
         let position_only = 0b0000_1101_1111_1000;
-        let r = setpoint_reference(&setpoint(position_only, MavFrame::MAV_FRAME_LOCAL_NED)).expect("usable");
+        let r = setpoint_reference(&setpoint(position_only, MavFrame::MAV_FRAME_LOCAL_NED))
+            .expect("usable");
         assert_eq!(r.position, [Some(1.0), Some(2.0), Some(-3.0)]);
         assert_eq!(r.velocity, [None; 3]);
         assert_eq!(r.acceleration, [None; 3]);
         // Position + velocity; the NaN vy is dropped.
-        let r = setpoint_reference(&setpoint(0b0000_1101_1100_0000, MavFrame::MAV_FRAME_LOCAL_NED)).expect("usable");
+        let r = setpoint_reference(&setpoint(
+            0b0000_1101_1100_0000,
+            MavFrame::MAV_FRAME_LOCAL_NED,
+        ))
+        .expect("usable");
         assert_eq!(r.velocity, [Some(0.5), None, Some(0.0)]);
         // Everything ignored, or another frame: nothing to fly.
         assert!(setpoint_reference(&setpoint(0x0fff, MavFrame::MAV_FRAME_LOCAL_NED)).is_none());
-        assert!(setpoint_reference(&setpoint(position_only, MavFrame::MAV_FRAME_BODY_NED)).is_none());
+        assert!(
+            setpoint_reference(&setpoint(position_only, MavFrame::MAV_FRAME_BODY_FRD)).is_none()
+        );
     }
 }

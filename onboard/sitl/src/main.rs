@@ -3,8 +3,8 @@
 use anyhow::Context;
 use clap::Parser;
 use tacos_bus::{BusArgs, load_scenario};
-use tacos_sitl::config::{DEFAULT_MAVLINK_BASE_PORT, DEFAULT_SITL_BASE_PORT};
 use tacos_sitl::SitlConfig;
+use tacos_sitl::config::{DEFAULT_MAVLINK_BASE_PORT, DEFAULT_SITL_BASE_PORT};
 use tracing_subscriber::EnvFilter;
 
 /// Simulates N PX4 vehicles (MAVLink over UDP, ports like PX4 SITL) and the world around them.
@@ -33,10 +33,13 @@ struct Cli {
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     tracing_subscriber::fmt()
-        .with_env_filter(EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info")))
+        .with_env_filter(
+            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info")),
+        )
         .init();
     let cli = Cli::parse();
-    let scenario = load_scenario(&cli.scenario).with_context(|| format!("loading scenario {:?}", cli.scenario))?;
+    let scenario = load_scenario(&cli.scenario)
+        .with_context(|| format!("loading scenario {:?}", cli.scenario))?;
     let config = SitlConfig {
         scenario,
         drones: cli.drones,
@@ -45,7 +48,9 @@ async fn main() -> anyhow::Result<()> {
         speed: cli.speed,
         bus: cli.bus,
     };
-    tacos_sitl::run(config, shutdown_signal()).await.context("tacos-sitl")?;
+    tacos_sitl::run(config, shutdown_signal())
+        .await
+        .context("tacos-sitl")?;
     Ok(())
 }
 

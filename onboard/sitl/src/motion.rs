@@ -27,7 +27,11 @@ impl MotionLimits {
     /// The scenario's limits, with the vertical speed at half the horizontal as PX4's defaults
     /// roughly have it.
     pub fn from_scenario(max_speed: f64, max_accel: f64) -> Self {
-        MotionLimits { max_speed, max_vertical_speed: max_speed / 2.0, max_accel }
+        MotionLimits {
+            max_speed,
+            max_vertical_speed: max_speed / 2.0,
+            max_accel,
+        }
     }
 
     /// Projects a velocity onto the allowed set (a slab in z intersected with a ball). Both
@@ -51,12 +55,18 @@ pub struct Reference {
 impl Reference {
     /// Hold a fixed point.
     pub fn hold(p: Vec3) -> Self {
-        Reference { position: [Some(p.x), Some(p.y), Some(p.z)], ..Reference::default() }
+        Reference {
+            position: [Some(p.x), Some(p.y), Some(p.z)],
+            ..Reference::default()
+        }
     }
 
     /// Fly at a fixed velocity.
     pub fn velocity(v: Vec3) -> Self {
-        Reference { velocity: [Some(v.x), Some(v.y), Some(v.z)], ..Reference::default() }
+        Reference {
+            velocity: [Some(v.x), Some(v.y), Some(v.z)],
+            ..Reference::default()
+        }
     }
 }
 
@@ -69,7 +79,10 @@ pub struct PointMass {
 
 impl PointMass {
     pub fn at_rest(position: Vec3) -> Self {
-        PointMass { position, velocity: Vec3::zeros() }
+        PointMass {
+            position,
+            velocity: Vec3::zeros(),
+        }
     }
 
     /// The acceleration the controller asks for to track `reference`, within the limits.
@@ -85,8 +98,9 @@ impl PointMass {
             }
             feed_forward_v[i] = reference.velocity[i].unwrap_or(0.0);
             feed_forward_a[i] = reference.acceleration[i].unwrap_or(0.0);
-            acceleration_only[i] =
-                reference.position[i].is_none() && reference.velocity[i].is_none() && reference.acceleration[i].is_some();
+            acceleration_only[i] = reference.position[i].is_none()
+                && reference.velocity[i].is_none()
+                && reference.acceleration[i].is_some();
         }
         // Toward the target at a speed from which it can still stop in time.
         let distance = error.norm();
@@ -133,7 +147,11 @@ pub fn clamp_norm(v: Vec3, max: f64) -> Vec3 {
 mod tests {
     use super::*;
 
-    const LIMITS: MotionLimits = MotionLimits { max_speed: 5.0, max_vertical_speed: 2.5, max_accel: 3.0 };
+    const LIMITS: MotionLimits = MotionLimits {
+        max_speed: 5.0,
+        max_vertical_speed: 2.5,
+        max_accel: 3.0,
+    };
     const DT: f64 = 0.01;
 
     #[test]
@@ -175,7 +193,10 @@ mod tests {
     #[test]
     fn acceleration_only_axis_is_open_loop() {
         let body = PointMass::at_rest(Vec3::zeros());
-        let reference = Reference { acceleration: [Some(1.0), None, None], ..Reference::default() };
+        let reference = Reference {
+            acceleration: [Some(1.0), None, None],
+            ..Reference::default()
+        };
         let a = body.command(&reference, &LIMITS);
         assert!((a - Vec3::new(1.0, 0.0, 0.0)).norm() < 1e-12);
     }

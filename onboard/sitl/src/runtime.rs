@@ -45,7 +45,11 @@ pub async fn run(config: SitlConfig, shutdown: impl Future<Output = ()>) -> Resu
         let local = SocketAddr::from((Ipv4Addr::LOCALHOST, config.sitl_port(i)));
         let socket = UdpSocket::bind(local)
             .await
-            .map_err(|source| SitlError::Bind { drone: slot.id.to_string(), addr: local, source })?;
+            .map_err(|source| SitlError::Bind {
+                drone: slot.id.to_string(),
+                addr: local,
+                source,
+            })?;
         links.push(VehicleLink {
             socket: Arc::new(socket),
             peer: SocketAddr::from((Ipv4Addr::LOCALHOST, config.mavlink_port(i))),
@@ -68,8 +72,11 @@ pub async fn run(config: SitlConfig, shutdown: impl Future<Output = ()>) -> Resu
     }
     drop(tx);
 
-    let ports: Vec<String> =
-        slots.iter().zip(&links).map(|(s, l)| format!("{} {}→{}", s.id, l.local, l.peer.port())).collect();
+    let ports: Vec<String> = slots
+        .iter()
+        .zip(&links)
+        .map(|(s, l)| format!("{} {}→{}", s.id, l.local, l.peer.port()))
+        .collect();
     info!(
         scenario = %config.scenario.name,
         swarm = %config.bus.swarm,
@@ -80,7 +87,10 @@ pub async fn run(config: SitlConfig, shutdown: impl Future<Output = ()>) -> Resu
     );
 
     let (events_key, targets_key, truth_key) = (keys.events(), keys.targets(), keys.sim_truth());
-    let mut shell = Shell { session: &session, publish_errors: 0 };
+    let mut shell = Shell {
+        session: &session,
+        publish_errors: 0,
+    };
     let mut ticker = tokio::time::interval(TICK);
     ticker.set_missed_tick_behavior(MissedTickBehavior::Delay);
     let start = Instant::now();
@@ -165,12 +175,26 @@ async fn receive(vehicle: usize, socket: Arc<UdpSocket>, tx: mpsc::Sender<Datagr
         match socket.recv_from(&mut buf).await {
             Ok((n, from)) => {
                 let bytes = buf.get(..n).unwrap_or_default().to_vec();
-                if tx.send(Datagram { vehicle, from, bytes }).await.is_err() {
+                if tx
+                    .send(Datagram {
+                        vehicle,
+                        from,
+                        bytes,
+                    })
+                    .await
+                    .is_err()
+                {
                     return;
                 }
             }
             // ICMP "port unreachable" from an earlier send, reported on some systems: harmless.
-            Err(e) if matches!(e.kind(), ErrorKind::ConnectionRefused | ErrorKind::ConnectionReset | ErrorKind::Interrupted) => {}
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    ErrorKind::ConnectionRefused
+                        | ErrorKind::ConnectionReset
+                        | ErrorKind::Interrupted
+                ) => {}
             Err(e) => {
                 warn!("UDP receive failed, vehicle deaf from now on: {e}");
                 return;
@@ -194,7 +218,11 @@ struct VehicleLink {
 
 impl VehicleLink {
     fn send(&mut self, message: &MavMessage) {
-        let header = MavHeader { system_id: self.system_id, component_id: AUTOPILOT_COMPONENT, sequence: self.sequence };
+        let header = MavHeader {
+            system_id: self.system_id,
+            component_id: AUTOPILOT_COMPONENT,
+            sequence: self.sequence,
+        };
         self.sequence = self.sequence.wrapping_add(1);
         let bytes = link::encode(header, message);
         // UDP is lossy anyway: a full socket buffer drops the frame rather than stalling the
@@ -215,22 +243,40 @@ fn on_datagram(sim: &mut Simulation, link: &mut VehicleLink, datagram: Datagram)
     link.peer = datagram.from;
     let (messages, bad) = link::decode_datagram(&datagram.bytes);
     if bad > 0 {
-        debug!(vehicle = datagram.vehicle, bad, "unparsable MAVLink frames skipped");
+        debug!(
+            vehicle = datagram.vehicle,
+            bad, "unparsable MAVLink frames skipped"
+        );
     }
     for (_, message) in messages {
-        if let Some(Handled::Command { command, result, ack }) = sim.handle_mavlink(datagram.vehicle, &message) {
-            let drone = sim.vehicles().get(datagram.vehicle).map(|v| v.id.to_string()).unwrap_or_default();
+        if let Some(Handled::Command { command, result }) =
+            sim.handle_mavlink(datagram.vehicle, &message)
+        {
+            let drone = sim
+                .vehicles()
+                .get(datagram.vehicle)
+                .map(|v| v.id.to_string())
+                .unwrap_or_default();
             info!(%drone, "{command:?} → {result:?}");
-            link.send(&ack);
+            link.send(&link::command_ack(command, result));
         }
     }
 }
 
-fn send_telemetry(sim: &Simulation, i: usize, link: &mut VehicleLink, heartbeat: bool, position: bool, sys_state: bool) {
+fn send_telemetry(
+    sim: &Simulation,
+    i: usize,
+    link: &mut VehicleLink,
+    heartbeat: bool,
+    position: bool,
+    sys_state: bool,
+) {
     if !sim.link_up(i) {
         return;
     }
-    let Some(v) = sim.vehicles().get(i).map(|v| &v.vehicle) else { return };
+    let Some(v) = sim.vehicles().get(i).map(|v| &v.vehicle) else {
+        return;
+    };
     let state = (v.custom_mode(), v.armed());
     if heartbeat || link.last_state != Some(state) {
         link.last_state = Some(state);
@@ -280,7 +326,10 @@ struct Every {
 
 impl Every {
     fn new(period: Duration, start: Instant) -> Self {
-        Every { period, next: start }
+        Every {
+            period,
+            next: start,
+        }
     }
 
     fn due(&mut self, now: Instant) -> bool {

@@ -89,7 +89,11 @@ impl Simulation {
             targets: scenario.targets.iter().map(Target::new).collect(),
             schedule: FaultSchedule::new(&scenario.faults),
             detector: Detector::default(),
-            rules: SafetyRules::new(&scenario.world.obstacles, scenario.limits.drone_radius, scenario.limits.safety_distance),
+            rules: SafetyRules::new(
+                &scenario.world.obstacles,
+                scenario.limits.drone_radius,
+                scenario.limits.safety_distance,
+            ),
             stats: SafetyStats::default(),
         }
     }
@@ -109,7 +113,9 @@ impl Simulation {
 
     /// True when vehicle `i` exists and its MAVLink passes (alive, link not dropped).
     pub fn link_up(&self, i: usize) -> bool {
-        self.vehicles.get(i).is_some_and(|v| v.faults.link_up(self.time))
+        self.vehicles
+            .get(i)
+            .is_some_and(|v| v.faults.link_up(self.time))
     }
 
     /// An incoming MAVLink message for vehicle `i`; `None` when the link is down (it never
@@ -130,7 +136,10 @@ impl Simulation {
         if kind == FaultKind::VehicleDies {
             v.vehicle.kill();
         }
-        Some(WorldEvent::FaultInjected { drone: drone.clone(), fault: faults::describe(&kind) })
+        Some(WorldEvent::FaultInjected {
+            drone: drone.clone(),
+            fault: faults::describe(&kind),
+        })
     }
 
     /// Advances by `dt` sim seconds in steps of at most [`STEP`]; returns what happened.
@@ -183,7 +192,11 @@ impl Simulation {
             .vehicles
             .iter()
             .zip(&positions)
-            .map(|(v, p)| Observer { drone: &v.id, position: *p, can_see: v.vehicle.alive() && !v.vehicle.landed() })
+            .map(|(v, p)| Observer {
+                drone: &v.id,
+                position: *p,
+                can_see: v.vehicle.alive() && !v.vehicle.landed(),
+            })
             .collect();
         let hidden = self
             .targets
@@ -209,7 +222,12 @@ impl Simulation {
     pub fn targets_message(&self) -> TargetsMessage {
         TargetsMessage {
             stamp: self.time,
-            targets: self.targets.iter().filter(|t| !t.is_hidden()).map(Target::observation).collect(),
+            targets: self
+                .targets
+                .iter()
+                .filter(|t| !t.is_hidden())
+                .map(Target::observation)
+                .collect(),
         }
     }
 }
@@ -218,7 +236,8 @@ impl Simulation {
 mod tests {
     use super::*;
     use mavlink::dialects::common::{
-        COMMAND_LONG_DATA, MavCmd, MavFrame, MavResult, PositionTargetTypemask, SET_POSITION_TARGET_LOCAL_NED_DATA,
+        COMMAND_LONG_DATA, MavCmd, MavFrame, MavResult, PositionTargetTypemask,
+        SET_POSITION_TARGET_LOCAL_NED_DATA,
     };
     use tacos_shared::px4_mode::{self, Px4Mode};
 
@@ -314,7 +333,12 @@ kind = { link_drops = { duration_s = 2.0 } }
     }
 
     /// Streams `setpoint` to vehicle 0 at 20 Hz for `seconds`, collecting events.
-    fn stream(s: &mut Simulation, setpoint: &MavMessage, seconds: f64, events: &mut Vec<WorldEvent>) {
+    fn stream(
+        s: &mut Simulation,
+        setpoint: &MavMessage,
+        seconds: f64,
+        events: &mut Vec<WorldEvent>,
+    ) {
         for _ in 0..(seconds / 0.05).round() as usize {
             s.handle_mavlink(0, setpoint);
             events.extend(s.advance(0.05));
@@ -324,10 +348,24 @@ kind = { link_drops = { duration_s = 2.0 } }
     #[test]
     fn a_local_ned_setpoint_lands_at_the_right_world_place() {
         let mut s = sim();
-        let arm = command(1, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
-        assert_eq!(result(s.handle_mavlink(0, &arm)), Some(MavResult::MAV_RESULT_ACCEPTED));
-        let takeoff = command(1, MavCmd::MAV_CMD_NAV_TAKEOFF, [0.0, 0.0, 0.0, f32::NAN, f32::NAN, f32::NAN, 4.0]);
-        assert_eq!(result(s.handle_mavlink(0, &takeoff)), Some(MavResult::MAV_RESULT_ACCEPTED));
+        let arm = command(
+            1,
+            MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+            [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        );
+        assert_eq!(
+            result(s.handle_mavlink(0, &arm)),
+            Some(MavResult::MAV_RESULT_ACCEPTED)
+        );
+        let takeoff = command(
+            1,
+            MavCmd::MAV_CMD_NAV_TAKEOFF,
+            [0.0, 0.0, 0.0, f32::NAN, f32::NAN, f32::NAN, 4.0],
+        );
+        assert_eq!(
+            result(s.handle_mavlink(0, &takeoff)),
+            Some(MavResult::MAV_RESULT_ACCEPTED)
+        );
         s.advance(6.0);
         assert!((s.vehicles()[0].position_enu() - Vec3::new(60.0, -120.0, 4.0)).norm() < 0.15);
 
@@ -335,20 +373,43 @@ kind = { link_drops = { duration_s = 2.0 } }
         let mut events = Vec::new();
         let sp = position_setpoint(Vec3::new(10.0, 5.0, -4.0));
         stream(&mut s, &sp, 1.2, &mut events);
-        let offboard = command(1, MavCmd::MAV_CMD_DO_SET_MODE, [1.0, f32::from(px4_mode::MAIN_OFFBOARD), 0.0, 0.0, 0.0, 0.0, 0.0]);
-        assert_eq!(result(s.handle_mavlink(0, &offboard)), Some(MavResult::MAV_RESULT_ACCEPTED));
+        let offboard = command(
+            1,
+            MavCmd::MAV_CMD_DO_SET_MODE,
+            [
+                1.0,
+                f32::from(px4_mode::MAIN_OFFBOARD),
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+            ],
+        );
+        assert_eq!(
+            result(s.handle_mavlink(0, &offboard)),
+            Some(MavResult::MAV_RESULT_ACCEPTED)
+        );
         stream(&mut s, &sp, 8.0, &mut events);
         let at = s.vehicles()[0].position_enu();
-        assert!((at - Vec3::new(65.0, -110.0, 4.0)).norm() < 0.1, "at {at:?}");
+        assert!(
+            (at - Vec3::new(65.0, -110.0, 4.0)).norm() < 0.1,
+            "at {at:?}"
+        );
         assert!(s.vehicles()[1].vehicle.landed(), "bravo never moved");
 
         // Passing within 3 m of car_1 at (70, -105) below 10 m: the suspect is detected by alfa.
         let sp = position_setpoint(Vec3::new(14.0, 9.0, -4.0));
         stream(&mut s, &sp, 4.0, &mut events);
-        let detections: Vec<_> = events.iter().filter(|e| matches!(e, WorldEvent::Detection { .. })).collect();
+        let detections: Vec<_> = events
+            .iter()
+            .filter(|e| matches!(e, WorldEvent::Detection { .. }))
+            .collect();
         assert_eq!(detections.len(), 1, "{events:?}");
-        assert!(matches!(detections[0], WorldEvent::Detection { drone, landmark: Some(l), .. }
-            if drone.as_str() == "alfa" && l == "car_1"));
+        assert!(
+            matches!(detections[0], WorldEvent::Detection { drone, landmark: Some(l), .. }
+            if drone.as_str() == "alfa" && l == "car_1")
+        );
     }
 
     #[test]
@@ -359,49 +420,102 @@ kind = { link_drops = { duration_s = 2.0 } }
         assert!(s.link_up(1));
         let events = s.advance(0.2);
         assert_eq!(events.len(), 1);
-        assert!(matches!(&events[0], WorldEvent::FaultInjected { drone, .. } if drone.as_str() == "bravo"));
+        assert!(
+            matches!(&events[0], WorldEvent::FaultInjected { drone, .. } if drone.as_str() == "bravo")
+        );
         assert!(!s.link_up(1) && s.link_up(0));
-        let arm = command(2, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
+        let arm = command(
+            2,
+            MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+            [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        );
         assert!(s.handle_mavlink(1, &arm).is_none(), "dropped");
         assert!(!s.vehicles()[1].vehicle.armed());
         let truth = s.truth();
         assert!(truth.vehicles[1].link_down && truth.vehicles[1].alive);
         s.advance(2.0);
         assert!(s.link_up(1));
-        assert_eq!(result(s.handle_mavlink(1, &arm)), Some(MavResult::MAV_RESULT_ACCEPTED));
+        assert_eq!(
+            result(s.handle_mavlink(1, &arm)),
+            Some(MavResult::MAV_RESULT_ACCEPTED)
+        );
     }
 
     #[test]
     fn a_link_drop_in_offboard_ends_in_hold() {
         let mut s = sim();
         let alfa = DroneId::new("alfa").expect("valid");
-        let arm = command(1, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
+        let arm = command(
+            1,
+            MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+            [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        );
         s.handle_mavlink(0, &arm);
         let mut events = Vec::new();
         let sp = position_setpoint(Vec3::new(0.0, 0.0, -3.0));
         stream(&mut s, &sp, 1.2, &mut events);
-        let offboard = command(1, MavCmd::MAV_CMD_DO_SET_MODE, [1.0, f32::from(px4_mode::MAIN_OFFBOARD), 0.0, 0.0, 0.0, 0.0, 0.0]);
-        assert_eq!(result(s.handle_mavlink(0, &offboard)), Some(MavResult::MAV_RESULT_ACCEPTED));
+        let offboard = command(
+            1,
+            MavCmd::MAV_CMD_DO_SET_MODE,
+            [
+                1.0,
+                f32::from(px4_mode::MAIN_OFFBOARD),
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+            ],
+        );
+        assert_eq!(
+            result(s.handle_mavlink(0, &offboard)),
+            Some(MavResult::MAV_RESULT_ACCEPTED)
+        );
         stream(&mut s, &sp, 3.0, &mut events);
-        assert!(s.inject(&alfa, FaultKind::LinkDrops { duration_s: 5.0 }).is_some());
+        assert!(
+            s.inject(&alfa, FaultKind::LinkDrops { duration_s: 5.0 })
+                .is_some()
+        );
         // The writer keeps streaming, but nothing gets through.
         stream(&mut s, &sp, 1.5, &mut events);
-        assert_eq!(Px4Mode::from_custom_mode(s.truth().vehicles[0].custom_mode), Px4Mode::Hold);
-        assert!(s.vehicles()[0].vehicle.armed() && !s.vehicles()[0].vehicle.landed(), "holding in the air");
+        assert_eq!(
+            Px4Mode::from_custom_mode(s.truth().vehicles[0].custom_mode),
+            Px4Mode::Hold
+        );
+        assert!(
+            s.vehicles()[0].vehicle.armed() && !s.vehicles()[0].vehicle.landed(),
+            "holding in the air"
+        );
     }
 
     #[test]
     fn a_dead_vehicle_falls_and_is_reported() {
         let mut s = sim();
         let alfa = DroneId::new("alfa").expect("valid");
-        let arm = command(1, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
+        let arm = command(
+            1,
+            MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+            [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        );
         s.handle_mavlink(0, &arm);
-        let takeoff = command(1, MavCmd::MAV_CMD_NAV_TAKEOFF, [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 4.0]);
+        let takeoff = command(
+            1,
+            MavCmd::MAV_CMD_NAV_TAKEOFF,
+            [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 4.0],
+        );
         s.handle_mavlink(0, &takeoff);
         s.advance(5.0);
-        let event = s.inject(&alfa, FaultKind::VehicleDies).expect("alfa exists");
+        let event = s
+            .inject(&alfa, FaultKind::VehicleDies)
+            .expect("alfa exists");
         assert!(matches!(event, WorldEvent::FaultInjected { .. }));
-        assert!(s.inject(&DroneId::new("zulu").expect("valid"), FaultKind::VehicleDies).is_none());
+        assert!(
+            s.inject(
+                &DroneId::new("zulu").expect("valid"),
+                FaultKind::VehicleDies
+            )
+            .is_none()
+        );
         assert!(s.handle_mavlink(0, &arm).is_none());
         s.advance(3.0);
         let truth = s.truth();
@@ -419,7 +533,11 @@ kind = { link_drops = { duration_s = 2.0 } }
         assert_eq!(truth.vehicles[0].position, Vec3::new(60.0, -120.0, 0.0));
         assert!(truth.min_pair_distance.is_infinite(), "nobody airborne yet");
         let targets = s.targets_message();
-        assert_eq!(targets.targets.len(), 1, "the hidden suspect is not published");
+        assert_eq!(
+            targets.targets.len(),
+            1,
+            "the hidden suspect is not published"
+        );
         assert_eq!(targets.targets[0].name, "walker");
         assert!((targets.targets[0].position - Vec3::new(1.0, 50.0, 0.0)).norm() < 1e-6);
     }

@@ -53,7 +53,11 @@ impl Target {
     }
 
     pub fn observation(&self) -> TargetObservation {
-        TargetObservation { name: self.name.clone(), position: self.position, velocity: self.velocity }
+        TargetObservation {
+            name: self.name.clone(),
+            position: self.position,
+            velocity: self.velocity,
+        }
     }
 
     /// Advances by `dt`; `drones` are the positions of the drones an evasive target runs from.
@@ -62,7 +66,9 @@ impl Target {
             TargetMotion::Static => self.velocity = Vec3::zeros(),
             TargetMotion::Waypoints { speed, looped, .. } => self.follow_route(dt, speed, looped),
             TargetMotion::ConstantVelocity { .. } => self.bounce(dt, bounds),
-            TargetMotion::Evasive { speed, flee_radius } => self.flee(dt, bounds, drones, speed, flee_radius),
+            TargetMotion::Evasive { speed, flee_radius } => {
+                self.flee(dt, bounds, drones, speed, flee_radius)
+            }
         }
     }
 
@@ -74,7 +80,9 @@ impl Target {
         // degenerate route (all points equal) cannot spin forever.
         for _ in 0..=self.route.len() {
             let Some(i) = self.next else { break };
-            let Some(&goal) = self.route.get(i) else { break };
+            let Some(&goal) = self.route.get(i) else {
+                break;
+            };
             let to_goal = goal - self.position;
             let distance = to_goal.norm();
             if distance > travel {
@@ -92,7 +100,11 @@ impl Target {
                 None
             };
         }
-        self.velocity = if self.next.is_some() { heading * speed } else { Vec3::zeros() };
+        self.velocity = if self.next.is_some() {
+            heading * speed
+        } else {
+            Vec3::zeros()
+        };
     }
 
     fn bounce(&mut self, dt: f64, bounds: &Bounds) {
@@ -122,7 +134,11 @@ impl Target {
             return;
         };
         // Right underneath: pick a fixed direction rather than dividing by zero.
-        let direction = if away.norm() > 1e-6 { away / away.norm() } else { Vec3::x() };
+        let direction = if away.norm() > 1e-6 {
+            away / away.norm()
+        } else {
+            Vec3::x()
+        };
         let mut velocity = direction * speed;
         for i in 0..2 {
             let next = self.position[i] + velocity[i] * dt;
@@ -150,11 +166,20 @@ mod tests {
     const DT: f64 = 0.01;
 
     fn bounds() -> Bounds {
-        Bounds { min: Vec3::new(-50.0, -50.0, 0.0), max: Vec3::new(50.0, 50.0, 40.0) }
+        Bounds {
+            min: Vec3::new(-50.0, -50.0, 0.0),
+            max: Vec3::new(50.0, 50.0, 40.0),
+        }
     }
 
     fn spec(start: Vec3, motion: TargetMotion) -> TargetSpec {
-        TargetSpec { name: "t".into(), kind: "person".into(), start, hidden_at: None, motion }
+        TargetSpec {
+            name: "t".into(),
+            kind: "person".into(),
+            start,
+            hidden_at: None,
+            motion,
+        }
     }
 
     fn run(t: &mut Target, seconds: f64, drones: &[Vec3]) {
@@ -182,17 +207,32 @@ mod tests {
         assert!((t.position - Vec3::new(5.0, 0.0, 0.0)).norm() < 1e-6);
         assert!((t.velocity - Vec3::new(2.0, 0.0, 0.0)).norm() < 1e-9);
         run(&mut t, 5.0, &[]);
-        assert!((t.position - Vec3::new(10.0, 5.0, 0.0)).norm() < 1e-6, "{:?}", t.position);
+        assert!(
+            (t.position - Vec3::new(10.0, 5.0, 0.0)).norm() < 1e-6,
+            "{:?}",
+            t.position
+        );
         // The route back to the start is the diagonal (14.14 m): loop after ≈ 17.07 s in all.
         run(&mut t, 17.0711 - 7.5, &[]);
-        assert!(t.position.norm() < 0.01, "back at the start: {:?}", t.position);
+        assert!(
+            t.position.norm() < 0.01,
+            "back at the start: {:?}",
+            t.position
+        );
         run(&mut t, 1.0, &[]);
-        assert!((t.position - Vec3::new(2.0, 0.0, 0.0)).norm() < 0.02, "and round again");
+        assert!(
+            (t.position - Vec3::new(2.0, 0.0, 0.0)).norm() < 0.02,
+            "and round again"
+        );
     }
 
     #[test]
     fn one_way_routes_stop_at_the_end() {
-        let motion = TargetMotion::Waypoints { points: vec![Vec3::new(3.0, 4.0, 0.0)], speed: 1.0, looped: false };
+        let motion = TargetMotion::Waypoints {
+            points: vec![Vec3::new(3.0, 4.0, 0.0)],
+            speed: 1.0,
+            looped: false,
+        };
         let mut t = Target::new(&spec(Vec3::zeros(), motion));
         run(&mut t, 10.0, &[]);
         assert!((t.position - Vec3::new(3.0, 4.0, 0.0)).norm() < 1e-9);
@@ -201,11 +241,17 @@ mod tests {
 
     #[test]
     fn constant_velocity_bounces_inside_the_bounds() {
-        let motion = TargetMotion::ConstantVelocity { velocity: Vec3::new(10.0, -3.0, 0.0) };
+        let motion = TargetMotion::ConstantVelocity {
+            velocity: Vec3::new(10.0, -3.0, 0.0),
+        };
         let mut t = Target::new(&spec(Vec3::new(45.0, 0.0, 0.0), motion));
         run(&mut t, 1.0, &[]);
         assert!(t.velocity.x < 0.0, "bounced off +x");
-        assert!((t.position.x - 45.0).abs() < 1e-6, "45 → 50 → 45: {}", t.position.x);
+        assert!(
+            (t.position.x - 45.0).abs() < 1e-6,
+            "45 → 50 → 45: {}",
+            t.position.x
+        );
         for _ in 0..3000 {
             t.step(DT, &bounds(), &[]);
             assert!(bounds().contains(&t.position));
@@ -214,7 +260,10 @@ mod tests {
 
     #[test]
     fn evasive_targets_run_from_the_nearest_drone_and_stay_inside() {
-        let motion = TargetMotion::Evasive { speed: 3.0, flee_radius: 30.0 };
+        let motion = TargetMotion::Evasive {
+            speed: 3.0,
+            flee_radius: 30.0,
+        };
         let mut t = Target::new(&spec(Vec3::new(40.0, 0.0, 0.0), motion));
         // Nobody near: it stays.
         run(&mut t, 1.0, &[Vec3::new(0.0, 0.0, 10.0)]);
@@ -228,6 +277,10 @@ mod tests {
             assert!(bounds().contains(&t.position));
         }
         assert!(t.position.x <= 50.0 && t.position.x > 49.9);
-        assert!(t.position.y > 5.0, "slid north along the wall: {:?}", t.position);
+        assert!(
+            t.position.y > 5.0,
+            "slid north along the wall: {:?}",
+            t.position
+        );
     }
 }

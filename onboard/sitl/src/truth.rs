@@ -63,7 +63,8 @@ impl SafetyStats {
         let mut inside = false;
         for p in airborne {
             for o in &rules.obstacles {
-                self.min_obstacle_clearance = self.min_obstacle_clearance.min(o.clearance_lower_bound(p));
+                self.min_obstacle_clearance =
+                    self.min_obstacle_clearance.min(o.clearance_lower_bound(p));
             }
             inside |= rules.inflated.iter().any(|o| o.contains(p));
         }
@@ -78,7 +79,9 @@ mod tests {
     use super::*;
 
     fn rules() -> SafetyRules {
-        let tower = Ellipsoid::from_semi_axes("tower", Vec3::zeros(), Vec3::new(5.0, 5.0, 30.0), 0.0).expect("valid");
+        let tower =
+            Ellipsoid::from_semi_axes("tower", Vec3::zeros(), Vec3::new(5.0, 5.0, 30.0), 0.0)
+                .expect("valid");
         SafetyRules::new(&[tower], 0.5, 2.0)
     }
 
@@ -93,19 +96,28 @@ mod tests {
     fn pairs_and_obstacles_are_measured() {
         let rules = rules();
         let mut s = SafetyStats::default();
-        s.update(&[Vec3::new(20.0, 0.0, 5.0), Vec3::new(23.0, 0.0, 5.0)], &rules);
+        s.update(
+            &[Vec3::new(20.0, 0.0, 5.0), Vec3::new(23.0, 0.0, 5.0)],
+            &rules,
+        );
         assert!((s.min_pair_distance - 3.0).abs() < 1e-12);
         assert_eq!((s.separation_breaches, s.obstacle_breaches), (0, 0));
         assert!(s.min_obstacle_clearance > 10.0 && s.min_obstacle_clearance.is_finite());
 
-        s.update(&[Vec3::new(20.0, 0.0, 5.0), Vec3::new(21.0, 0.0, 5.0)], &rules);
+        s.update(
+            &[Vec3::new(20.0, 0.0, 5.0), Vec3::new(21.0, 0.0, 5.0)],
+            &rules,
+        );
         assert_eq!(s.separation_breaches, 1);
         // 5.3 m from the centre: outside the tower (5 m) but inside it grown by 0.5 m.
         s.update(&[Vec3::new(5.3, 0.0, 0.0)], &rules);
         assert_eq!(s.obstacle_breaches, 1);
         assert!(s.min_obstacle_clearance > 0.0 && s.min_obstacle_clearance <= 0.3 + 1e-9);
         // Running minima do not go back up.
-        s.update(&[Vec3::new(40.0, 0.0, 5.0), Vec3::new(0.0, 40.0, 5.0)], &rules);
+        s.update(
+            &[Vec3::new(40.0, 0.0, 5.0), Vec3::new(0.0, 40.0, 5.0)],
+            &rules,
+        );
         assert!((s.min_pair_distance - 1.0).abs() < 1e-12);
     }
 }

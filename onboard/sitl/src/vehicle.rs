@@ -170,7 +170,11 @@ impl Vehicle {
         match command {
             MavCmd::MAV_CMD_COMPONENT_ARM_DISARM => {
                 let force = params[1] == FORCE_DISARM_MAGIC;
-                if params[0] > 0.5 { self.arm() } else { self.disarm(force) }
+                if params[0] > 0.5 {
+                    self.arm()
+                } else {
+                    self.disarm(force)
+                }
             }
             MavCmd::MAV_CMD_NAV_TAKEOFF => self.takeoff(params[6]),
             MavCmd::MAV_CMD_NAV_LAND => {
@@ -188,7 +192,9 @@ impl Vehicle {
         if !self.alive {
             return;
         }
-        let continuing = self.last_setpoint.is_some_and(|t| self.time - t <= OFFBOARD_MAX_GAP);
+        let continuing = self
+            .last_setpoint
+            .is_some_and(|t| self.time - t <= OFFBOARD_MAX_GAP);
         if !continuing {
             self.stream_since = Some(self.time);
         }
@@ -204,11 +210,14 @@ impl Vehicle {
 
     /// Advances the vehicle by `dt` seconds.
     pub fn step(&mut self, dt: f64) {
-        if !(dt > 0.0) {
+        if dt.is_nan() || dt <= 0.0 {
             return;
         }
         self.time += dt;
-        if self.alive && self.mode == Px4Mode::Offboard && !self.setpoints_fresh(OFFBOARD_LOSS_TIMEOUT) {
+        if self.alive
+            && self.mode == Px4Mode::Offboard
+            && !self.setpoints_fresh(OFFBOARD_LOSS_TIMEOUT)
+        {
             self.enter_hold();
         }
         if !self.armed {
@@ -267,7 +276,11 @@ impl Vehicle {
         if !self.armed {
             return MavResult::MAV_RESULT_TEMPORARILY_REJECTED;
         }
-        let altitude = if altitude.is_finite() { f64::from(altitude) } else { self.params.takeoff_altitude };
+        let altitude = if altitude.is_finite() {
+            f64::from(altitude)
+        } else {
+            self.params.takeoff_altitude
+        };
         if altitude <= TAKEOFF_ACCEPTANCE {
             return MavResult::MAV_RESULT_DENIED;
         }
@@ -282,8 +295,15 @@ impl Vehicle {
     }
 
     fn set_mode(&mut self, base_mode: f32, main: f32, sub: f32) -> MavResult {
-        let as_u8 = |x: f32| if x.is_finite() && (0.0..=255.0).contains(&x) { Some(x as u8) } else { None };
-        let (Some(base), Some(main), Some(sub)) = (as_u8(base_mode), as_u8(main), as_u8(sub)) else {
+        let as_u8 = |x: f32| {
+            if x.is_finite() && (0.0..=255.0).contains(&x) {
+                Some(x as u8)
+            } else {
+                None
+            }
+        };
+        let (Some(base), Some(main), Some(sub)) = (as_u8(base_mode), as_u8(main), as_u8(sub))
+        else {
             return MavResult::MAV_RESULT_DENIED;
         };
         if base & px4_mode::BASE_MODE_CUSTOM_ENABLED == 0 {
@@ -335,7 +355,9 @@ impl Vehicle {
 
     fn offboard_stream_ok(&self) -> bool {
         self.setpoints_fresh(OFFBOARD_MAX_GAP)
-            && self.stream_since.is_some_and(|since| self.time - since >= OFFBOARD_MIN_STREAM - 1e-9)
+            && self
+                .stream_since
+                .is_some_and(|since| self.time - since >= OFFBOARD_MIN_STREAM - 1e-9)
     }
 
     // ---- flight ----------------------------------------------------------------------------------
@@ -354,7 +376,9 @@ impl Vehicle {
                     acceleration: [None; 3],
                 }
             }
-            Px4Mode::Offboard => self.setpoint.unwrap_or_else(|| Reference::hold(self.hold_at)),
+            Px4Mode::Offboard => self
+                .setpoint
+                .unwrap_or_else(|| Reference::hold(self.hold_at)),
             _ => Reference::hold(self.hold_at),
         }
     }
@@ -376,7 +400,11 @@ impl Vehicle {
         if !(self.armed && self.landed) {
             return;
         }
-        let after = if self.flown_since_arming { DISARM_AFTER_LANDING } else { DISARM_PREFLIGHT };
+        let after = if self.flown_since_arming {
+            DISARM_AFTER_LANDING
+        } else {
+            DISARM_PREFLIGHT
+        };
         if self.time - self.armed_on_ground_since >= after {
             self.armed = false;
         }
@@ -387,7 +415,11 @@ impl Vehicle {
         let v = self.body.velocity;
         let horizontal = Vec3::new(v.x, v.y, 0.0);
         let slow = (self.params.limits.max_accel * dt).min(horizontal.norm());
-        let horizontal = if horizontal.norm() > 0.0 { horizontal * (1.0 - slow / horizontal.norm()) } else { horizontal };
+        let horizontal = if horizontal.norm() > 0.0 {
+            horizontal * (1.0 - slow / horizontal.norm())
+        } else {
+            horizontal
+        };
         let vz = (v.z + GRAVITY * dt).min(TERMINAL_SPEED);
         let new_v = Vec3::new(horizontal.x, horizontal.y, vz);
         self.body.position += (v + new_v) * (0.5 * dt);
@@ -408,22 +440,35 @@ mod tests {
 
     fn params() -> VehicleParams {
         VehicleParams {
-            limits: MotionLimits { max_speed: 4.0, max_vertical_speed: 2.0, max_accel: 3.0 },
+            limits: MotionLimits {
+                max_speed: 4.0,
+                max_vertical_speed: 2.0,
+                max_accel: 3.0,
+            },
             takeoff_altitude: 5.0,
             land_speed: 0.7,
         }
     }
 
     fn arm(v: &mut Vehicle) -> MavResult {
-        v.handle_command(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+        v.handle_command(
+            MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+            [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        )
     }
 
     fn takeoff(v: &mut Vehicle, altitude: f32) -> MavResult {
-        v.handle_command(MavCmd::MAV_CMD_NAV_TAKEOFF, [0.0, 0.0, 0.0, f32::NAN, f32::NAN, f32::NAN, altitude])
+        v.handle_command(
+            MavCmd::MAV_CMD_NAV_TAKEOFF,
+            [0.0, 0.0, 0.0, f32::NAN, f32::NAN, f32::NAN, altitude],
+        )
     }
 
     fn set_mode(v: &mut Vehicle, main: u8, sub: u8) -> MavResult {
-        v.handle_command(MavCmd::MAV_CMD_DO_SET_MODE, [1.0, f32::from(main), f32::from(sub), 0.0, 0.0, 0.0, 0.0])
+        v.handle_command(
+            MavCmd::MAV_CMD_DO_SET_MODE,
+            [1.0, f32::from(main), f32::from(sub), 0.0, 0.0, 0.0, 0.0],
+        )
     }
 
     fn offboard(v: &mut Vehicle) -> MavResult {
@@ -442,7 +487,11 @@ mod tests {
         let before = (v.velocity(), v.landed());
         v.step(DT);
         let limits = v.params().limits;
-        assert!(v.velocity().norm() <= limits.max_speed + 1e-9, "speed {}", v.velocity().norm());
+        assert!(
+            v.velocity().norm() <= limits.max_speed + 1e-9,
+            "speed {}",
+            v.velocity().norm()
+        );
         assert!(v.velocity().z.abs() <= limits.max_vertical_speed + 1e-9);
         // Touchdown is a contact, not a commanded acceleration.
         if !before.1 && !v.landed() {
@@ -494,7 +543,10 @@ mod tests {
         assert!((v.position().z + 8.0).abs() < 0.15, "at {}", v.position().z);
         assert!(v.position().xy().norm() < 1e-6, "straight up");
         run(&mut v, 5.0);
-        assert!((v.position().z + 8.0).abs() < 0.15 && v.armed(), "and it stays there");
+        assert!(
+            (v.position().z + 8.0).abs() < 0.15 && v.armed(),
+            "and it stays there"
+        );
     }
 
     #[test]
@@ -506,7 +558,10 @@ mod tests {
     #[test]
     fn takeoff_while_disarmed_is_temporarily_rejected() {
         let mut v = Vehicle::new(params());
-        assert_eq!(takeoff(&mut v, 5.0), MavResult::MAV_RESULT_TEMPORARILY_REJECTED);
+        assert_eq!(
+            takeoff(&mut v, 5.0),
+            MavResult::MAV_RESULT_TEMPORARILY_REJECTED
+        );
         run(&mut v, 2.0);
         assert!(v.landed() && v.position().z == 0.0);
         assert_eq!(v.mode(), Px4Mode::Hold);
@@ -516,11 +571,17 @@ mod tests {
     fn disarm_in_the_air_needs_force() {
         let mut v = airborne(5.0);
         let disarm = |v: &mut Vehicle, p2: f32| {
-            v.handle_command(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, [0.0, p2, 0.0, 0.0, 0.0, 0.0, 0.0])
+            v.handle_command(
+                MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+                [0.0, p2, 0.0, 0.0, 0.0, 0.0, 0.0],
+            )
         };
         assert_eq!(disarm(&mut v, 0.0), MavResult::MAV_RESULT_DENIED);
         assert!(v.armed());
-        assert_eq!(disarm(&mut v, FORCE_DISARM_MAGIC), MavResult::MAV_RESULT_ACCEPTED);
+        assert_eq!(
+            disarm(&mut v, FORCE_DISARM_MAGIC),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
         assert!(!v.armed());
         for _ in 0..500 {
             v.step(DT);
@@ -531,10 +592,18 @@ mod tests {
     #[test]
     fn offboard_needs_a_second_of_setpoints() {
         let mut v = airborne(5.0);
-        assert_eq!(offboard(&mut v), MavResult::MAV_RESULT_TEMPORARILY_REJECTED, "no stream at all");
+        assert_eq!(
+            offboard(&mut v),
+            MavResult::MAV_RESULT_TEMPORARILY_REJECTED,
+            "no stream at all"
+        );
         let here = v.position();
         stream(&mut v, here, 0.5);
-        assert_eq!(offboard(&mut v), MavResult::MAV_RESULT_TEMPORARILY_REJECTED, "only 0.5 s of stream");
+        assert_eq!(
+            offboard(&mut v),
+            MavResult::MAV_RESULT_TEMPORARILY_REJECTED,
+            "only 0.5 s of stream"
+        );
         stream(&mut v, here, 0.6);
         assert_eq!(offboard(&mut v), MavResult::MAV_RESULT_ACCEPTED);
         assert_eq!(v.mode(), Px4Mode::Offboard);
@@ -572,7 +641,10 @@ mod tests {
         assert_eq!(v.mode(), Px4Mode::Hold);
         let held = v.position();
         run(&mut v, 5.0);
-        assert!((v.position() - held).norm() < 0.05, "holds where hold began");
+        assert!(
+            (v.position() - held).norm() < 0.05,
+            "holds where hold began"
+        );
     }
 
     #[test]
@@ -585,10 +657,17 @@ mod tests {
         let far = Vec3::new(200.0, 0.0, -5.0);
         stream(&mut v, far, 5.0);
         assert!(v.velocity().norm() > 3.9, "at full speed");
-        assert_eq!(set_mode(&mut v, px4_mode::MAIN_AUTO, px4_mode::AUTO_LOITER), MavResult::MAV_RESULT_ACCEPTED);
+        assert_eq!(
+            set_mode(&mut v, px4_mode::MAIN_AUTO, px4_mode::AUTO_LOITER),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
         let held = v.position();
         stream(&mut v, far, 10.0);
-        assert_eq!(v.mode(), Px4Mode::Hold, "setpoints do not move a holding vehicle");
+        assert_eq!(
+            v.mode(),
+            Px4Mode::Hold,
+            "setpoints do not move a holding vehicle"
+        );
         assert!((v.position() - held).norm() < 0.1);
     }
 
@@ -605,13 +684,20 @@ mod tests {
             v.handle_setpoint(vel);
             step_checked(&mut v);
         }
-        assert!((v.velocity() - Vec3::new(0.0, 2.0, 0.0)).norm() < 0.01, "{:?}", v.velocity());
+        assert!(
+            (v.velocity() - Vec3::new(0.0, 2.0, 0.0)).norm() < 0.01,
+            "{:?}",
+            v.velocity()
+        );
     }
 
     #[test]
     fn land_descends_touches_down_and_disarms() {
         let mut v = airborne(5.0);
-        assert_eq!(v.handle_command(MavCmd::MAV_CMD_NAV_LAND, [0.0; 7]), MavResult::MAV_RESULT_ACCEPTED);
+        assert_eq!(
+            v.handle_command(MavCmd::MAV_CMD_NAV_LAND, [0.0; 7]),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
         assert_eq!(v.mode(), Px4Mode::Land);
         run(&mut v, 1.0);
         assert_eq!(v.landed_state(), LandedState::Landing);
@@ -628,7 +714,10 @@ mod tests {
         let touchdown = touchdown.expect("it touched down");
         assert!(!v.armed(), "auto-disarmed");
         let waited = v.time() - touchdown;
-        assert!((DISARM_AFTER_LANDING - 0.02..DISARM_AFTER_LANDING + 0.05).contains(&waited), "{waited}");
+        assert!(
+            (DISARM_AFTER_LANDING - 0.02..DISARM_AFTER_LANDING + 0.05).contains(&waited),
+            "{waited}"
+        );
         assert_eq!(v.landed_state(), LandedState::OnGround);
         assert_eq!(v.position().z, 0.0);
     }
@@ -646,10 +735,27 @@ mod tests {
     #[test]
     fn unknown_commands_are_unsupported_and_manual_modes_rejected() {
         let mut v = Vehicle::new(params());
-        assert_eq!(v.handle_command(MavCmd::MAV_CMD_DO_REPOSITION, [0.0; 7]), MavResult::MAV_RESULT_UNSUPPORTED);
-        assert_eq!(set_mode(&mut v, px4_mode::MAIN_POSCTL, 0), MavResult::MAV_RESULT_TEMPORARILY_REJECTED);
-        let no_custom = [0.0, f32::from(px4_mode::MAIN_AUTO), f32::from(px4_mode::AUTO_LAND), 0.0, 0.0, 0.0, 0.0];
-        assert_eq!(v.handle_command(MavCmd::MAV_CMD_DO_SET_MODE, no_custom), MavResult::MAV_RESULT_UNSUPPORTED);
+        assert_eq!(
+            v.handle_command(MavCmd::MAV_CMD_DO_REPOSITION, [0.0; 7]),
+            MavResult::MAV_RESULT_UNSUPPORTED
+        );
+        assert_eq!(
+            set_mode(&mut v, px4_mode::MAIN_POSCTL, 0),
+            MavResult::MAV_RESULT_TEMPORARILY_REJECTED
+        );
+        let no_custom = [
+            0.0,
+            f32::from(px4_mode::MAIN_AUTO),
+            f32::from(px4_mode::AUTO_LAND),
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+        ];
+        assert_eq!(
+            v.handle_command(MavCmd::MAV_CMD_DO_SET_MODE, no_custom),
+            MavResult::MAV_RESULT_UNSUPPORTED
+        );
     }
 
     #[test]

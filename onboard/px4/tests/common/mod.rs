@@ -3,8 +3,8 @@
 #![allow(dead_code)] // each test file uses a different part of the kit
 
 use mavlink::dialects::common::{
-    COMMAND_ACK_DATA, HEARTBEAT_DATA, LOCAL_POSITION_NED_DATA, MavAutopilot, MavMessage, MavModeFlag, MavResult,
-    MavState, MavType,
+    COMMAND_ACK_DATA, HEARTBEAT_DATA, LOCAL_POSITION_NED_DATA, MavAutopilot, MavMessage,
+    MavModeFlag, MavResult, MavState, MavType,
 };
 use mavlink::{MavHeader, MavlinkReader};
 use std::net::{SocketAddr, UdpSocket};
@@ -19,7 +19,10 @@ use tacos_shared::{DroneId, SwarmId};
 pub fn unique_swarm(tag: &str) -> SwarmId {
     static COUNTER: AtomicU32 = AtomicU32::new(0);
     let n = COUNTER.fetch_add(1, Ordering::Relaxed);
-    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.subsec_nanos()).unwrap_or(0);
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.subsec_nanos())
+        .unwrap_or(0);
     let raw = format!("{tag}{}x{n}x{nanos}", std::process::id());
     SwarmId::new(raw.chars().take(32).collect::<String>()).expect("a valid swarm id")
 }
@@ -30,7 +33,10 @@ pub fn drone() -> DroneId {
 
 /// A UDP port that was free a moment ago.
 pub fn free_udp_port() -> u16 {
-    UdpSocket::bind("127.0.0.1:0").and_then(|s| s.local_addr()).map(|a| a.port()).expect("a free port")
+    UdpSocket::bind("127.0.0.1:0")
+        .and_then(|s| s.local_addr())
+        .map(|a| a.port())
+        .expect("a free port")
 }
 
 /// Polls `probe` until it returns `Some` or `timeout` passes.
@@ -55,12 +61,24 @@ pub struct WriterProcess {
 }
 
 impl WriterProcess {
+    /// A writer on `udpin:127.0.0.1:<port>`.
     pub fn start(swarm: &SwarmId, home: &str, port: u16, extra: &[&str]) -> WriterProcess {
+        Self::start_with_link(swarm, home, &format!("udpin:127.0.0.1:{port}"), port, extra)
+    }
+
+    /// A writer on any `--mavlink` link; `port` is only what [`addr`](Self::addr) reports.
+    pub fn start_with_link(
+        swarm: &SwarmId,
+        home: &str,
+        link: &str,
+        port: u16,
+        extra: &[&str],
+    ) -> WriterProcess {
         let log = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("tacos-px4-{swarm}.log"));
         let log_file = std::fs::File::create(&log).expect("creating the writer's log file");
         let child = Command::new(env!("CARGO_BIN_EXE_tacos-px4"))
             .args(["--swarm", swarm.as_str(), "--drone", "alfa", "--home", home])
-            .args(["--mavlink", &format!("udpin:127.0.0.1:{port}")])
+            .args(["--mavlink", link])
             .args(extra)
             .env("RUST_LOG", "debug")
             .stdout(Stdio::null())
@@ -113,7 +131,8 @@ pub struct ApState {
 
 struct Inner {
     socket: UdpSocket,
-    writer: SocketAddr,
+    /// Where the writer is: given (udpin writer) or learnt from its first packet (udpout writer).
+    writer: Mutex<Option<SocketAddr>>,
     stop: AtomicBool,
     state: Mutex<ApState>,
     changed: Condvar,
@@ -128,12 +147,26 @@ pub struct FakeAutopilot {
 }
 
 impl FakeAutopilot {
+    /// An autopilot that talks first, to a writer bound at `writer` (udpin).
     pub fn start(writer: SocketAddr) -> FakeAutopilot {
-        let socket = UdpSocket::bind("127.0.0.1:0").expect("binding the fake autopilot");
-        socket.set_read_timeout(Some(Duration::from_millis(10))).expect("read timeout");
+        Self::start_inner(
+            UdpSocket::bind("127.0.0.1:0").expect("binding the fake autopilot"),
+            Some(writer),
+        )
+    }
+
+    /// An autopilot bound at `socket` that answers whoever writes to it (for a udpout writer).
+    pub fn listen(socket: UdpSocket) -> FakeAutopilot {
+        Self::start_inner(socket, None)
+    }
+
+    fn start_inner(socket: UdpSocket, writer: Option<SocketAddr>) -> FakeAutopilot {
+        socket
+            .set_read_timeout(Some(Duration::from_millis(10)))
+            .expect("read timeout");
         let inner = Arc::new(Inner {
             socket,
-            writer,
+            writer: Mutex::new(writer),
             stop: AtomicBool::new(false),
             state: Mutex::new(ApState {
                 received: Vec::new(),
@@ -150,7 +183,10 @@ impl FakeAutopilot {
             let inner = Arc::clone(&inner);
             move || run_autopilot(&inner)
         });
-        FakeAutopilot { inner, thread: Some(thread) }
+        FakeAutopilot {
+            inner,
+            thread: Some(thread),
+        }
     }
 
     pub fn state(&self) -> MutexGuard<'_, ApState> {
@@ -159,11 +195,18 @@ impl FakeAutopilot {
 
     /// Sends raw bytes to the writer (to test its handling of garbage).
     pub fn send_raw(&self, bytes: &[u8]) {
-        self.inner.socket.send_to(bytes, self.inner.writer).expect("send");
+        let writer = *self.inner.writer.lock().expect("writer address");
+        if let Some(w) = writer {
+            self.inner.socket.send_to(bytes, w).expect("send");
+        }
     }
 
     /// Waits (bounded) until `pred` holds on the state; returns what `pred` returned.
-    pub fn wait_for<T>(&self, timeout: Duration, mut pred: impl FnMut(&ApState) -> Option<T>) -> Option<T> {
+    pub fn wait_for<T>(
+        &self,
+        timeout: Duration,
+        mut pred: impl FnMut(&ApState) -> Option<T>,
+    ) -> Option<T> {
         let deadline = Instant::now() + timeout;
         let mut guard = self.state();
         loop {
@@ -174,7 +217,12 @@ impl FakeAutopilot {
             if left.is_zero() {
                 return None;
             }
-            guard = self.inner.changed.wait_timeout(guard, left).expect("autopilot state").0;
+            guard = self
+                .inner
+                .changed
+                .wait_timeout(guard, left)
+                .expect("autopilot state")
+                .0;
         }
     }
 }
@@ -191,11 +239,18 @@ impl Drop for FakeAutopilot {
 fn run_autopilot(inner: &Inner) {
     let mut seq = 0u8;
     let mut send = |msg: &MavMessage| {
-        let header = MavHeader { system_id: 1, component_id: 1, sequence: seq };
+        let header = MavHeader {
+            system_id: 1,
+            component_id: 1,
+            sequence: seq,
+        };
         seq = seq.wrapping_add(1);
         let mut buf = Vec::new();
-        if mavlink::write_v2_msg(&mut buf, header, msg).is_ok() {
-            let _ = inner.socket.send_to(&buf, inner.writer);
+        let writer = *inner.writer.lock().expect("writer address");
+        if let Some(w) = writer
+            && mavlink::write_v2_msg(&mut buf, header, msg).is_ok()
+        {
+            let _ = inner.socket.send_to(&buf, w);
         }
     };
     let mut next_heartbeat = Instant::now();
@@ -220,17 +275,20 @@ fn run_autopilot(inner: &Inner) {
                     mavlink_version: 3,
                 })
             });
-            let pos = s.position_ned.filter(|_| now >= next_position).map(|[x, y, z]| {
-                MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
-                    time_boot_ms: boot.elapsed().as_millis() as u32,
-                    x,
-                    y,
-                    z,
-                    vx: 0.0,
-                    vy: 0.0,
-                    vz: 0.0,
-                })
-            });
+            let pos = s
+                .position_ned
+                .filter(|_| now >= next_position)
+                .map(|[x, y, z]| {
+                    MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
+                        time_boot_ms: boot.elapsed().as_millis() as u32,
+                        x,
+                        y,
+                        z,
+                        vx: 0.0,
+                        vy: 0.0,
+                        vz: 0.0,
+                    })
+                });
             (hb, pos)
         };
         if let Some(hb) = heartbeat {
@@ -241,7 +299,14 @@ fn run_autopilot(inner: &Inner) {
             send(&p);
             next_position = now + Duration::from_millis(100);
         }
-        let Ok((n, _from)) = inner.socket.recv_from(&mut buf) else { continue };
+        let Ok((n, from)) = inner.socket.recv_from(&mut buf) else {
+            continue;
+        };
+        inner
+            .writer
+            .lock()
+            .expect("writer address")
+            .get_or_insert(from);
         let at = Instant::now();
         let mut reader = MavlinkReader::new(&buf[..n]);
         let mut replies = Vec::new();
@@ -259,10 +324,15 @@ fn run_autopilot(inner: &Inner) {
                                 AckPolicy::Answer(r) => Some(r),
                             };
                             if let Some(result) = result {
-                                if result == MavResult::MAV_RESULT_ACCEPTED && cmd.command as u32 == 400 {
+                                if result == MavResult::MAV_RESULT_ACCEPTED
+                                    && cmd.command as u32 == 400
+                                {
                                     s.armed = cmd.param1 == 1.0;
                                 }
-                                replies.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA { command: cmd.command, result }));
+                                replies.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+                                    command: cmd.command,
+                                    result,
+                                }));
                             }
                         }
                         s.received.push(Received { at, header, msg });
@@ -283,7 +353,12 @@ fn run_autopilot(inner: &Inner) {
 }
 
 /// The SET_POSITION_TARGET_LOCAL_NED messages received, with their arrival times.
-pub fn setpoints(s: &ApState) -> Vec<(Instant, mavlink::dialects::common::SET_POSITION_TARGET_LOCAL_NED_DATA)> {
+pub fn setpoints(
+    s: &ApState,
+) -> Vec<(
+    Instant,
+    mavlink::dialects::common::SET_POSITION_TARGET_LOCAL_NED_DATA,
+)> {
     s.received
         .iter()
         .filter_map(|r| match &r.msg {

@@ -1,0 +1,336 @@
+//! Starts and supervises a simulated swarm on this machine: `tacos-sitl`, and per drone a
+//! `tacos-px4` writer and a `tacos-onboard` process, all joined to one zenoh hub on loopback.
+//!
+//! Children die with us: each is started with the parent-death signal set, kept in the
+//! supervisor (which kills on drop), and shut down with SIGTERM then SIGKILL.
+
+use std::net::{TcpListener, UdpSocket};
+use std::path::{Path, PathBuf};
+use std::process::{ExitStatus, Stdio};
+use std::time::Duration;
+use tacos_shared::scenario::Scenario;
+use tacos_shared::{DroneId, SwarmId};
+use tokio::process::Command;
+use tokio::sync::mpsc;
+use tracing::{info, warn};
+
+#[derive(Debug, thiserror::Error)]
+pub enum LaunchError {
+    #[error("{binary} not found in {dir}: build the workspace first (cargo build --workspace --bins) or set TACOS_BIN_DIR")]
+    MissingBinary { binary: String, dir: String },
+    #[error("cannot start {name}: {reason}")]
+    Spawn { name: String, reason: String },
+    #[error("cannot prepare the log directory {dir}: {reason}")]
+    LogDir { dir: String, reason: String },
+    #[error("no free {what} port found on loopback")]
+    NoFreePort { what: &'static str },
+    #[error("{0}")]
+    Scenario(String),
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Role {
+    Sitl,
+    Writer,
+    Onboard,
+}
+
+impl Role {
+    pub fn binary(self) -> &'static str {
+        match self {
+            Role::Sitl => "tacos-sitl",
+            Role::Writer => "tacos-px4",
+            Role::Onboard => "tacos-onboard",
+        }
+    }
+}
+
+/// A child that ended, and how.
+#[derive(Debug)]
+pub struct ChildExit {
+    pub name: String,
+    pub role: Role,
+    pub drone: Option<DroneId>,
+    pub status: Result<ExitStatus, String>,
+}
+
+struct ChildHandle {
+    role: Role,
+    drone: Option<DroneId>,
+    pid: Option<u32>,
+    running: bool,
+}
+
+#[derive(Debug, Clone)]
+pub struct StackConfig {
+    pub swarm: SwarmId,
+    /// What the children are told (`city`, `lab` or a file path).
+    pub scenario_arg: String,
+    pub scenario: Scenario,
+    pub drones: usize,
+    /// The zenoh endpoint the ground listens on and every child connects to.
+    pub hub_endpoint: String,
+    pub mavlink_base_port: u16,
+    pub sitl_base_port: u16,
+    pub bin_dir: PathBuf,
+    pub log_dir: PathBuf,
+    /// Extra arguments for tacos-sitl (e.g. `--speed 2`).
+    pub sitl_args: Vec<String>,
+    /// Extra arguments for every tacos-onboard.
+    pub onboard_args: Vec<String>,
+}
+
+impl StackConfig {
+    /// A configuration with free ports on loopback and binaries found next to this executable.
+    pub fn on_loopback(swarm: SwarmId, scenario_arg: &str, scenario: Scenario, drones: usize) -> Result<Self, LaunchError> {
+        scenario.first_drones(drones).map_err(LaunchError::Scenario)?;
+        let hub_port = free_tcp_port()?;
+        let (mavlink_base_port, sitl_base_port) = free_udp_blocks(drones)?;
+        let log_dir = std::env::temp_dir().join(format!("tacos-{swarm}"));
+        Ok(StackConfig {
+            swarm,
+            scenario_arg: scenario_arg.to_owned(),
+            scenario,
+            drones,
+            hub_endpoint: format!("tcp/127.0.0.1:{hub_port}"),
+            mavlink_base_port,
+            sitl_base_port,
+            bin_dir: bin_dir(),
+            log_dir,
+            sitl_args: Vec::new(),
+            onboard_args: Vec::new(),
+        })
+    }
+
+    pub fn drone_ids(&self) -> Vec<DroneId> {
+        self.scenario.drones.iter().take(self.drones).map(|d| d.id.clone()).collect()
+    }
+}
+
+/// Where the TACOS binaries are: `$TACOS_BIN_DIR`, else beside the running executable (one
+/// level up when that is cargo's `deps/`, as for tests).
+pub fn bin_dir() -> PathBuf {
+    if let Some(dir) = std::env::var_os("TACOS_BIN_DIR") {
+        return PathBuf::from(dir);
+    }
+    let exe_dir = std::env::current_exe().ok().and_then(|p| p.parent().map(Path::to_path_buf)).unwrap_or_default();
+    if exe_dir.file_name().is_some_and(|n| n == "deps") {
+        exe_dir.parent().map(Path::to_path_buf).unwrap_or(exe_dir)
+    } else {
+        exe_dir
+    }
+}
+
+/// A TCP port that was free on loopback a moment ago.
+pub fn free_tcp_port() -> Result<u16, LaunchError> {
+    TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .map_err(|_| LaunchError::NoFreePort { what: "TCP" })
+}
+
+fn udp_block_free(base: u16, n: usize) -> bool {
+    (0..n).all(|i| base.checked_add(i as u16).is_some_and(|p| UdpSocket::bind(("127.0.0.1", p)).is_ok()))
+}
+
+/// Two blocks of `n` consecutive UDP ports free on loopback: PX4's usual 14540/14580 when free,
+/// else blocks picked from the high range.
+pub fn free_udp_blocks(n: usize) -> Result<(u16, u16), LaunchError> {
+    if udp_block_free(14540, n) && udp_block_free(14580, n) && n <= 40 {
+        return Ok((14540, 14580));
+    }
+    let seed = std::process::id() as u64 ^ std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
+    for attempt in 0..200u64 {
+        let base = 20000 + ((seed.wrapping_mul(6364136223846793005).wrapping_add(attempt * 1442695040888963407) >> 33) % 40000) as u16;
+        let other = base.saturating_add(n as u16 + 10);
+        if other < 65000 && udp_block_free(base, n) && udp_block_free(other, n) {
+            return Ok((base, other));
+        }
+    }
+    Err(LaunchError::NoFreePort { what: "UDP" })
+}
+
+/// The running stack.
+pub struct Stack {
+    children: Vec<ChildHandle>,
+    exits: mpsc::UnboundedReceiver<ChildExit>,
+    exit_tx: mpsc::UnboundedSender<ChildExit>,
+    pub config: StackConfig,
+}
+
+impl Stack {
+    /// Starts the simulator, then a writer and an onboard process per drone.
+    pub fn start(config: StackConfig) -> Result<Stack, LaunchError> {
+        for role in [Role::Sitl, Role::Writer, Role::Onboard] {
+            let path = config.bin_dir.join(role.binary());
+            if !path.is_file() {
+                return Err(LaunchError::MissingBinary { binary: role.binary().into(), dir: config.bin_dir.display().to_string() });
+            }
+        }
+        std::fs::create_dir_all(&config.log_dir)
+            .map_err(|e| LaunchError::LogDir { dir: config.log_dir.display().to_string(), reason: e.to_string() })?;
+        let (exit_tx, exits) = mpsc::unbounded_channel();
+        let mut stack = Stack { children: Vec::new(), exits, exit_tx, config };
+        let c = stack.config.clone();
+        let bus = |args: &mut Vec<String>| {
+            args.extend(["--swarm".into(), c.swarm.to_string(), "--zenoh-connect".into(), c.hub_endpoint.clone()]);
+        };
+
+        let mut sitl = vec![
+            "--scenario".into(),
+            c.scenario_arg.clone(),
+            "--drones".into(),
+            c.drones.to_string(),
+            "--mavlink-base-port".into(),
+            c.mavlink_base_port.to_string(),
+            "--sitl-base-port".into(),
+            c.sitl_base_port.to_string(),
+        ];
+        bus(&mut sitl);
+        sitl.extend(c.sitl_args.iter().cloned());
+        stack.spawn(Role::Sitl, None, sitl)?;
+
+        for (i, slot) in c.scenario.drones.iter().take(c.drones).enumerate() {
+            let home = format!("{},{},{}", slot.home.x, slot.home.y, slot.home.z);
+            let writer = vec![
+                "--swarm".into(),
+                c.swarm.to_string(),
+                "--drone".into(),
+                slot.id.to_string(),
+                "--home".into(),
+                home,
+                "--mavlink".into(),
+                format!("udpin:127.0.0.1:{}", c.mavlink_base_port as usize + i),
+            ];
+            stack.spawn(Role::Writer, Some(slot.id.clone()), writer)?;
+            let mut onboard = vec!["--drone".into(), slot.id.to_string(), "--scenario".into(), c.scenario_arg.clone()];
+            bus(&mut onboard);
+            onboard.extend(c.onboard_args.iter().cloned());
+            stack.spawn(Role::Onboard, Some(slot.id.clone()), onboard)?;
+        }
+        info!(drones = c.drones, logs = %c.log_dir.display(), hub = %c.hub_endpoint, "simulated swarm started");
+        Ok(stack)
+    }
+
+    /// Starts (or restarts) one process of the stack.
+    pub fn spawn(&mut self, role: Role, drone: Option<DroneId>, args: Vec<String>) -> Result<(), LaunchError> {
+        let name = match &drone {
+            Some(d) => format!("{}[{d}]", role.binary()),
+            None => role.binary().to_owned(),
+        };
+        let log_name = match &drone {
+            Some(d) => format!("{}-{d}.log", role.binary()),
+            None => format!("{}.log", role.binary()),
+        };
+        let log_path = self.config.log_dir.join(log_name);
+        let log = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&log_path)
+            .map_err(|e| LaunchError::Spawn { name: name.clone(), reason: format!("log file {}: {e}", log_path.display()) })?;
+        let log_err = log.try_clone().map_err(|e| LaunchError::Spawn { name: name.clone(), reason: e.to_string() })?;
+        let mut command = Command::new(self.config.bin_dir.join(role.binary()));
+        command.args(&args).stdin(Stdio::null()).stdout(log).stderr(log_err).kill_on_drop(true);
+        // SAFETY: prctl is async-signal-safe; it only sets the signal the child gets when this
+        // process dies, so no child outlives a ground station that was killed.
+        unsafe {
+            command.pre_exec(|| {
+                libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+                Ok(())
+            });
+        }
+        let mut child = command.spawn().map_err(|e| LaunchError::Spawn { name: name.clone(), reason: e.to_string() })?;
+        let pid = child.id();
+        let tx = self.exit_tx.clone();
+        let exit = ChildExit { name: name.clone(), role, drone: drone.clone(), status: Err(String::new()) };
+        tokio::spawn(async move {
+            let status = child.wait().await.map_err(|e| e.to_string());
+            let _ = tx.send(ChildExit { status, ..exit });
+        });
+        self.children.retain(|c| !(c.role == role && c.drone == drone && !c.running));
+        self.children.push(ChildHandle { role, drone, pid, running: true });
+        Ok(())
+    }
+
+    fn signal(&self, role: Role, drone: Option<&DroneId>, signal: i32) -> bool {
+        let mut sent = false;
+        for c in self.children.iter().filter(|c| c.running && c.role == role && c.drone.as_ref() == drone) {
+            if let Some(pid) = c.pid {
+                // SAFETY: kill(2) with a pid we spawned and have not reaped yet.
+                unsafe { libc::kill(pid as i32, signal) };
+                sent = true;
+            }
+        }
+        sent
+    }
+
+    /// Kills one process hard (SIGKILL), as a crash would; returns its exit once reaped.
+    pub async fn crash(&mut self, role: Role, drone: Option<&DroneId>) -> Option<ChildExit> {
+        if !self.signal(role, drone, libc::SIGKILL) {
+            return None;
+        }
+        loop {
+            let exit = self.exits.recv().await?;
+            self.mark_exited(&exit);
+            if exit.role == role && exit.drone.as_ref() == drone {
+                return Some(exit);
+            }
+            warn!(child = %exit.name, status = ?exit.status, "another child exited while one was being killed");
+        }
+    }
+
+    fn mark_exited(&mut self, exit: &ChildExit) {
+        for c in self.children.iter_mut().filter(|c| c.role == exit.role && c.drone == exit.drone) {
+            c.running = false;
+        }
+    }
+
+    /// Resolves when any child exits (the demo treats that as a failure).
+    pub async fn next_exit(&mut self) -> Option<ChildExit> {
+        let exit = self.exits.recv().await?;
+        self.mark_exited(&exit);
+        Some(exit)
+    }
+
+    /// SIGTERM to every child, SIGKILL to those still running after `grace`; waits for all.
+    pub async fn shutdown(mut self, grace: Duration) {
+        let running: Vec<(Role, Option<DroneId>)> =
+            self.children.iter().filter(|c| c.running).map(|c| (c.role, c.drone.clone())).collect();
+        for (role, drone) in &running {
+            self.signal(*role, drone.as_ref(), libc::SIGTERM);
+        }
+        let deadline = tokio::time::Instant::now() + grace;
+        while self.children.iter().any(|c| c.running) {
+            match tokio::time::timeout_at(deadline, self.exits.recv()).await {
+                Ok(Some(exit)) => self.mark_exited(&exit),
+                Ok(None) => break,
+                Err(_) => {
+                    let left: Vec<(Role, Option<DroneId>)> =
+                        self.children.iter().filter(|c| c.running).map(|c| (c.role, c.drone.clone())).collect();
+                    for (role, drone) in &left {
+                        warn!(binary = role.binary(), drone = ?drone, "did not stop on SIGTERM; killing");
+                        self.signal(*role, drone.as_ref(), libc::SIGKILL);
+                    }
+                    while self.children.iter().any(|c| c.running) {
+                        match tokio::time::timeout(Duration::from_secs(5), self.exits.recv()).await {
+                            Ok(Some(exit)) => self.mark_exited(&exit),
+                            _ => break,
+                        }
+                    }
+                    break;
+                }
+            }
+        }
+    }
+}
+
+impl Drop for Stack {
+    fn drop(&mut self) {
+        for c in self.children.iter().filter(|c| c.running) {
+            if let Some(pid) = c.pid {
+                // SAFETY: as in `signal`.
+                unsafe { libc::kill(pid as i32, libc::SIGKILL) };
+            }
+        }
+    }
+}

@@ -1,0 +1,259 @@
+//! The ground's zenoh link: keeps the swarm view current, sends checked actions, waits for
+//! their outcome, and beats the ground heartbeat the drones' failsafe listens for.
+
+use crate::safety::CheckedAction;
+use crate::swarm::{SwarmChange, SwarmView};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use tacos_bus::{BusArgs, BusError};
+use tacos_shared::keys::Keys;
+use tacos_shared::messages::{ActionState, DroneStatus, GroundHeartbeat, SimTruth, WorldEvent};
+use tacos_shared::{ActionCommand, DroneId};
+use tokio::sync::{broadcast, watch};
+use tokio::task::JoinHandle;
+use tracing::{debug, warn};
+use zenoh::sample::SampleKind;
+
+/// How often the ground heartbeat is sent.
+pub const HEARTBEAT_PERIOD: Duration = Duration::from_millis(200);
+
+#[derive(Debug, thiserror::Error)]
+pub enum LinkError {
+    #[error(transparent)]
+    Bus(#[from] BusError),
+    #[error("{drone} did not finish action #{seq} within {waited:?}")]
+    Timeout { drone: DroneId, seq: u64, waited: Duration },
+    #[error("{0} left the swarm before its action finished")]
+    DroneLost(DroneId),
+    #[error("{drone}: action #{seq} was replaced by #{newer} before it finished")]
+    Superseded { drone: DroneId, seq: u64, newer: u64 },
+    #[error("timed out after {0:?} waiting for drones: {1}")]
+    WaitDrones(Duration, String),
+}
+
+struct Shared {
+    view: Mutex<SwarmView>,
+    version: watch::Sender<u64>,
+    changes: broadcast::Sender<SwarmChange>,
+    malformed_status: AtomicU64,
+}
+
+impl Shared {
+    fn lock(&self) -> MutexGuard<'_, SwarmView> {
+        // A panic while holding the lock cannot leave the view half-written (every update is a
+        // single assignment), so a poisoned lock is still safe to read.
+        self.view.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn changed(&self, change: SwarmChange) {
+        self.version.send_modify(|v| *v += 1);
+        let _ = self.changes.send(change);
+    }
+}
+
+pub struct GroundLink {
+    session: zenoh::Session,
+    keys: Keys,
+    shared: Arc<Shared>,
+    next_seq: AtomicU64,
+    tasks: Vec<JoinHandle<()>>,
+}
+
+impl Drop for GroundLink {
+    fn drop(&mut self) {
+        for task in &self.tasks {
+            task.abort();
+        }
+    }
+}
+
+impl GroundLink {
+    /// Joins the swarm's network and starts following it.
+    pub async fn connect(bus: &BusArgs) -> Result<GroundLink, LinkError> {
+        let session = bus.open().await?;
+        let keys = bus.keys();
+        let (version, _) = watch::channel(0);
+        let (changes, _) = broadcast::channel(256);
+        let shared = Arc::new(Shared {
+            view: Mutex::new(SwarmView::default()),
+            version,
+            changes,
+            malformed_status: AtomicU64::new(0),
+        });
+        let mut tasks = Vec::new();
+
+        let statuses = tacos_bus::subscribe(&session, &keys.all_status()).await?;
+        let s = shared.clone();
+        tasks.push(tokio::spawn(async move {
+            while let Ok(sample) = statuses.recv_async().await {
+                match tacos_bus::decode::<DroneStatus>(&sample) {
+                    Ok(status) => {
+                        let change = s.lock().apply_status(status, Instant::now());
+                        s.changed(change);
+                    }
+                    Err(e) => {
+                        let n = s.malformed_status.fetch_add(1, Ordering::Relaxed) + 1;
+                        warn!(key = %sample.key_expr(), error = %e, count = n, "malformed status ignored");
+                    }
+                }
+            }
+        }));
+
+        let alive = tacos_bus::watch_alive(&session, &keys.all_alive()).await?;
+        let s = shared.clone();
+        let k = keys.clone();
+        tasks.push(tokio::spawn(async move {
+            while let Ok(sample) = alive.recv_async().await {
+                let Some(id) = k.drone_of(sample.key_expr().as_str()) else { continue };
+                let is_alive = sample.kind() == SampleKind::Put;
+                let change = s.lock().apply_liveliness(&id, is_alive, Instant::now());
+                if let Some(change) = change {
+                    debug!(?change, "liveliness");
+                    s.changed(change);
+                }
+            }
+        }));
+
+        let hb_session = session.clone();
+        let hb_key = keys.ground_heartbeat();
+        tasks.push(tokio::spawn(async move {
+            let mut tick = tokio::time::interval(HEARTBEAT_PERIOD);
+            let mut counter = 0u64;
+            loop {
+                tick.tick().await;
+                counter += 1;
+                if let Err(e) = tacos_bus::put(&hb_session, &hb_key, &GroundHeartbeat { counter }, false).await {
+                    warn!(error = %e, "ground heartbeat not sent");
+                }
+            }
+        }));
+
+        // Sequence numbers grow across ground restarts: start from the wall clock.
+        let start = SystemTime::now().duration_since(UNIX_EPOCH).map_or(1, |d| d.as_millis() as u64) * 1000;
+        Ok(GroundLink { session, keys, shared, next_seq: AtomicU64::new(start), tasks })
+    }
+
+    pub fn session(&self) -> &zenoh::Session {
+        &self.session
+    }
+
+    pub fn keys(&self) -> &Keys {
+        &self.keys
+    }
+
+    /// A locked view of the swarm (hold it briefly).
+    pub fn view(&self) -> MutexGuard<'_, SwarmView> {
+        self.shared.lock()
+    }
+
+    pub fn changes(&self) -> broadcast::Receiver<SwarmChange> {
+        self.shared.changes.subscribe()
+    }
+
+    pub fn malformed_status_count(&self) -> u64 {
+        self.shared.malformed_status.load(Ordering::Relaxed)
+    }
+
+    /// Sends a checked action; returns its sequence number.
+    pub async fn send(&self, checked: &CheckedAction, task_id: Option<String>) -> Result<u64, LinkError> {
+        let seq = self.next_seq.fetch_add(1, Ordering::Relaxed);
+        let command = ActionCommand { seq, task_id, action: checked.action().clone() };
+        tacos_bus::put(&self.session, &self.keys.action(checked.drone()), &command, true).await?;
+        Ok(seq)
+    }
+
+    /// Waits until every drone in `ids` is alive and satisfies `ready`.
+    pub async fn wait_for_drones(
+        &self,
+        ids: &[DroneId],
+        timeout: Duration,
+        ready: impl Fn(&DroneStatus) -> bool,
+    ) -> Result<(), LinkError> {
+        let mut version = self.shared.version.subscribe();
+        let deadline = tokio::time::Instant::now() + timeout;
+        loop {
+            let missing: Vec<String> = {
+                let view = self.view();
+                ids.iter()
+                    .filter(|id| {
+                        !view.get(id).is_some_and(|e| e.alive && e.status.as_ref().is_some_and(&ready))
+                    })
+                    .map(|id| id.to_string())
+                    .collect()
+            };
+            if missing.is_empty() {
+                return Ok(());
+            }
+            match tokio::time::timeout_at(deadline, version.changed()).await {
+                Ok(Ok(())) => {}
+                _ => return Err(LinkError::WaitDrones(timeout, missing.join(", "))),
+            }
+        }
+    }
+
+    /// Waits for the outcome of action `seq` on `drone`.
+    pub async fn wait_outcome(&self, drone: &DroneId, seq: u64, timeout: Duration) -> Result<ActionState, LinkError> {
+        let mut version = self.shared.version.subscribe();
+        let deadline = tokio::time::Instant::now() + timeout;
+        loop {
+            {
+                let view = self.view();
+                let entry = view.get(drone);
+                if entry.is_some_and(|e| !e.alive) {
+                    return Err(LinkError::DroneLost(drone.clone()));
+                }
+                if let Some(progress) = entry.and_then(|e| e.status.as_ref()).and_then(|s| s.action.as_ref()) {
+                    if progress.seq == seq && progress.state.is_finished() {
+                        return Ok(progress.state.clone());
+                    }
+                    if progress.seq > seq {
+                        return Err(LinkError::Superseded { drone: drone.clone(), seq, newer: progress.seq });
+                    }
+                }
+            }
+            match tokio::time::timeout_at(deadline, version.changed()).await {
+                Ok(Ok(())) => {}
+                _ => return Err(LinkError::Timeout { drone: drone.clone(), seq, waited: timeout }),
+            }
+        }
+    }
+
+    /// Follows the simulator's ground truth (`sim/truth`), newest first.
+    pub async fn watch_truth(&self) -> Result<watch::Receiver<Option<SimTruth>>, LinkError> {
+        let sub = tacos_bus::subscribe(&self.session, &self.keys.sim_truth()).await?;
+        let (tx, rx) = watch::channel(None);
+        tokio::spawn(async move {
+            while let Ok(sample) = sub.recv_async().await {
+                match tacos_bus::decode::<SimTruth>(&sample) {
+                    Ok(truth) => {
+                        if tx.send(Some(truth)).is_err() {
+                            break;
+                        }
+                    }
+                    Err(e) => warn!(error = %e, "malformed sim truth ignored"),
+                }
+            }
+        });
+        Ok(rx)
+    }
+
+    /// Follows `world/events`.
+    pub async fn watch_events(&self) -> Result<tokio::sync::mpsc::Receiver<WorldEvent>, LinkError> {
+        let sub = tacos_bus::subscribe(&self.session, &self.keys.events()).await?;
+        let (tx, rx) = tokio::sync::mpsc::channel(256);
+        tokio::spawn(async move {
+            while let Ok(sample) = sub.recv_async().await {
+                match tacos_bus::decode::<WorldEvent>(&sample) {
+                    Ok(event) => {
+                        if tx.send(event).await.is_err() {
+                            break;
+                        }
+                    }
+                    Err(e) => warn!(error = %e, "malformed world event ignored"),
+                }
+            }
+        });
+        Ok(rx)
+    }
+}

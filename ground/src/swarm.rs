@@ -1,0 +1,137 @@
+//! The swarm view: what the ground knows of every drone, from status messages and liveliness.
+//!
+//! Pure state; `link` feeds it. Times are passed in so the view can be tested without clocks.
+
+use std::collections::BTreeMap;
+use std::time::Instant;
+use tacos_shared::messages::DroneStatus;
+use tacos_shared::{DroneId, DroneMode};
+
+/// A status older than this makes the drone's link "stale".
+pub const STALE_AFTER_S: f64 = 1.0;
+
+#[derive(Debug, Clone)]
+pub struct DroneEntry {
+    pub id: DroneId,
+    /// The drone's liveliness token is present.
+    pub alive: bool,
+    pub status: Option<DroneStatus>,
+    pub last_status_at: Option<Instant>,
+    /// When the token disappeared, if it did.
+    pub gone_at: Option<Instant>,
+}
+
+impl DroneEntry {
+    /// Seconds since the last status, if any arrived.
+    pub fn link_age(&self, now: Instant) -> Option<f64> {
+        self.last_status_at.map(|t| now.saturating_duration_since(t).as_secs_f64())
+    }
+
+    /// The mode the ground should assume: unavailable when gone or stale.
+    pub fn effective_mode(&self, now: Instant) -> DroneMode {
+        match (&self.status, self.link_age(now)) {
+            (Some(status), Some(age)) if self.alive && age <= STALE_AFTER_S => status.mode,
+            _ => DroneMode::Unavailable,
+        }
+    }
+}
+
+/// What changed, for whoever watches the view.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SwarmChange {
+    Joined(DroneId),
+    Left(DroneId),
+    Status(DroneId),
+}
+
+#[derive(Debug, Default, Clone)]
+pub struct SwarmView {
+    drones: BTreeMap<DroneId, DroneEntry>,
+}
+
+impl SwarmView {
+    fn entry(&mut self, id: &DroneId) -> &mut DroneEntry {
+        self.drones.entry(id.clone()).or_insert_with(|| DroneEntry {
+            id: id.clone(),
+            alive: false,
+            status: None,
+            last_status_at: None,
+            gone_at: None,
+        })
+    }
+
+    pub fn apply_status(&mut self, status: DroneStatus, now: Instant) -> SwarmChange {
+        let id = status.drone.clone();
+        let entry = self.entry(&id);
+        // A status can arrive just before the liveliness token; it proves the drone is there.
+        entry.alive = true;
+        entry.gone_at = None;
+        entry.status = Some(status);
+        entry.last_status_at = Some(now);
+        SwarmChange::Status(id)
+    }
+
+    pub fn apply_liveliness(&mut self, id: &DroneId, alive: bool, now: Instant) -> Option<SwarmChange> {
+        let entry = self.entry(id);
+        if entry.alive == alive {
+            return None;
+        }
+        entry.alive = alive;
+        if alive {
+            entry.gone_at = None;
+            Some(SwarmChange::Joined(id.clone()))
+        } else {
+            entry.gone_at = Some(now);
+            Some(SwarmChange::Left(id.clone()))
+        }
+    }
+
+    pub fn get(&self, id: &DroneId) -> Option<&DroneEntry> {
+        self.drones.get(id)
+    }
+
+    pub fn drones(&self) -> impl Iterator<Item = &DroneEntry> {
+        self.drones.values()
+    }
+
+    pub fn alive_ids(&self) -> Vec<DroneId> {
+        self.drones.values().filter(|d| d.alive).map(|d| d.id.clone()).collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+    use tacos_shared::Vec3;
+
+    fn status(id: &str) -> DroneStatus {
+        DroneStatus {
+            drone: DroneId::new(id).expect("valid"),
+            counter: 1,
+            mode: DroneMode::Flying,
+            armed: true,
+            position: Vec3::zeros(),
+            velocity: Vec3::zeros(),
+            autopilot_link: true,
+            action: None,
+            failsafe: None,
+            malformed_actions: 0,
+        }
+    }
+
+    #[test]
+    fn stale_or_gone_drones_are_unavailable() {
+        let t0 = Instant::now();
+        let mut view = SwarmView::default();
+        let alfa = DroneId::new("alfa").expect("valid");
+        assert_eq!(view.apply_liveliness(&alfa, true, t0), Some(SwarmChange::Joined(alfa.clone())));
+        view.apply_status(status("alfa"), t0);
+        let entry = view.get(&alfa).expect("known");
+        assert_eq!(entry.effective_mode(t0 + Duration::from_millis(500)), DroneMode::Flying);
+        assert_eq!(entry.effective_mode(t0 + Duration::from_millis(1500)), DroneMode::Unavailable);
+        assert_eq!(view.apply_liveliness(&alfa, false, t0), Some(SwarmChange::Left(alfa.clone())));
+        assert_eq!(view.get(&alfa).expect("known").effective_mode(t0), DroneMode::Unavailable);
+        assert!(view.alive_ids().is_empty());
+    }
+}

@@ -1,0 +1,503 @@
+//! The simulator as a MAVLink client sees it: real MAVLink v2 bytes over UDP on loopback, PX4's
+//! ports and rules; and its zenoh side (truth, fault injection, events). Unique ports and swarm
+//! ids per test; every wait has a deadline.
+
+use mavlink::MavHeader;
+use mavlink::dialects::common::{
+    COMMAND_LONG_DATA, MavAutopilot, MavCmd, MavFrame, MavMessage, MavModeFlag, MavResult, MavType,
+    PositionTargetTypemask, SET_POSITION_TARGET_LOCAL_NED_DATA,
+};
+use std::net::{Ipv4Addr, SocketAddr};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::time::Duration;
+use tacos_bus::BusArgs;
+use tacos_shared::keys::Keys;
+use tacos_shared::messages::{FaultRequest, SimTruth, TargetsMessage, WorldEvent};
+use tacos_shared::px4_mode::{self, Px4Mode};
+use tacos_shared::scenario::{FaultKind, Scenario};
+use tacos_shared::{DroneId, SwarmId};
+use tacos_sitl::SitlConfig;
+use tokio::net::UdpSocket;
+use tokio::sync::oneshot;
+use tokio::task::JoinHandle;
+use tokio::time::{Instant, timeout, timeout_at};
+
+const GCS_SYSTEM: u32 = 255;
+
+fn unique_swarm(tag: &str) -> SwarmId {
+    static COUNTER: AtomicU32 = AtomicU32::new(0);
+    let n = COUNTER.fetch_add(1, Ordering::Relaxed);
+    SwarmId::new(format!("sitl-{tag}-{}-{n}", std::process::id())).expect("valid swarm id")
+}
+
+/// A port nobody listens on right now (the OS picks it; released for the simulator to bind).
+fn free_udp_port() -> u16 {
+    let probe = std::net::UdpSocket::bind((Ipv4Addr::LOCALHOST, 0)).expect("bind a probe");
+    probe.local_addr().expect("probe address").port()
+}
+
+fn free_tcp_port() -> u16 {
+    let probe = std::net::TcpListener::bind((Ipv4Addr::LOCALHOST, 0)).expect("bind a probe");
+    probe.local_addr().expect("probe address").port()
+}
+
+/// `n` UDP sockets on consecutive loopback ports (the writers' side: mavlink_base + i).
+async fn consecutive_sockets(n: u16) -> Vec<UdpSocket> {
+    for _ in 0..50 {
+        let first = UdpSocket::bind((Ipv4Addr::LOCALHOST, 0))
+            .await
+            .expect("bind");
+        let base = first.local_addr().expect("address").port();
+        let mut sockets = vec![first];
+        for i in 1..n {
+            match base.checked_add(i) {
+                Some(port) => match UdpSocket::bind((Ipv4Addr::LOCALHOST, port)).await {
+                    Ok(s) => sockets.push(s),
+                    Err(_) => break,
+                },
+                None => break,
+            }
+        }
+        if sockets.len() == usize::from(n) {
+            return sockets;
+        }
+    }
+    panic!("no {n} consecutive free UDP ports");
+}
+
+/// A running simulator in this process.
+struct Sitl {
+    stop: Option<oneshot::Sender<()>>,
+    task: JoinHandle<Result<(), tacos_sitl::SitlError>>,
+    sitl_base_port: u16,
+}
+
+impl Sitl {
+    fn start(drones: usize, mavlink_base_port: u16, bus: BusArgs) -> Sitl {
+        let scenario = Scenario::builtin("lab").expect("lab is valid");
+        let mut sitl_base_port = free_udp_port();
+        // Keep clear of the writer's range.
+        while sitl_base_port.abs_diff(mavlink_base_port) < 8 || sitl_base_port > u16::MAX - 8 {
+            sitl_base_port = free_udp_port();
+        }
+        let config = SitlConfig {
+            scenario,
+            drones,
+            mavlink_base_port,
+            sitl_base_port,
+            speed: 1.0,
+            bus,
+        };
+        let (stop, stopped) = oneshot::channel::<()>();
+        let task = tokio::spawn(tacos_sitl::run(config, async {
+            let _ = stopped.await;
+        }));
+        Sitl {
+            stop: Some(stop),
+            task,
+            sitl_base_port,
+        }
+    }
+
+    async fn stop(mut self) {
+        if let Some(stop) = self.stop.take() {
+            let _ = stop.send(());
+        }
+        let result = timeout(Duration::from_secs(10), self.task)
+            .await
+            .expect("the simulator stops in time");
+        result
+            .expect("the simulator task did not panic")
+            .expect("the simulator ran cleanly");
+    }
+}
+
+/// A MAVLink peer of one simulated vehicle (the role `tacos-px4` plays).
+struct Client {
+    socket: Arc<UdpSocket>,
+    vehicle: SocketAddr,
+    system_id: u8,
+    sequence: u8,
+}
+
+fn encode(sequence: u8, message: &MavMessage) -> Vec<u8> {
+    let mut out = Vec::new();
+    let header = MavHeader {
+        system_id: GCS_SYSTEM,
+        component_id: 190,
+        sequence,
+    };
+    mavlink::write_v2_msg(&mut out, header, message).expect("encode");
+    out
+}
+
+impl Client {
+    fn new(socket: UdpSocket, vehicle_port: u16, system_id: u8) -> Client {
+        Client {
+            socket: Arc::new(socket),
+            vehicle: SocketAddr::from((Ipv4Addr::LOCALHOST, vehicle_port)),
+            system_id,
+            sequence: 0,
+        }
+    }
+
+    async fn send(&mut self, message: &MavMessage) {
+        self.sequence = self.sequence.wrapping_add(1);
+        self.socket
+            .send_to(&encode(self.sequence, message), self.vehicle)
+            .await
+            .expect("send");
+    }
+
+    /// Waits until `pick` accepts a message from the vehicle, or panics at the deadline.
+    async fn wait_for<T>(
+        &self,
+        within: Duration,
+        what: &str,
+        mut pick: impl FnMut(&MavHeader, &MavMessage) -> Option<T>,
+    ) -> T {
+        let deadline = Instant::now() + within;
+        let mut buf = vec![0u8; 4096];
+        loop {
+            let received = timeout_at(deadline, self.socket.recv_from(&mut buf)).await;
+            let Ok(Ok((n, _from))) = received else {
+                panic!("timed out after {within:?} waiting for {what}")
+            };
+            let mut reader = mavlink::MavlinkReader::new(&buf[..n]);
+            while let Ok((header, message)) = reader.read_any_message::<MavMessage>() {
+                if let Some(found) = pick(&header, &message) {
+                    return found;
+                }
+            }
+        }
+    }
+
+    async fn command(&mut self, command: MavCmd, params: [f32; 7]) -> MavResult {
+        let message = MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            param1: params[0],
+            param2: params[1],
+            param3: params[2],
+            param4: params[3],
+            param5: params[4],
+            param6: params[5],
+            param7: params[6],
+            command,
+            target_system: self.system_id,
+            target_component: 1,
+            confirmation: 0,
+        });
+        self.send(&message).await;
+        self.wait_for(
+            Duration::from_secs(3),
+            &format!("COMMAND_ACK for {command:?}"),
+            |_, m| match m {
+                MavMessage::COMMAND_ACK(ack) if ack.command == command => Some(ack.result),
+                _ => None,
+            },
+        )
+        .await
+    }
+
+    async fn set_mode(&mut self, main: u8, sub: u8) -> MavResult {
+        let base = f32::from(px4_mode::BASE_MODE_CUSTOM_ENABLED);
+        self.command(
+            MavCmd::MAV_CMD_DO_SET_MODE,
+            [base, f32::from(main), f32::from(sub), 0.0, 0.0, 0.0, 0.0],
+        )
+        .await
+    }
+
+    async fn wait_for_mode(&self, mode: Px4Mode, within: Duration) {
+        self.wait_for(
+            within,
+            &format!("a heartbeat in {mode:?}"),
+            |_, m| match m {
+                MavMessage::HEARTBEAT(hb) if hb.custom_mode == mode.custom_mode() => Some(()),
+                _ => None,
+            },
+        )
+        .await
+    }
+
+    /// Streams a position setpoint (local NED) at 20 Hz from the same socket until aborted.
+    fn stream_setpoints(&self, ned: [f32; 3]) -> JoinHandle<()> {
+        let socket = self.socket.clone();
+        let vehicle = self.vehicle;
+        let message =
+            MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA {
+                time_boot_ms: 0,
+                x: ned[0],
+                y: ned[1],
+                z: ned[2],
+                vx: 0.0,
+                vy: 0.0,
+                vz: 0.0,
+                afx: 0.0,
+                afy: 0.0,
+                afz: 0.0,
+                yaw: 0.0,
+                yaw_rate: 0.0,
+                // Position only.
+                type_mask: PositionTargetTypemask::from_bits_truncate(0b0000_1101_1111_1000),
+                target_system: self.system_id,
+                target_component: 1,
+                coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
+            });
+        tokio::spawn(async move {
+            let mut tick = tokio::time::interval(Duration::from_millis(50));
+            let mut sequence = 0u8;
+            loop {
+                tick.tick().await;
+                sequence = sequence.wrapping_add(1);
+                if socket
+                    .send_to(&encode(sequence, &message), vehicle)
+                    .await
+                    .is_err()
+                {
+                    return;
+                }
+            }
+        })
+    }
+}
+
+const ARM: [f32; 7] = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn answers_like_px4_over_udp() {
+    let socket = consecutive_sockets(1).await.remove(0);
+    let mavlink_port = socket.local_addr().expect("address").port();
+    let bus = BusArgs::loopback(unique_swarm("udp"), Some("tcp/127.0.0.1:0".into()), vec![]);
+    let sitl = Sitl::start(1, mavlink_port, bus);
+    let mut px4 = Client::new(socket, sitl.sitl_base_port, 1);
+
+    // Unprompted heartbeats to mavlink_base + 0, as PX4 SITL instance 0 sends to 14540.
+    let (header, hb) = px4
+        .wait_for(
+            Duration::from_secs(10),
+            "the first heartbeat",
+            |h, m| match m {
+                MavMessage::HEARTBEAT(hb) => Some((*h, hb.clone())),
+                _ => None,
+            },
+        )
+        .await;
+    assert_eq!((header.system_id, header.component_id), (1, 1));
+    assert_eq!(hb.autopilot, MavAutopilot::MAV_AUTOPILOT_PX4);
+    assert_eq!(hb.mavtype, MavType::MAV_TYPE_QUADROTOR);
+    assert!(
+        hb.base_mode
+            .contains(MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED)
+    );
+    assert!(
+        !hb.base_mode
+            .contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED)
+    );
+    // PX4's encoding: main mode in bits 16..24, sub mode in 24..32; AUTO.LOITER = 4 | 3 << 8.
+    assert_eq!(hb.custom_mode, (4 << 16) | (3 << 24));
+
+    assert_eq!(
+        px4.command(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, ARM).await,
+        MavResult::MAV_RESULT_ACCEPTED
+    );
+    px4.wait_for(
+        Duration::from_secs(3),
+        "an armed heartbeat",
+        |_, m| match m {
+            MavMessage::HEARTBEAT(hb)
+                if hb
+                    .base_mode
+                    .contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED) =>
+            {
+                Some(())
+            }
+            _ => None,
+        },
+    )
+    .await;
+    assert_eq!(
+        px4.command(
+            MavCmd::MAV_CMD_NAV_TAKEOFF,
+            [0.0, 0.0, 0.0, f32::NAN, f32::NAN, f32::NAN, 1.5]
+        )
+        .await,
+        MavResult::MAV_RESULT_ACCEPTED
+    );
+    // The altitude rises in LOCAL_POSITION_NED (z is down).
+    px4.wait_for(
+        Duration::from_secs(8),
+        "LOCAL_POSITION_NED above 0.5 m",
+        |_, m| match m {
+            MavMessage::LOCAL_POSITION_NED(p) if p.z < -0.5 => Some(()),
+            _ => None,
+        },
+    )
+    .await;
+
+    // OFFBOARD without a setpoint stream: refused.
+    assert_eq!(
+        px4.set_mode(px4_mode::MAIN_OFFBOARD, 0).await,
+        MavResult::MAV_RESULT_TEMPORARILY_REJECTED
+    );
+
+    // With a stream: refused during the first second, accepted after it.
+    let stream = px4.stream_setpoints([0.5, 0.0, -1.5]);
+    let started = Instant::now();
+    let mut pace = tokio::time::interval(Duration::from_millis(250));
+    let accepted_after = loop {
+        pace.tick().await;
+        let result = px4.set_mode(px4_mode::MAIN_OFFBOARD, 0).await;
+        let elapsed = started.elapsed();
+        if result == MavResult::MAV_RESULT_ACCEPTED {
+            break elapsed;
+        }
+        assert_eq!(result, MavResult::MAV_RESULT_TEMPORARILY_REJECTED);
+        assert!(
+            elapsed < Duration::from_secs(4),
+            "offboard still refused after {elapsed:?} of streaming"
+        );
+    };
+    assert!(
+        accepted_after >= Duration::from_millis(900),
+        "offboard accepted after only {accepted_after:?}"
+    );
+    px4.wait_for_mode(Px4Mode::Offboard, Duration::from_secs(2))
+        .await;
+
+    // The stream stops: COM_OF_LOSS_T (1 s) later the vehicle holds.
+    stream.abort();
+    let _ = stream.await;
+    let stopped = Instant::now();
+    px4.wait_for_mode(Px4Mode::Hold, Duration::from_millis(1500))
+        .await;
+    let took = stopped.elapsed();
+    assert!(
+        took >= Duration::from_millis(800),
+        "left offboard after only {took:?}"
+    );
+
+    // Disarming in the air is refused.
+    assert_eq!(
+        px4.command(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, [0.0; 7])
+            .await,
+        MavResult::MAV_RESULT_DENIED
+    );
+    sitl.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn publishes_truth_and_takes_faults_over_zenoh() {
+    let swarm = unique_swarm("zenoh");
+    let keys = Keys::new(&swarm);
+    let endpoint = format!("tcp/127.0.0.1:{}", free_tcp_port());
+    let test_bus = BusArgs::loopback(swarm.clone(), Some(endpoint.clone()), vec![]);
+    let session = test_bus.open().await.expect("test session");
+    let truth = tacos_bus::subscribe(&session, &keys.sim_truth())
+        .await
+        .expect("subscribe truth");
+    let events = tacos_bus::subscribe(&session, &keys.events())
+        .await
+        .expect("subscribe events");
+    let targets = tacos_bus::subscribe(&session, &keys.targets())
+        .await
+        .expect("subscribe targets");
+
+    let mut sockets = consecutive_sockets(2).await;
+    let mavlink_base = sockets[0].local_addr().expect("address").port();
+    let sim_bus = BusArgs::loopback(
+        swarm.clone(),
+        Some("tcp/127.0.0.1:0".into()),
+        vec![endpoint],
+    );
+    let sitl = Sitl::start(2, mavlink_base, sim_bus);
+    let bravo_socket = sockets.remove(1);
+    let bravo = Client::new(bravo_socket, sitl.sitl_base_port + 1, 2);
+    bravo
+        .wait_for(Duration::from_secs(10), "bravo's heartbeat", |h, m| {
+            matches!(m, MavMessage::HEARTBEAT(_)).then_some(h.system_id)
+        })
+        .await;
+
+    // Truth: both vehicles at their homes (world ENU), alive, landed.
+    let lab = Scenario::builtin("lab").expect("valid");
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let first: SimTruth = loop {
+        let sample = timeout_at(deadline, truth.recv_async())
+            .await
+            .expect("truth in time")
+            .expect("subscriber open");
+        let t: SimTruth = tacos_bus::decode(&sample).expect("truth decodes");
+        if !t.vehicles.is_empty() {
+            break t;
+        }
+    };
+    assert_eq!(first.vehicles.len(), 2);
+    for (v, slot) in first.vehicles.iter().zip(&lab.drones) {
+        assert_eq!(v.drone, slot.id);
+        assert!(
+            (v.position - slot.home).norm() < 1e-9,
+            "{} at {:?}",
+            v.drone,
+            v.position
+        );
+        assert!(v.alive && v.landed && !v.armed && !v.link_down);
+    }
+    let sample = timeout(Duration::from_secs(5), targets.recv_async())
+        .await
+        .expect("targets in time")
+        .expect("open");
+    let t: TargetsMessage = tacos_bus::decode(&sample).expect("targets decode");
+    assert!(t.targets.is_empty(), "the lab's dog is hidden");
+
+    // Garbage on the fault key is ignored; a real request kills bravo.
+    let faults = keys.sim_faults();
+    session
+        .put(&faults, vec![0xde, 0xad])
+        .await
+        .expect("put garbage");
+    let request = FaultRequest {
+        drone: DroneId::new("bravo").expect("valid"),
+        fault: FaultKind::VehicleDies,
+    };
+    tacos_bus::put(&session, &faults, &request, true)
+        .await
+        .expect("put fault");
+    let sample = timeout(Duration::from_secs(5), events.recv_async())
+        .await
+        .expect("event in time")
+        .expect("open");
+    let event: WorldEvent = tacos_bus::decode(&sample).expect("event decodes");
+    assert!(
+        matches!(&event, WorldEvent::FaultInjected { drone, .. } if drone.as_str() == "bravo"),
+        "{event:?}"
+    );
+
+    let deadline = Instant::now() + Duration::from_secs(5);
+    loop {
+        let sample = timeout_at(deadline, truth.recv_async())
+            .await
+            .expect("truth shows the death")
+            .expect("open");
+        let t: SimTruth = tacos_bus::decode(&sample).expect("truth decodes");
+        if t.vehicles.get(1).is_some_and(|v| !v.alive) {
+            assert!(t.vehicles[0].alive, "alfa lives on");
+            break;
+        }
+    }
+    // Bravo is silent from now on. Drain what it sent before the fault (a live vehicle would
+    // keep this loop busy until the deadline), then expect nothing at all for 2.5 s: heartbeats
+    // are 1 Hz and LOCAL_POSITION_NED 50 Hz, so a live vehicle would be heard.
+    let mut buf = [0u8; 2048];
+    let drain_deadline = Instant::now() + Duration::from_secs(1);
+    while let Ok(Ok(_)) = timeout_at(drain_deadline, bravo.socket.recv_from(&mut buf)).await {}
+    let heard = timeout(
+        Duration::from_millis(2500),
+        bravo.socket.recv_from(&mut buf),
+    )
+    .await;
+    assert!(heard.is_err(), "a dead vehicle still talks");
+
+    sitl.stop().await;
+    session.close().await.expect("close");
+}
