@@ -125,6 +125,10 @@ pub struct Scenario {
     pub faults: Vec<FaultSpec>,
 }
 
+fn positive(value: f64) -> bool {
+    value.is_finite() && value > 0.0
+}
+
 // ---- file format -------------------------------------------------------------------------------
 
 #[derive(Deserialize)]
@@ -225,7 +229,7 @@ impl Scenario {
             (l.detection_radius, "limits.detection_radius"),
             (l.detection_altitude, "limits.detection_altitude"),
         ] {
-            if !(value.is_finite() && value > 0.0) {
+            if !positive(value) {
                 return Err(ScenarioError::NotPositive(what));
             }
         }
@@ -291,10 +295,10 @@ impl Scenario {
                 _ => return Err(ScenarioError::TargetPlacement(t.name)),
             };
             match &t.motion {
-                TargetMotion::Waypoints { points, speed, .. } if points.is_empty() || !(*speed > 0.0) => {
+                TargetMotion::Waypoints { points, speed, .. } if points.is_empty() || !positive(*speed) => {
                     return Err(ScenarioError::BadMotion(t.name));
                 }
-                TargetMotion::Evasive { speed, flee_radius } if !(*speed > 0.0 && *flee_radius > 0.0) => {
+                TargetMotion::Evasive { speed, flee_radius } if !(positive(*speed) && positive(*flee_radius)) => {
                     return Err(ScenarioError::BadMotion(t.name));
                 }
                 _ => {}

@@ -1,0 +1,54 @@
+//! The shared test kit for end-to-end tests: unique swarms, a simulated stack on loopback with
+//! free ports, and waits that always time out.
+
+use std::time::Duration;
+use tacos_ground::launch::{Stack, StackConfig};
+use tacos_ground::link::GroundLink;
+use tacos_shared::SwarmId;
+use tacos_shared::scenario::Scenario;
+
+/// A swarm id no other test (or run) uses.
+pub fn unique_swarm(tag: &str) -> SwarmId {
+    use std::sync::atomic::{AtomicU32, Ordering};
+    static NEXT: AtomicU32 = AtomicU32::new(0);
+    let n = NEXT.fetch_add(1, Ordering::Relaxed);
+    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.subsec_nanos());
+    SwarmId::new(format!("{tag}{}x{n}x{nanos}", std::process::id())).unwrap_or_else(|e| panic!("bad swarm id: {e}"))
+}
+
+/// A simulated swarm of `n` drones of `scenario` and a ground link that is its zenoh hub.
+pub struct SimSwarm {
+    pub link: GroundLink,
+    pub stack: Stack,
+    pub scenario: Scenario,
+}
+
+impl SimSwarm {
+    pub async fn start(tag: &str, scenario_name: &str, n: usize) -> anyhow::Result<SimSwarm> {
+        Self::start_with(tag, scenario_name, n, |_| {}).await
+    }
+
+    pub async fn start_with(
+        tag: &str,
+        scenario_name: &str,
+        n: usize,
+        adjust: impl FnOnce(&mut StackConfig),
+    ) -> anyhow::Result<SimSwarm> {
+        let scenario = Scenario::builtin(scenario_name)?;
+        let mut config = StackConfig::on_loopback(unique_swarm(tag), scenario_name, scenario.clone(), n)?;
+        adjust(&mut config);
+        let bus = tacos_bus::BusArgs::loopback(config.swarm.clone(), Some(config.hub_endpoint.clone()), vec![]);
+        let link = GroundLink::connect(&bus).await?;
+        let stack = Stack::start(config)?;
+        Ok(SimSwarm { link, stack, scenario })
+    }
+
+    pub async fn stop(self) {
+        self.stack.shutdown(Duration::from_secs(3)).await;
+    }
+}
+
+/// Runs `fut` with a deadline, naming what timed out.
+pub async fn within<T>(what: &str, limit: Duration, fut: impl std::future::Future<Output = T>) -> anyhow::Result<T> {
+    tokio::time::timeout(limit, fut).await.map_err(|_| anyhow::anyhow!("timed out after {limit:?}: {what}"))
+}

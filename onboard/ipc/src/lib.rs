@@ -44,6 +44,9 @@ fn service_name(name: &str) -> Result<ServiceName, IpcError> {
 
 impl IpcNode {
     pub fn new(swarm: &SwarmId, drone: &DroneId) -> Result<Self, IpcError> {
+        // iceoryx2 logs to stdout at warning level (e.g. "no config file"); keep it to errors
+        // unless IOX2_LOG_LEVEL says otherwise.
+        set_log_level_from_env_or(LogLevel::Error);
         let node = NodeBuilder::new()
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<Svc>()
