@@ -2,13 +2,14 @@
 //! pattern through the same gate and link a pilot uses — all take off, each flies to a point,
 //! all land — checking every phase against the simulator's ground truth.
 
+use crate::direct::run_actions;
 use crate::launch::{Stack, StackConfig};
 use crate::link::{GroundLink, LinkError};
 use crate::safety::SafetyGate;
 use std::time::{Duration, Instant};
 use tacos_bus::BusArgs;
 use tacos_shared::action::Action;
-use tacos_shared::messages::{ActionState, SimTruth};
+use tacos_shared::messages::SimTruth;
 use tacos_shared::scenario::Scenario;
 use tacos_shared::{DroneId, DroneMode, SwarmId, Vec3};
 use tokio::sync::watch;
@@ -22,7 +23,11 @@ pub enum DemoError {
     #[error("{0}")]
     Step(String),
     #[error("{name} exited unexpectedly ({status}); logs in {logs}")]
-    ChildDied { name: String, status: String, logs: String },
+    ChildDied {
+        name: String,
+        status: String,
+        logs: String,
+    },
     #[error("interrupted")]
     Interrupted,
 }
@@ -37,11 +42,25 @@ pub struct DemoOptions {
 }
 
 /// Runs the whole demo; every child is shut down before this returns.
-pub async fn run_fixed_pattern(opts: DemoOptions, interrupt: impl std::future::Future<Output = ()>) -> Result<(), DemoError> {
-    let swarm = SwarmId::new(format!("demo{}", std::process::id())).map_err(|e| DemoError::Step(e.to_string()))?;
-    let config = StackConfig::on_loopback(swarm.clone(), &opts.scenario_arg, opts.scenario.clone(), opts.drones)?;
+pub async fn run_fixed_pattern(
+    opts: DemoOptions,
+    interrupt: impl std::future::Future<Output = ()>,
+) -> Result<(), DemoError> {
+    let swarm = SwarmId::new(format!("demo{}", std::process::id()))
+        .map_err(|e| DemoError::Step(e.to_string()))?;
+    let config = StackConfig::on_loopback(
+        swarm.clone(),
+        &opts.scenario_arg,
+        opts.scenario.clone(),
+        opts.drones,
+    )?;
     let logs = config.log_dir.display().to_string();
-    let link = GroundLink::connect(&BusArgs::loopback(swarm, Some(config.hub_endpoint.clone()), vec![])).await?;
+    let link = GroundLink::connect(&BusArgs::loopback(
+        swarm,
+        Some(config.hub_endpoint.clone()),
+        vec![],
+    ))
+    .await?;
     let mut stack = Stack::start(config)?;
     let truth = link.watch_truth().await?;
     let gate = SafetyGate::new(opts.scenario.clone());
@@ -72,7 +91,11 @@ struct Say {
 impl Say {
     fn line(&self, text: impl AsRef<str>) {
         if self.verbose {
-            println!("[{:>6.1}s] {}", self.start.elapsed().as_secs_f64(), text.as_ref());
+            println!(
+                "[{:>6.1}s] {}",
+                self.start.elapsed().as_secs_f64(),
+                text.as_ref()
+            );
         }
     }
 }
@@ -84,37 +107,91 @@ async fn fly(
     mut truth: watch::Receiver<Option<SimTruth>>,
     verbose: bool,
 ) -> Result<(), DemoError> {
-    let say = Say { start: Instant::now(), verbose };
+    let say = Say {
+        start: Instant::now(),
+        verbose,
+    };
     let scenario = gate.scenario();
     let limits = scenario.limits;
     say.line(format!("waiting for {} drones to come up", ids.len()));
-    link.wait_for_drones(ids, Duration::from_secs(60), |s| s.autopilot_link && s.mode == DroneMode::Idle).await?;
+    link.wait_for_drones(ids, Duration::from_secs(60), |s| {
+        s.autopilot_link && s.mode == DroneMode::Idle
+    })
+    .await?;
     say.line("all drones alive, autopilot links up, on the ground");
 
-    let homes: Vec<Vec3> = ids.iter().map(|id| scenario.drone(id).map_or(Vec3::zeros(), |s| s.home)).collect();
+    let homes: Vec<Vec3> = ids
+        .iter()
+        .map(|id| scenario.drone(id).map_or(Vec3::zeros(), |s| s.home))
+        .collect();
 
-    phase(link, gate, &say, "take off", ids.iter().map(|id| (id.clone(), Action::ArmTakeoff)).collect()).await?;
-    check_truth(&mut truth, &say, "every vehicle is at take-off altitude", |t| {
-        ids.iter().zip(&homes).all(|(id, home)| {
-            t.vehicles.iter().any(|v| &v.drone == id && v.armed && v.position.z >= home.z + 0.8 * limits.takeoff_altitude)
+    phase(
+        link,
+        gate,
+        &say,
+        "take off",
+        ids.iter()
+            .map(|id| (id.clone(), Action::ArmTakeoff))
+            .collect(),
+    )
+    .await?;
+    check_truth(
+        &mut truth,
+        &say,
+        "every vehicle is at take-off altitude",
+        |t| {
+            ids.iter().zip(&homes).all(|(id, home)| {
+                t.vehicles.iter().any(|v| {
+                    &v.drone == id
+                        && v.armed
+                        && v.position.z >= home.z + 0.8 * limits.takeoff_altitude
+                })
+            })
+        },
+    )
+    .await?;
+
+    let span = scenario.world.bounds.max.y - scenario.world.bounds.min.y;
+    let goals: Vec<Vec3> = homes
+        .iter()
+        .map(|h| Vec3::new(h.x, h.y + 0.1 * span, h.z + limits.takeoff_altitude))
+        .collect();
+    let gotos = ids
+        .iter()
+        .zip(&goals)
+        .map(|(id, g)| (id.clone(), Action::Goto { target: *g }))
+        .collect();
+    phase(link, gate, &say, "fly to points", gotos).await?;
+    let tolerance = 1.5 * (2.0 * limits.drone_radius).max(0.2);
+    check_truth(&mut truth, &say, "every vehicle is at its point", |t| {
+        ids.iter().zip(&goals).all(|(id, g)| {
+            t.vehicles
+                .iter()
+                .any(|v| &v.drone == id && (v.position - g).norm() <= tolerance)
         })
     })
     .await?;
 
-    let span = scenario.world.bounds.max.y - scenario.world.bounds.min.y;
-    let goals: Vec<Vec3> = homes.iter().map(|h| Vec3::new(h.x, h.y + 0.1 * span, h.z + limits.takeoff_altitude)).collect();
-    let gotos = ids.iter().zip(&goals).map(|(id, g)| (id.clone(), Action::Goto { target: *g })).collect();
-    phase(link, gate, &say, "fly to points", gotos).await?;
-    let tolerance = 1.5 * (2.0 * limits.drone_radius).max(0.2);
-    check_truth(&mut truth, &say, "every vehicle is at its point", |t| {
-        ids.iter().zip(&goals).all(|(id, g)| t.vehicles.iter().any(|v| &v.drone == id && (v.position - g).norm() <= tolerance))
-    })
+    phase(
+        link,
+        gate,
+        &say,
+        "land",
+        ids.iter().map(|id| (id.clone(), Action::Land)).collect(),
+    )
     .await?;
-
-    phase(link, gate, &say, "land", ids.iter().map(|id| (id.clone(), Action::Land)).collect()).await?;
-    check_truth(&mut truth, &say, "every vehicle has landed and disarmed", |t| {
-        ids.iter().all(|id| t.vehicles.iter().any(|v| &v.drone == id && v.landed && !v.armed))
-    })
+    check_truth(
+        &mut truth,
+        &say,
+        "every vehicle has landed and disarmed",
+        |t| {
+            ids.iter().all(|id| {
+                t.vehicles
+                    .iter()
+                    .any(|v| &v.drone == id && v.landed && !v.armed)
+            })
+        },
+    )
     .await?;
     let last = truth.borrow().clone();
     if let Some(t) = last {
@@ -123,33 +200,27 @@ async fn fly(
             t.min_pair_distance, t.separation_breaches, t.obstacle_breaches
         ));
         if t.separation_breaches > 0 || t.obstacle_breaches > 0 {
-            return Err(DemoError::Step("the simulator recorded a separation or obstacle breach".into()));
+            return Err(DemoError::Step(
+                "the simulator recorded a separation or obstacle breach".into(),
+            ));
         }
     }
     Ok(())
 }
 
-/// Sends one action per drone (each through the gate) and waits until all are done.
-async fn phase(link: &GroundLink, gate: &SafetyGate, say: &Say, name: &str, actions: Vec<(DroneId, Action)>) -> Result<(), DemoError> {
+/// Runs one phase of the pattern: an action per drone, all at once, all to completion.
+async fn phase(
+    link: &GroundLink,
+    gate: &SafetyGate,
+    say: &Say,
+    name: &str,
+    actions: Vec<(DroneId, Action)>,
+) -> Result<(), DemoError> {
     say.line(format!("{name}: sending {} actions", actions.len()));
-    let mut sent = Vec::new();
-    for (id, action) in actions {
-        let checked = {
-            let view = link.view();
-            gate.check(&view, id.as_str(), &action, Instant::now())
-        }
-        .map_err(|r| DemoError::Step(format!("{name}: the safety gate refused: {r}")))?;
-        let seq = link.send(&checked, Some(name.replace(' ', "_"))).await?;
-        sent.push((id, seq));
-    }
-    let waits = sent.iter().map(|(id, seq)| async move { (id, link.wait_outcome(id, *seq, Duration::from_secs(60)).await) });
-    for (id, outcome) in futures_join_all(waits).await {
-        match outcome? {
-            ActionState::Done => {}
-            ActionState::Failed(why) => return Err(DemoError::Step(format!("{name}: {id} failed: {why}"))),
-            ActionState::Running { .. } => return Err(DemoError::Step(format!("{name}: {id} did not finish"))),
-        }
-    }
+    let task = name.replace(' ', "_");
+    run_actions(link, gate, &actions, Some(&task), Duration::from_secs(60))
+        .await
+        .map_err(|e| DemoError::Step(format!("{name}: {e}")))?;
     say.line(format!("{name}: all done"));
     Ok(())
 }
@@ -169,19 +240,11 @@ async fn check_truth(
         }
         match tokio::time::timeout_at(deadline, truth.changed()).await {
             Ok(Ok(())) => {}
-            _ => return Err(DemoError::Step(format!("simulator truth does not show that {what}"))),
+            _ => {
+                return Err(DemoError::Step(format!(
+                    "simulator truth does not show that {what}"
+                )));
+            }
         }
     }
-}
-
-/// Awaits all futures concurrently, in order.
-async fn futures_join_all<F: std::future::Future>(futures: impl IntoIterator<Item = F>) -> Vec<F::Output> {
-    let handles: Vec<_> = futures.into_iter().map(Box::pin).collect();
-    let mut out = Vec::with_capacity(handles.len());
-    // Each future only waits on shared state, so awaiting in order still lets all progress:
-    // the outcomes they wait for are recorded by the link's background tasks.
-    for h in handles {
-        out.push(h.await);
-    }
-    out
 }

@@ -16,7 +16,9 @@ use tracing::{info, warn};
 
 #[derive(Debug, thiserror::Error)]
 pub enum LaunchError {
-    #[error("{binary} not found in {dir}: build the workspace first (cargo build --workspace --bins) or set TACOS_BIN_DIR")]
+    #[error(
+        "{binary} not found in {dir}: build the workspace first (cargo build --workspace --bins) or set TACOS_BIN_DIR"
+    )]
     MissingBinary { binary: String, dir: String },
     #[error("cannot start {name}: {reason}")]
     Spawn { name: String, reason: String },
@@ -82,8 +84,15 @@ pub struct StackConfig {
 
 impl StackConfig {
     /// A configuration with free ports on loopback and binaries found next to this executable.
-    pub fn on_loopback(swarm: SwarmId, scenario_arg: &str, scenario: Scenario, drones: usize) -> Result<Self, LaunchError> {
-        scenario.first_drones(drones).map_err(LaunchError::Scenario)?;
+    pub fn on_loopback(
+        swarm: SwarmId,
+        scenario_arg: &str,
+        scenario: Scenario,
+        drones: usize,
+    ) -> Result<Self, LaunchError> {
+        scenario
+            .first_drones(drones)
+            .map_err(LaunchError::Scenario)?;
         let hub_port = free_tcp_port()?;
         let (mavlink_base_port, sitl_base_port) = free_udp_blocks(drones)?;
         let log_dir = std::env::temp_dir().join(format!("tacos-{swarm}"));
@@ -103,7 +112,12 @@ impl StackConfig {
     }
 
     pub fn drone_ids(&self) -> Vec<DroneId> {
-        self.scenario.drones.iter().take(self.drones).map(|d| d.id.clone()).collect()
+        self.scenario
+            .drones
+            .iter()
+            .take(self.drones)
+            .map(|d| d.id.clone())
+            .collect()
     }
 }
 
@@ -113,7 +127,10 @@ pub fn bin_dir() -> PathBuf {
     if let Some(dir) = std::env::var_os("TACOS_BIN_DIR") {
         return PathBuf::from(dir);
     }
-    let exe_dir = std::env::current_exe().ok().and_then(|p| p.parent().map(Path::to_path_buf)).unwrap_or_default();
+    let exe_dir = std::env::current_exe()
+        .ok()
+        .and_then(|p| p.parent().map(Path::to_path_buf))
+        .unwrap_or_default();
     if exe_dir.file_name().is_some_and(|n| n == "deps") {
         exe_dir.parent().map(Path::to_path_buf).unwrap_or(exe_dir)
     } else {
@@ -130,7 +147,10 @@ pub fn free_tcp_port() -> Result<u16, LaunchError> {
 }
 
 fn udp_block_free(base: u16, n: usize) -> bool {
-    (0..n).all(|i| base.checked_add(i as u16).is_some_and(|p| UdpSocket::bind(("127.0.0.1", p)).is_ok()))
+    (0..n).all(|i| {
+        base.checked_add(i as u16)
+            .is_some_and(|p| UdpSocket::bind(("127.0.0.1", p)).is_ok())
+    })
 }
 
 /// Two blocks of `n` consecutive UDP ports free on loopback: PX4's usual 14540/14580 when free,
@@ -139,9 +159,17 @@ pub fn free_udp_blocks(n: usize) -> Result<(u16, u16), LaunchError> {
     if udp_block_free(14540, n) && udp_block_free(14580, n) && n <= 40 {
         return Ok((14540, 14580));
     }
-    let seed = std::process::id() as u64 ^ std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
+    let seed = std::process::id() as u64
+        ^ std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as u64);
     for attempt in 0..200u64 {
-        let base = 20000 + ((seed.wrapping_mul(6364136223846793005).wrapping_add(attempt * 1442695040888963407) >> 33) % 40000) as u16;
+        let base = 20000
+            + ((seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(attempt * 1442695040888963407)
+                >> 33)
+                % 40000) as u16;
         let other = base.saturating_add(n as u16 + 10);
         if other < 65000 && udp_block_free(base, n) && udp_block_free(other, n) {
             return Ok((base, other));
@@ -164,16 +192,31 @@ impl Stack {
         for role in [Role::Sitl, Role::Writer, Role::Onboard] {
             let path = config.bin_dir.join(role.binary());
             if !path.is_file() {
-                return Err(LaunchError::MissingBinary { binary: role.binary().into(), dir: config.bin_dir.display().to_string() });
+                return Err(LaunchError::MissingBinary {
+                    binary: role.binary().into(),
+                    dir: config.bin_dir.display().to_string(),
+                });
             }
         }
-        std::fs::create_dir_all(&config.log_dir)
-            .map_err(|e| LaunchError::LogDir { dir: config.log_dir.display().to_string(), reason: e.to_string() })?;
+        std::fs::create_dir_all(&config.log_dir).map_err(|e| LaunchError::LogDir {
+            dir: config.log_dir.display().to_string(),
+            reason: e.to_string(),
+        })?;
         let (exit_tx, exits) = mpsc::unbounded_channel();
-        let mut stack = Stack { children: Vec::new(), exits, exit_tx, config };
+        let mut stack = Stack {
+            children: Vec::new(),
+            exits,
+            exit_tx,
+            config,
+        };
         let c = stack.config.clone();
         let bus = |args: &mut Vec<String>| {
-            args.extend(["--swarm".into(), c.swarm.to_string(), "--zenoh-connect".into(), c.hub_endpoint.clone()]);
+            args.extend([
+                "--swarm".into(),
+                c.swarm.to_string(),
+                "--zenoh-connect".into(),
+                c.hub_endpoint.clone(),
+            ]);
         };
 
         let mut sitl = vec![
@@ -203,7 +246,12 @@ impl Stack {
                 format!("udpin:127.0.0.1:{}", c.mavlink_base_port as usize + i),
             ];
             stack.spawn(Role::Writer, Some(slot.id.clone()), writer)?;
-            let mut onboard = vec!["--drone".into(), slot.id.to_string(), "--scenario".into(), c.scenario_arg.clone()];
+            let mut onboard = vec![
+                "--drone".into(),
+                slot.id.to_string(),
+                "--scenario".into(),
+                c.scenario_arg.clone(),
+            ];
             bus(&mut onboard);
             onboard.extend(c.onboard_args.iter().cloned());
             stack.spawn(Role::Onboard, Some(slot.id.clone()), onboard)?;
@@ -213,7 +261,12 @@ impl Stack {
     }
 
     /// Starts (or restarts) one process of the stack.
-    pub fn spawn(&mut self, role: Role, drone: Option<DroneId>, args: Vec<String>) -> Result<(), LaunchError> {
+    pub fn spawn(
+        &mut self,
+        role: Role,
+        drone: Option<DroneId>,
+        args: Vec<String>,
+    ) -> Result<(), LaunchError> {
         let name = match &drone {
             Some(d) => format!("{}[{d}]", role.binary()),
             None => role.binary().to_owned(),
@@ -227,10 +280,21 @@ impl Stack {
             .create(true)
             .append(true)
             .open(&log_path)
-            .map_err(|e| LaunchError::Spawn { name: name.clone(), reason: format!("log file {}: {e}", log_path.display()) })?;
-        let log_err = log.try_clone().map_err(|e| LaunchError::Spawn { name: name.clone(), reason: e.to_string() })?;
+            .map_err(|e| LaunchError::Spawn {
+                name: name.clone(),
+                reason: format!("log file {}: {e}", log_path.display()),
+            })?;
+        let log_err = log.try_clone().map_err(|e| LaunchError::Spawn {
+            name: name.clone(),
+            reason: e.to_string(),
+        })?;
         let mut command = Command::new(self.config.bin_dir.join(role.binary()));
-        command.args(&args).stdin(Stdio::null()).stdout(log).stderr(log_err).kill_on_drop(true);
+        command
+            .args(&args)
+            .stdin(Stdio::null())
+            .stdout(log)
+            .stderr(log_err)
+            .kill_on_drop(true);
         // SAFETY: prctl is async-signal-safe; it only sets the signal the child gets when this
         // process dies, so no child outlives a ground station that was killed.
         unsafe {
@@ -239,22 +303,40 @@ impl Stack {
                 Ok(())
             });
         }
-        let mut child = command.spawn().map_err(|e| LaunchError::Spawn { name: name.clone(), reason: e.to_string() })?;
+        let mut child = command.spawn().map_err(|e| LaunchError::Spawn {
+            name: name.clone(),
+            reason: e.to_string(),
+        })?;
         let pid = child.id();
         let tx = self.exit_tx.clone();
-        let exit = ChildExit { name: name.clone(), role, drone: drone.clone(), status: Err(String::new()) };
+        let exit = ChildExit {
+            name: name.clone(),
+            role,
+            drone: drone.clone(),
+            status: Err(String::new()),
+        };
         tokio::spawn(async move {
             let status = child.wait().await.map_err(|e| e.to_string());
             let _ = tx.send(ChildExit { status, ..exit });
         });
-        self.children.retain(|c| !(c.role == role && c.drone == drone && !c.running));
-        self.children.push(ChildHandle { role, drone, pid, running: true });
+        self.children
+            .retain(|c| !(c.role == role && c.drone == drone && !c.running));
+        self.children.push(ChildHandle {
+            role,
+            drone,
+            pid,
+            running: true,
+        });
         Ok(())
     }
 
     fn signal(&self, role: Role, drone: Option<&DroneId>, signal: i32) -> bool {
         let mut sent = false;
-        for c in self.children.iter().filter(|c| c.running && c.role == role && c.drone.as_ref() == drone) {
+        for c in self
+            .children
+            .iter()
+            .filter(|c| c.running && c.role == role && c.drone.as_ref() == drone)
+        {
             if let Some(pid) = c.pid {
                 // SAFETY: kill(2) with a pid we spawned and have not reaped yet.
                 unsafe { libc::kill(pid as i32, signal) };
@@ -280,7 +362,11 @@ impl Stack {
     }
 
     fn mark_exited(&mut self, exit: &ChildExit) {
-        for c in self.children.iter_mut().filter(|c| c.role == exit.role && c.drone == exit.drone) {
+        for c in self
+            .children
+            .iter_mut()
+            .filter(|c| c.role == exit.role && c.drone == exit.drone)
+        {
             c.running = false;
         }
     }
@@ -294,8 +380,12 @@ impl Stack {
 
     /// SIGTERM to every child, SIGKILL to those still running after `grace`; waits for all.
     pub async fn shutdown(mut self, grace: Duration) {
-        let running: Vec<(Role, Option<DroneId>)> =
-            self.children.iter().filter(|c| c.running).map(|c| (c.role, c.drone.clone())).collect();
+        let running: Vec<(Role, Option<DroneId>)> = self
+            .children
+            .iter()
+            .filter(|c| c.running)
+            .map(|c| (c.role, c.drone.clone()))
+            .collect();
         for (role, drone) in &running {
             self.signal(*role, drone.as_ref(), libc::SIGTERM);
         }
@@ -305,14 +395,19 @@ impl Stack {
                 Ok(Some(exit)) => self.mark_exited(&exit),
                 Ok(None) => break,
                 Err(_) => {
-                    let left: Vec<(Role, Option<DroneId>)> =
-                        self.children.iter().filter(|c| c.running).map(|c| (c.role, c.drone.clone())).collect();
+                    let left: Vec<(Role, Option<DroneId>)> = self
+                        .children
+                        .iter()
+                        .filter(|c| c.running)
+                        .map(|c| (c.role, c.drone.clone()))
+                        .collect();
                     for (role, drone) in &left {
                         warn!(binary = role.binary(), drone = ?drone, "did not stop on SIGTERM; killing");
                         self.signal(*role, drone.as_ref(), libc::SIGKILL);
                     }
                     while self.children.iter().any(|c| c.running) {
-                        match tokio::time::timeout(Duration::from_secs(5), self.exits.recv()).await {
+                        match tokio::time::timeout(Duration::from_secs(5), self.exits.recv()).await
+                        {
                             Ok(Some(exit)) => self.mark_exited(&exit),
                             _ => break,
                         }

@@ -5,6 +5,7 @@
 //! these pieces.
 
 pub mod demo;
+pub mod direct;
 pub mod launch;
 pub mod link;
 pub mod safety;

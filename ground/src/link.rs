@@ -23,11 +23,19 @@ pub enum LinkError {
     #[error(transparent)]
     Bus(#[from] BusError),
     #[error("{drone} did not finish action #{seq} within {waited:?}")]
-    Timeout { drone: DroneId, seq: u64, waited: Duration },
+    Timeout {
+        drone: DroneId,
+        seq: u64,
+        waited: Duration,
+    },
     #[error("{0} left the swarm before its action finished")]
     DroneLost(DroneId),
     #[error("{drone}: action #{seq} was replaced by #{newer} before it finished")]
-    Superseded { drone: DroneId, seq: u64, newer: u64 },
+    Superseded {
+        drone: DroneId,
+        seq: u64,
+        newer: u64,
+    },
     #[error("timed out after {0:?} waiting for drones: {1}")]
     WaitDrones(Duration, String),
 }
@@ -105,7 +113,9 @@ impl GroundLink {
         let k = keys.clone();
         tasks.push(tokio::spawn(async move {
             while let Ok(sample) = alive.recv_async().await {
-                let Some(id) = k.drone_of(sample.key_expr().as_str()) else { continue };
+                let Some(id) = k.drone_of(sample.key_expr().as_str()) else {
+                    continue;
+                };
                 let is_alive = sample.kind() == SampleKind::Put;
                 let change = s.lock().apply_liveliness(&id, is_alive, Instant::now());
                 if let Some(change) = change {
@@ -123,15 +133,26 @@ impl GroundLink {
             loop {
                 tick.tick().await;
                 counter += 1;
-                if let Err(e) = tacos_bus::put(&hb_session, &hb_key, &GroundHeartbeat { counter }, false).await {
+                if let Err(e) =
+                    tacos_bus::put(&hb_session, &hb_key, &GroundHeartbeat { counter }, false).await
+                {
                     warn!(error = %e, "ground heartbeat not sent");
                 }
             }
         }));
 
         // Sequence numbers grow across ground restarts: start from the wall clock.
-        let start = SystemTime::now().duration_since(UNIX_EPOCH).map_or(1, |d| d.as_millis() as u64) * 1000;
-        Ok(GroundLink { session, keys, shared, next_seq: AtomicU64::new(start), tasks })
+        let start = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(1, |d| d.as_millis() as u64)
+            * 1000;
+        Ok(GroundLink {
+            session,
+            keys,
+            shared,
+            next_seq: AtomicU64::new(start),
+            tasks,
+        })
     }
 
     pub fn session(&self) -> &zenoh::Session {
@@ -156,10 +177,24 @@ impl GroundLink {
     }
 
     /// Sends a checked action; returns its sequence number.
-    pub async fn send(&self, checked: &CheckedAction, task_id: Option<String>) -> Result<u64, LinkError> {
+    pub async fn send(
+        &self,
+        checked: &CheckedAction,
+        task_id: Option<String>,
+    ) -> Result<u64, LinkError> {
         let seq = self.next_seq.fetch_add(1, Ordering::Relaxed);
-        let command = ActionCommand { seq, task_id, action: checked.action().clone() };
-        tacos_bus::put(&self.session, &self.keys.action(checked.drone()), &command, true).await?;
+        let command = ActionCommand {
+            seq,
+            task_id,
+            action: checked.action().clone(),
+        };
+        tacos_bus::put(
+            &self.session,
+            &self.keys.action(checked.drone()),
+            &command,
+            true,
+        )
+        .await?;
         Ok(seq)
     }
 
@@ -177,7 +212,9 @@ impl GroundLink {
                 let view = self.view();
                 ids.iter()
                     .filter(|id| {
-                        !view.get(id).is_some_and(|e| e.alive && e.status.as_ref().is_some_and(&ready))
+                        !view
+                            .get(id)
+                            .is_some_and(|e| e.alive && e.status.as_ref().is_some_and(&ready))
                     })
                     .map(|id| id.to_string())
                     .collect()
@@ -193,7 +230,12 @@ impl GroundLink {
     }
 
     /// Waits for the outcome of action `seq` on `drone`.
-    pub async fn wait_outcome(&self, drone: &DroneId, seq: u64, timeout: Duration) -> Result<ActionState, LinkError> {
+    pub async fn wait_outcome(
+        &self,
+        drone: &DroneId,
+        seq: u64,
+        timeout: Duration,
+    ) -> Result<ActionState, LinkError> {
         let mut version = self.shared.version.subscribe();
         let deadline = tokio::time::Instant::now() + timeout;
         loop {
@@ -203,18 +245,31 @@ impl GroundLink {
                 if entry.is_some_and(|e| !e.alive) {
                     return Err(LinkError::DroneLost(drone.clone()));
                 }
-                if let Some(progress) = entry.and_then(|e| e.status.as_ref()).and_then(|s| s.action.as_ref()) {
+                if let Some(progress) = entry
+                    .and_then(|e| e.status.as_ref())
+                    .and_then(|s| s.action.as_ref())
+                {
                     if progress.seq == seq && progress.state.is_finished() {
                         return Ok(progress.state.clone());
                     }
                     if progress.seq > seq {
-                        return Err(LinkError::Superseded { drone: drone.clone(), seq, newer: progress.seq });
+                        return Err(LinkError::Superseded {
+                            drone: drone.clone(),
+                            seq,
+                            newer: progress.seq,
+                        });
                     }
                 }
             }
             match tokio::time::timeout_at(deadline, version.changed()).await {
                 Ok(Ok(())) => {}
-                _ => return Err(LinkError::Timeout { drone: drone.clone(), seq, waited: timeout }),
+                _ => {
+                    return Err(LinkError::Timeout {
+                        drone: drone.clone(),
+                        seq,
+                        waited: timeout,
+                    });
+                }
             }
         }
     }

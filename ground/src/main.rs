@@ -63,18 +63,49 @@ enum Cmd {
     },
 }
 
-fn main() -> anyhow::Result<()> {
+fn main() -> std::process::ExitCode {
+    match run() {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            // The whole chain of causes on one line, without a backtrace.
+            eprintln!("{}: {e:#}", env!("CARGO_BIN_NAME"));
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn run() -> anyhow::Result<()> {
     tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()))
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
+        )
         .with_writer(std::io::stderr)
         .init();
     let cli = Cli::parse();
-    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the async runtime")?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
     runtime.block_on(async move {
         match cli.command {
-            Cmd::Swarm { bus, period_ms, count } => swarm(bus, period_ms, count).await,
-            Cmd::Send { bus, scenario, timeout, drone, action } => send(bus, &scenario, timeout, &drone, &action).await,
-            Cmd::Demo { drones, map, no_llm, pattern } => demo(drones, &map, no_llm, &pattern).await,
+            Cmd::Swarm {
+                bus,
+                period_ms,
+                count,
+            } => swarm(bus, period_ms, count).await,
+            Cmd::Send {
+                bus,
+                scenario,
+                timeout,
+                drone,
+                action,
+            } => send(bus, &scenario, timeout, &drone, &action).await,
+            Cmd::Demo {
+                drones,
+                map,
+                no_llm,
+                pattern,
+            } => demo(drones, &map, no_llm, &pattern).await,
         }
     })
 }
@@ -102,14 +133,22 @@ async fn swarm(bus: BusArgs, period_ms: u64, count: u64) -> anyhow::Result<()> {
     }
 }
 
-async fn send(bus: BusArgs, scenario: &str, timeout: f64, drone: &str, words: &[String]) -> anyhow::Result<()> {
+async fn send(
+    bus: BusArgs,
+    scenario: &str,
+    timeout: f64,
+    drone: &str,
+    words: &[String],
+) -> anyhow::Result<()> {
     let words: Vec<&str> = words.iter().map(String::as_str).collect();
     let action = Action::parse_words(&words).map_err(anyhow::Error::msg)?;
     let gate = SafetyGate::new(tacos_bus::load_scenario(scenario)?);
     let link = GroundLink::connect(&bus).await?;
     // Give the swarm view a moment to hear from the drone before judging it unknown.
     if let Ok(id) = tacos_shared::DroneId::new(drone) {
-        let _ = link.wait_for_drones(std::slice::from_ref(&id), Duration::from_secs(3), |_| true).await;
+        let _ = link
+            .wait_for_drones(std::slice::from_ref(&id), Duration::from_secs(3), |_| true)
+            .await;
     }
     let checked = {
         let view = link.view();
@@ -118,7 +157,10 @@ async fn send(bus: BusArgs, scenario: &str, timeout: f64, drone: &str, words: &[
     .map_err(|r| anyhow::anyhow!("refused by the safety gate: {r}"))?;
     let seq = link.send(&checked, None).await?;
     println!("sent #{seq} {action} to {drone}");
-    match link.wait_outcome(checked.drone(), seq, Duration::from_secs_f64(timeout)).await? {
+    match link
+        .wait_outcome(checked.drone(), seq, Duration::from_secs_f64(timeout))
+        .await?
+    {
         ActionState::Done => {
             println!("{drone}: {action} done");
             Ok(())
@@ -136,7 +178,12 @@ async fn demo(drones: usize, map: &str, no_llm: bool, pattern: &str) -> anyhow::
         bail!("unknown pattern {pattern:?} (available: fixed)");
     }
     let scenario = tacos_bus::load_scenario(map)?;
-    let opts = DemoOptions { scenario_arg: map.to_owned(), scenario, drones, verbose: true };
+    let opts = DemoOptions {
+        scenario_arg: map.to_owned(),
+        scenario,
+        drones,
+        verbose: true,
+    };
     run_fixed_pattern(opts, async {
         let _ = tokio::signal::ctrl_c().await;
     })

@@ -11,24 +11,54 @@ use tacos_shared::{DroneId, DroneMode};
 /// One reason an action may not be sent.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Rejection {
-    UnknownDrone { drone: String, known: Vec<String> },
+    UnknownDrone {
+        drone: String,
+        known: Vec<String>,
+    },
     Unavailable(DroneId),
-    ModeForbids { drone: DroneId, mode: DroneMode, action: &'static str, why: &'static str },
-    BadPoint { drone: DroneId, why: String },
-    UnknownTarget { target: String, known: Vec<String> },
+    ModeForbids {
+        drone: DroneId,
+        mode: DroneMode,
+        action: &'static str,
+        why: &'static str,
+    },
+    BadPoint {
+        drone: DroneId,
+        why: String,
+    },
+    UnknownTarget {
+        target: String,
+        known: Vec<String>,
+    },
 }
 
 impl fmt::Display for Rejection {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Rejection::UnknownDrone { drone, known } => {
-                write!(f, "there is no drone {drone:?} (known: {})", known.join(", "))
+                write!(
+                    f,
+                    "there is no drone {drone:?} (known: {})",
+                    known.join(", ")
+                )
             }
-            Rejection::Unavailable(d) => write!(f, "{d} is unavailable (gone, stale or without autopilot link)"),
-            Rejection::ModeForbids { drone, mode, action, why } => write!(f, "{drone} is {mode}: {action} not allowed ({why})"),
+            Rejection::Unavailable(d) => write!(
+                f,
+                "{d} is unavailable (gone, stale or without autopilot link)"
+            ),
+            Rejection::ModeForbids {
+                drone,
+                mode,
+                action,
+                why,
+            } => write!(f, "{drone} is {mode}: {action} not allowed ({why})"),
             Rejection::BadPoint { drone, why } => write!(f, "goto for {drone}: {why}"),
             Rejection::UnknownTarget { target, known } => {
-                write!(f, "there is no target {target:?} (known: {})", known.join(", "))
+                write!(
+                    f,
+                    "there is no target {target:?} (known: {})",
+                    known.join(", ")
+                )
             }
         }
     }
@@ -68,22 +98,48 @@ impl SafetyGate {
     }
 
     /// Checks one action for one drone against the live swarm view.
-    pub fn check(&self, view: &SwarmView, drone: &str, action: &Action, now: Instant) -> Result<CheckedAction, Rejection> {
+    pub fn check(
+        &self,
+        view: &SwarmView,
+        drone: &str,
+        action: &Action,
+        now: Instant,
+    ) -> Result<CheckedAction, Rejection> {
         let id = self.check_inner(view, drone, action, now)?;
-        Ok(CheckedAction { drone: id, action: action.clone() })
+        Ok(CheckedAction {
+            drone: id,
+            action: action.clone(),
+        })
     }
 
-    fn check_inner(&self, view: &SwarmView, drone: &str, action: &Action, now: Instant) -> Result<DroneId, Rejection> {
+    fn check_inner(
+        &self,
+        view: &SwarmView,
+        drone: &str,
+        action: &Action,
+        now: Instant,
+    ) -> Result<DroneId, Rejection> {
         let known = || view.drones().map(|d| d.id.to_string()).collect::<Vec<_>>();
-        let id = DroneId::new(drone).map_err(|_| Rejection::UnknownDrone { drone: drone.to_owned(), known: known() })?;
-        let entry = view.get(&id).ok_or_else(|| Rejection::UnknownDrone { drone: drone.to_owned(), known: known() })?;
+        let id = DroneId::new(drone).map_err(|_| Rejection::UnknownDrone {
+            drone: drone.to_owned(),
+            known: known(),
+        })?;
+        let entry = view.get(&id).ok_or_else(|| Rejection::UnknownDrone {
+            drone: drone.to_owned(),
+            known: known(),
+        })?;
         let mode = entry.effective_mode(now);
         let autopilot_ok = entry.status.as_ref().is_some_and(|s| s.autopilot_link);
         if mode == DroneMode::Unavailable || !autopilot_ok {
             return Err(Rejection::Unavailable(id));
         }
         if let Some(why) = mode_forbids(action, mode) {
-            return Err(Rejection::ModeForbids { drone: id, mode, action: action.name(), why });
+            return Err(Rejection::ModeForbids {
+                drone: id,
+                mode,
+                action: action.name(),
+                why,
+            });
         }
         match action {
             Action::Goto { target } => {
@@ -91,7 +147,10 @@ impl SafetyGate {
                 self.scenario
                     .world
                     .check_point(target, limits.drone_radius)
-                    .map_err(|e| Rejection::BadPoint { drone: id.clone(), why: e.to_string() })?;
+                    .map_err(|e| Rejection::BadPoint {
+                        drone: id.clone(),
+                        why: e.to_string(),
+                    })?;
                 if target.z < limits.drone_radius * 2.0 {
                     return Err(Rejection::BadPoint {
                         drone: id,
@@ -100,7 +159,10 @@ impl SafetyGate {
                 }
             }
             Action::StartTracking { target } if !self.targets.contains(target) => {
-                return Err(Rejection::UnknownTarget { target: target.clone(), known: self.targets.clone() });
+                return Err(Rejection::UnknownTarget {
+                    target: target.clone(),
+                    known: self.targets.clone(),
+                });
             }
             _ => {}
         }
@@ -140,23 +202,66 @@ mod tests {
         let now = Instant::now();
         let flying = view_with("alfa", DroneMode::Flying, now);
         let idle = view_with("alfa", DroneMode::Idle, now);
-        let goto = |x, y, z| Action::Goto { target: Vec3::new(x, y, z) };
+        let goto = |x, y, z| Action::Goto {
+            target: Vec3::new(x, y, z),
+        };
 
-        assert!(gate.check(&flying, "alfa", &goto(-40.0, -100.0, 10.0), now).is_ok());
-        assert!(matches!(gate.check(&flying, "zulu", &Action::Land, now), Err(Rejection::UnknownDrone { .. })));
-        assert!(matches!(gate.check(&flying, "Bad/Id", &Action::Land, now), Err(Rejection::UnknownDrone { .. })));
-        assert!(matches!(gate.check(&idle, "alfa", &goto(-40.0, -100.0, 10.0), now), Err(Rejection::ModeForbids { .. })));
-        // Into a skyscraper, out of the area, underground.
-        assert!(matches!(gate.check(&flying, "alfa", &goto(18.0, 18.0, 20.0), now), Err(Rejection::BadPoint { .. })));
-        assert!(matches!(gate.check(&flying, "alfa", &goto(500.0, 0.0, 10.0), now), Err(Rejection::BadPoint { .. })));
-        assert!(matches!(gate.check(&flying, "alfa", &goto(0.0, -100.0, -5.0), now), Err(Rejection::BadPoint { .. })));
+        assert!(
+            gate.check(&flying, "alfa", &goto(-40.0, -100.0, 10.0), now)
+                .is_ok()
+        );
         assert!(matches!(
-            gate.check(&flying, "alfa", &Action::StartTracking { target: "ghost".into() }, now),
+            gate.check(&flying, "zulu", &Action::Land, now),
+            Err(Rejection::UnknownDrone { .. })
+        ));
+        assert!(matches!(
+            gate.check(&flying, "Bad/Id", &Action::Land, now),
+            Err(Rejection::UnknownDrone { .. })
+        ));
+        assert!(matches!(
+            gate.check(&idle, "alfa", &goto(-40.0, -100.0, 10.0), now),
+            Err(Rejection::ModeForbids { .. })
+        ));
+        // Into a skyscraper, out of the area, underground.
+        assert!(matches!(
+            gate.check(&flying, "alfa", &goto(18.0, 18.0, 20.0), now),
+            Err(Rejection::BadPoint { .. })
+        ));
+        assert!(matches!(
+            gate.check(&flying, "alfa", &goto(500.0, 0.0, 10.0), now),
+            Err(Rejection::BadPoint { .. })
+        ));
+        assert!(matches!(
+            gate.check(&flying, "alfa", &goto(0.0, -100.0, -5.0), now),
+            Err(Rejection::BadPoint { .. })
+        ));
+        assert!(matches!(
+            gate.check(
+                &flying,
+                "alfa",
+                &Action::StartTracking {
+                    target: "ghost".into()
+                },
+                now
+            ),
             Err(Rejection::UnknownTarget { .. })
         ));
-        assert!(gate.check(&flying, "alfa", &Action::StartTracking { target: "van".into() }, now).is_ok());
+        assert!(
+            gate.check(
+                &flying,
+                "alfa",
+                &Action::StartTracking {
+                    target: "van".into()
+                },
+                now
+            )
+            .is_ok()
+        );
         // A drone whose status is stale is unavailable.
         let later = now + std::time::Duration::from_secs(3);
-        assert!(matches!(gate.check(&flying, "alfa", &Action::Land, later), Err(Rejection::Unavailable(_))));
+        assert!(matches!(
+            gate.check(&flying, "alfa", &Action::Land, later),
+            Err(Rejection::Unavailable(_))
+        ));
     }
 }

@@ -24,7 +24,8 @@ pub struct DroneEntry {
 impl DroneEntry {
     /// Seconds since the last status, if any arrived.
     pub fn link_age(&self, now: Instant) -> Option<f64> {
-        self.last_status_at.map(|t| now.saturating_duration_since(t).as_secs_f64())
+        self.last_status_at
+            .map(|t| now.saturating_duration_since(t).as_secs_f64())
     }
 
     /// The mode the ground should assume: unavailable when gone or stale.
@@ -71,7 +72,12 @@ impl SwarmView {
         SwarmChange::Status(id)
     }
 
-    pub fn apply_liveliness(&mut self, id: &DroneId, alive: bool, now: Instant) -> Option<SwarmChange> {
+    pub fn apply_liveliness(
+        &mut self,
+        id: &DroneId,
+        alive: bool,
+        now: Instant,
+    ) -> Option<SwarmChange> {
         let entry = self.entry(id);
         if entry.alive == alive {
             return None;
@@ -95,7 +101,11 @@ impl SwarmView {
     }
 
     pub fn alive_ids(&self) -> Vec<DroneId> {
-        self.drones.values().filter(|d| d.alive).map(|d| d.id.clone()).collect()
+        self.drones
+            .values()
+            .filter(|d| d.alive)
+            .map(|d| d.id.clone())
+            .collect()
     }
 }
 
@@ -125,13 +135,28 @@ mod tests {
         let t0 = Instant::now();
         let mut view = SwarmView::default();
         let alfa = DroneId::new("alfa").expect("valid");
-        assert_eq!(view.apply_liveliness(&alfa, true, t0), Some(SwarmChange::Joined(alfa.clone())));
+        assert_eq!(
+            view.apply_liveliness(&alfa, true, t0),
+            Some(SwarmChange::Joined(alfa.clone()))
+        );
         view.apply_status(status("alfa"), t0);
         let entry = view.get(&alfa).expect("known");
-        assert_eq!(entry.effective_mode(t0 + Duration::from_millis(500)), DroneMode::Flying);
-        assert_eq!(entry.effective_mode(t0 + Duration::from_millis(1500)), DroneMode::Unavailable);
-        assert_eq!(view.apply_liveliness(&alfa, false, t0), Some(SwarmChange::Left(alfa.clone())));
-        assert_eq!(view.get(&alfa).expect("known").effective_mode(t0), DroneMode::Unavailable);
+        assert_eq!(
+            entry.effective_mode(t0 + Duration::from_millis(500)),
+            DroneMode::Flying
+        );
+        assert_eq!(
+            entry.effective_mode(t0 + Duration::from_millis(1500)),
+            DroneMode::Unavailable
+        );
+        assert_eq!(
+            view.apply_liveliness(&alfa, false, t0),
+            Some(SwarmChange::Left(alfa.clone()))
+        );
+        assert_eq!(
+            view.get(&alfa).expect("known").effective_mode(t0),
+            DroneMode::Unavailable
+        );
         assert!(view.alive_ids().is_empty());
     }
 }

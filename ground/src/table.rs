@@ -21,16 +21,24 @@ pub fn render(view: &SwarmView, now: Instant) -> String {
                     Some(p) => (
                         format!("#{} {}", p.seq % 100_000, p.action),
                         match &p.state {
-                            ActionState::Running { progress } => format!("running {:>3.0}%", progress * 100.0),
+                            ActionState::Running { progress } => {
+                                format!("running {:>3.0}%", progress * 100.0)
+                            }
                             ActionState::Done => "done".to_owned(),
                             ActionState::Failed(why) => format!("failed: {why}"),
                         },
                     ),
                     None => ("-".to_owned(), "-".to_owned()),
                 };
-                let failsafe = s.failsafe.map(|f| format!(" [failsafe {f:?}]")).unwrap_or_default();
+                let failsafe = s
+                    .failsafe
+                    .map(|f| format!(" [failsafe {f:?}]"))
+                    .unwrap_or_default();
                 (
-                    format!("({:>7.1}, {:>7.1}, {:>5.1})", s.position.x, s.position.y, s.position.z),
+                    format!(
+                        "({:>7.1}, {:>7.1}, {:>5.1})",
+                        s.position.x, s.position.y, s.position.z
+                    ),
                     format!("{:.1}", s.velocity.norm()),
                     action,
                     state + &failsafe,
@@ -45,7 +53,11 @@ pub fn render(view: &SwarmView, now: Instant) -> String {
         };
         let mut state = state;
         state.truncate(40);
-        let _ = writeln!(out, "{:<10} {:<11} {:>26} {:>6} {:<30} {:<22} {:>8}", entry.id, mode, position, speed, action, state, link);
+        let _ = writeln!(
+            out,
+            "{:<10} {:<11} {:>26} {:>6} {:<30} {:<22} {:>8}",
+            entry.id, mode, position, speed, action, state, link
+        );
     }
     out
 }

@@ -72,11 +72,15 @@ impl Action {
                         .filter(|v| v.is_finite())
                         .ok_or_else(|| format!("goto: {raw:?} is not a finite number"))?;
                 }
-                Ok(Action::Goto { target: Vec3::new(xyz[0], xyz[1], xyz[2]) })
+                Ok(Action::Goto {
+                    target: Vec3::new(xyz[0], xyz[1], xyz[2]),
+                })
             }
             "start_tracking" => {
                 expect_args(1)?;
-                Ok(Action::StartTracking { target: args[0].to_owned() })
+                Ok(Action::StartTracking {
+                    target: args[0].to_owned(),
+                })
             }
             "stop_tracking" => expect_args(0).map(|_| Action::StopTracking),
             "land" => expect_args(0).map(|_| Action::Land),
@@ -115,10 +119,15 @@ mod tests {
 
     #[test]
     fn parses_command_line_actions() {
-        assert_eq!(Action::parse_words(&["arm_takeoff"]), Ok(Action::ArmTakeoff));
+        assert_eq!(
+            Action::parse_words(&["arm_takeoff"]),
+            Ok(Action::ArmTakeoff)
+        );
         assert_eq!(
             Action::parse_words(&["goto", "1", "-2.5", "10"]),
-            Ok(Action::Goto { target: Vec3::new(1.0, -2.5, 10.0) })
+            Ok(Action::Goto {
+                target: Vec3::new(1.0, -2.5, 10.0)
+            })
         );
         assert!(Action::parse_words(&["goto", "1", "2"]).is_err());
         assert!(Action::parse_words(&["goto", "1", "2", "NaN"]).is_err());
@@ -128,7 +137,9 @@ mod tests {
 
     #[test]
     fn modes_gate_actions() {
-        let goto = Action::Goto { target: Vec3::zeros() };
+        let goto = Action::Goto {
+            target: Vec3::zeros(),
+        };
         assert!(mode_forbids(&goto, DroneMode::Idle).is_some());
         assert!(mode_forbids(&goto, DroneMode::Flying).is_none());
         assert!(mode_forbids(&Action::ArmTakeoff, DroneMode::Idle).is_none());

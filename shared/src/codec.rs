@@ -86,13 +86,27 @@ mod tests {
     }
 
     fn command() -> impl Strategy<Value = ActionCommand> {
-        (any::<u64>(), proptest::option::of("[A-Za-z0-9]{0,8}"), action())
-            .prop_map(|(seq, task_id, action)| ActionCommand { seq, task_id, action })
+        (
+            any::<u64>(),
+            proptest::option::of("[A-Za-z0-9]{0,8}"),
+            action(),
+        )
+            .prop_map(|(seq, task_id, action)| ActionCommand {
+                seq,
+                task_id,
+                action,
+            })
     }
 
     fn status() -> impl Strategy<Value = DroneStatus> {
-        (any::<u64>(), vec3(), vec3(), any::<bool>(), proptest::option::of(command())).prop_map(
-            |(counter, position, velocity, armed, cmd)| DroneStatus {
+        (
+            any::<u64>(),
+            vec3(),
+            vec3(),
+            any::<bool>(),
+            proptest::option::of(command()),
+        )
+            .prop_map(|(counter, position, velocity, armed, cmd)| DroneStatus {
                 drone: DroneId::new("alfa").expect("valid id"),
                 counter,
                 mode: DroneMode::Flying,
@@ -106,8 +120,7 @@ mod tests {
                 }),
                 failsafe: Some(FailsafeStage::Holding),
                 malformed_actions: 3,
-            },
-        )
+            })
     }
 
     proptest! {
@@ -140,16 +153,33 @@ mod tests {
 
     #[test]
     fn typed_errors() {
-        let bytes = encode(&ActionCommand { seq: 7, task_id: None, action: Action::Land }).expect("encodes");
+        let bytes = encode(&ActionCommand {
+            seq: 7,
+            task_id: None,
+            action: Action::Land,
+        })
+        .expect("encodes");
         assert_eq!(decode::<ActionCommand>(&[]), Err(CodecError::Empty));
         let mut wrong_version = bytes.clone();
         wrong_version[0] = 9;
-        assert_eq!(decode::<ActionCommand>(&wrong_version), Err(CodecError::UnknownVersion { found: 9 }));
-        assert_eq!(decode::<ActionCommand>(&bytes[..bytes.len() - 1]), Err(CodecError::Truncated));
+        assert_eq!(
+            decode::<ActionCommand>(&wrong_version),
+            Err(CodecError::UnknownVersion { found: 9 })
+        );
+        assert_eq!(
+            decode::<ActionCommand>(&bytes[..bytes.len() - 1]),
+            Err(CodecError::Truncated)
+        );
         let mut trailing = bytes.clone();
         trailing.extend_from_slice(&[0, 0]);
-        assert_eq!(decode::<ActionCommand>(&trailing), Err(CodecError::TrailingBytes(2)));
+        assert_eq!(
+            decode::<ActionCommand>(&trailing),
+            Err(CodecError::TrailingBytes(2))
+        );
         // An enum discriminant that does not exist.
-        assert!(matches!(decode::<ActionCommand>(&[WIRE_VERSION, 1, 0, 99]), Err(CodecError::Malformed(_))));
+        assert!(matches!(
+            decode::<ActionCommand>(&[WIRE_VERSION, 1, 0, 99]),
+            Err(CodecError::Malformed(_))
+        ));
     }
 }

@@ -66,7 +66,10 @@ mod tests {
     fn north_is_plus_y_in_enu_and_plus_x_in_ned() {
         let home = Home::new(Vec3::zeros());
         let north_10m_up_5m = Vec3::new(0.0, 10.0, 5.0);
-        assert_eq!(home.enu_to_ned(&north_10m_up_5m), Vec3::new(10.0, 0.0, -5.0));
+        assert_eq!(
+            home.enu_to_ned(&north_10m_up_5m),
+            Vec3::new(10.0, 0.0, -5.0)
+        );
         let east = Vec3::new(3.0, 0.0, 0.0);
         assert_eq!(home.enu_to_ned(&east), Vec3::new(0.0, 3.0, 0.0));
     }
@@ -76,9 +79,15 @@ mod tests {
         // A vehicle whose pad is 60 m east and 120 m south of the world origin.
         let home = Home::new(Vec3::new(60.0, -120.0, 0.0));
         // Its own pad, 10 m up, is straight above its NED origin.
-        assert_eq!(home.enu_to_ned(&Vec3::new(60.0, -120.0, 10.0)), Vec3::new(0.0, 0.0, -10.0));
+        assert_eq!(
+            home.enu_to_ned(&Vec3::new(60.0, -120.0, 10.0)),
+            Vec3::new(0.0, 0.0, -10.0)
+        );
         // The world origin is 120 m north and 60 m west of it.
-        assert_eq!(home.enu_to_ned(&Vec3::zeros()), Vec3::new(120.0, -60.0, 0.0));
+        assert_eq!(
+            home.enu_to_ned(&Vec3::zeros()),
+            Vec3::new(120.0, -60.0, 0.0)
+        );
     }
 
     #[test]

@@ -13,7 +13,9 @@ pub enum IdError {
     Empty,
     #[error("id {0:?} is longer than {MAX_ID_LEN} characters")]
     TooLong(String),
-    #[error("id {0:?} may hold only lowercase letters, digits, '_' and '-', and must start with a letter")]
+    #[error(
+        "id {0:?} may hold only lowercase letters, digits, '_' and '-', and must start with a letter"
+    )]
     BadCharacter(String),
 }
 
@@ -26,7 +28,8 @@ fn validate(raw: &str) -> Result<(), IdError> {
     }
     let mut chars = raw.chars();
     let first_ok = chars.next().is_some_and(|c| c.is_ascii_lowercase());
-    let rest_ok = chars.all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '_' || c == '-');
+    let rest_ok =
+        chars.all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '_' || c == '-');
     if first_ok && rest_ok {
         Ok(())
     } else {
@@ -114,7 +117,16 @@ mod tests {
 
     #[test]
     fn rejects_key_breaking_names() {
-        for bad in ["", "Alfa", "a/b", "a*", "1abc", "a b", "a$", &"x".repeat(33)] {
+        for bad in [
+            "",
+            "Alfa",
+            "a/b",
+            "a*",
+            "1abc",
+            "a b",
+            "a$",
+            &"x".repeat(33),
+        ] {
             assert!(DroneId::new(bad).is_err(), "{bad:?} was accepted");
         }
     }

@@ -31,7 +31,11 @@ impl SetpointSample {
         Vec3::from(self.acceleration)
     }
     pub fn is_finite(&self) -> bool {
-        self.position.iter().chain(&self.velocity).chain(&self.acceleration).all(|c| c.is_finite())
+        self.position
+            .iter()
+            .chain(&self.velocity)
+            .chain(&self.acceleration)
+            .all(|c| c.is_finite())
     }
 }
 
@@ -76,7 +80,12 @@ pub struct CommandSample {
 
 impl CommandSample {
     pub fn new(seq: u64, kind: CommandKind, param: f64) -> Self {
-        CommandSample { seq, kind: kind as u32, _reserved: 0, param }
+        CommandSample {
+            seq,
+            kind: kind as u32,
+            _reserved: 0,
+            param,
+        }
     }
     pub fn kind(&self) -> Option<CommandKind> {
         CommandKind::from_code(self.kind)

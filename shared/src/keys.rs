@@ -15,7 +15,9 @@ pub struct Keys {
 
 impl Keys {
     pub fn new(swarm: &SwarmId) -> Self {
-        Keys { prefix: format!("{ROOT}/{swarm}") }
+        Keys {
+            prefix: format!("{ROOT}/{swarm}"),
+        }
     }
 
     fn drone_key(&self, drone: &DroneId, leaf: &str) -> String {
@@ -135,11 +137,18 @@ mod tests {
         assert_eq!(keys.status(&alfa), "tacos/demo/drone/alfa/status");
         assert_eq!(keys.alive(&alfa), "tacos/demo/drone/alfa/alive");
         assert_eq!(keys.targets(), "tacos/demo/world/targets");
-        assert_eq!(keys.drone_of("tacos/demo/drone/alfa/status"), Some(alfa.clone()));
+        assert_eq!(
+            keys.drone_of("tacos/demo/drone/alfa/status"),
+            Some(alfa.clone())
+        );
         assert_eq!(keys.drone_of("tacos/other/drone/alfa/status"), None);
         assert_eq!(keys.drone_of("tacos/demo/world/targets"), None);
         assert_eq!(
-            ipc_service(&SwarmId::new("demo").expect("valid"), &alfa, IpcChannel::Setpoint),
+            ipc_service(
+                &SwarmId::new("demo").expect("valid"),
+                &alfa,
+                IpcChannel::Setpoint
+            ),
             "tacos/demo/alfa/setpoint"
         );
     }

@@ -46,7 +46,9 @@ impl fmt::Display for FailureReason {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum ActionState {
     /// Under way; `progress` in [0, 1] where it can be measured.
-    Running { progress: f32 },
+    Running {
+        progress: f32,
+    },
     Done,
     Failed(FailureReason),
 }
@@ -141,15 +143,27 @@ pub enum WorldEvent {
 impl fmt::Display for WorldEvent {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
-            WorldEvent::Detection { drone, target, landmark: Some(at), .. } => {
+            WorldEvent::Detection {
+                drone,
+                target,
+                landmark: Some(at),
+                ..
+            } => {
                 write!(f, "{target} seen at {at} by {drone}")
             }
-            WorldEvent::Detection { drone, target, landmark: None, position } => write!(
+            WorldEvent::Detection {
+                drone,
+                target,
+                landmark: None,
+                position,
+            } => write!(
                 f,
                 "{target} seen by {drone} at ({:.1}, {:.1}, {:.1})",
                 position.x, position.y, position.z
             ),
-            WorldEvent::FaultInjected { drone, fault } => write!(f, "fault injected on {drone}: {fault}"),
+            WorldEvent::FaultInjected { drone, fault } => {
+                write!(f, "fault injected on {drone}: {fault}")
+            }
         }
     }
 }

@@ -75,7 +75,14 @@ mod tests {
         // Values seen in PX4 heartbeats: offboard = 6 << 16, hold = 4 << 16 | 3 << 24.
         assert_eq!(Px4Mode::Offboard.custom_mode(), 393_216);
         assert_eq!(Px4Mode::Hold.custom_mode(), 50_593_792);
-        for m in [Px4Mode::Manual, Px4Mode::Position, Px4Mode::Takeoff, Px4Mode::Hold, Px4Mode::Land, Px4Mode::Offboard] {
+        for m in [
+            Px4Mode::Manual,
+            Px4Mode::Position,
+            Px4Mode::Takeoff,
+            Px4Mode::Hold,
+            Px4Mode::Land,
+            Px4Mode::Offboard,
+        ] {
             assert_eq!(Px4Mode::from_custom_mode(m.custom_mode()), m);
         }
     }

@@ -53,11 +53,21 @@ pub enum ScenarioError {
 pub enum TargetMotion {
     Static,
     /// Through `points` at `speed`, looping back to the start when `looped`.
-    Waypoints { points: Vec<Vec3>, speed: f64, #[serde(default)] looped: bool },
+    Waypoints {
+        points: Vec<Vec3>,
+        speed: f64,
+        #[serde(default)]
+        looped: bool,
+    },
     /// Runs away from the nearest drone within `flee_radius`, at up to `speed`, inside the bounds.
-    Evasive { speed: f64, flee_radius: f64 },
+    Evasive {
+        speed: f64,
+        flee_radius: f64,
+    },
     /// Constant velocity (m/s), bouncing off the bounds.
-    ConstantVelocity { velocity: Vec3 },
+    ConstantVelocity {
+        velocity: Vec3,
+    },
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -218,7 +228,8 @@ impl Scenario {
 
     /// Parses and validates a scenario.
     pub fn from_toml(text: &str) -> Result<Scenario, ScenarioError> {
-        let file: FileScenario = toml::from_str(text).map_err(|e| ScenarioError::Syntax(e.to_string()))?;
+        let file: FileScenario =
+            toml::from_str(text).map_err(|e| ScenarioError::Syntax(e.to_string()))?;
         let l = file.limits;
         for (value, what) in [
             (l.takeoff_altitude, "limits.takeoff_altitude"),
@@ -233,14 +244,23 @@ impl Scenario {
                 return Err(ScenarioError::NotPositive(what));
             }
         }
-        let bounds = Bounds { min: Vec3::from(file.bounds.min), max: Vec3::from(file.bounds.max) };
-        if !(0..3).all(|i| bounds.min[i].is_finite() && bounds.max[i].is_finite() && bounds.min[i] < bounds.max[i]) {
+        let bounds = Bounds {
+            min: Vec3::from(file.bounds.min),
+            max: Vec3::from(file.bounds.max),
+        };
+        if !(0..3).all(|i| {
+            bounds.min[i].is_finite() && bounds.max[i].is_finite() && bounds.min[i] < bounds.max[i]
+        }) {
             return Err(ScenarioError::BadBounds);
         }
 
         let mut names = HashSet::new();
         let mut claim = |name: &str| {
-            if names.insert(name.to_owned()) { Ok(()) } else { Err(ScenarioError::DuplicateName(name.to_owned())) }
+            if names.insert(name.to_owned()) {
+                Ok(())
+            } else {
+                Err(ScenarioError::DuplicateName(name.to_owned()))
+            }
         };
 
         let mut obstacles = Vec::new();
@@ -249,7 +269,12 @@ impl Scenario {
             claim(&o.name)?;
             let center = Vec3::from(o.center);
             let ellipsoid = match (o.semi_axes, o.matrix) {
-                (Some(axes), None) => Ellipsoid::from_semi_axes(&o.name, center, Vec3::from(axes), o.yaw_deg.to_radians())?,
+                (Some(axes), None) => Ellipsoid::from_semi_axes(
+                    &o.name,
+                    center,
+                    Vec3::from(axes),
+                    o.yaw_deg.to_radians(),
+                )?,
                 (None, Some(m)) => {
                     let shape = Matrix3::from_fn(|r, c| m[r][c]);
                     Ellipsoid::new(&o.name, center, shape)?
@@ -257,20 +282,35 @@ impl Scenario {
                 _ => return Err(ScenarioError::ObstacleShape(o.name)),
             };
             if let Some(kind) = o.landmark {
-                landmarks.push(Landmark { name: o.name.clone(), kind, position: center });
+                landmarks.push(Landmark {
+                    name: o.name.clone(),
+                    kind,
+                    position: center,
+                });
             }
             obstacles.push(ellipsoid);
         }
         for lm in file.landmarks {
             claim(&lm.name)?;
-            landmarks.push(Landmark { name: lm.name, kind: lm.kind, position: Vec3::from(lm.position) });
+            landmarks.push(Landmark {
+                name: lm.name,
+                kind: lm.kind,
+                position: Vec3::from(lm.position),
+            });
         }
         for lm in &landmarks {
             if !bounds.contains(&lm.position) {
-                return Err(ScenarioError::LandmarkOutOfBounds { name: lm.name.clone(), position: lm.position });
+                return Err(ScenarioError::LandmarkOutOfBounds {
+                    name: lm.name.clone(),
+                    position: lm.position,
+                });
             }
         }
-        let world = World { bounds, obstacles, landmarks };
+        let world = World {
+            bounds,
+            obstacles,
+            landmarks,
+        };
 
         let mut drones = Vec::new();
         for d in file.drones {
@@ -290,25 +330,43 @@ impl Scenario {
                 (Some(p), None) => Vec3::from(*p),
                 (None, Some(at)) => match world.landmark(at) {
                     Some(lm) => lm.position,
-                    None => return Err(ScenarioError::UnknownLandmark { target: t.name, landmark: at.clone() }),
+                    None => {
+                        return Err(ScenarioError::UnknownLandmark {
+                            target: t.name,
+                            landmark: at.clone(),
+                        });
+                    }
                 },
                 _ => return Err(ScenarioError::TargetPlacement(t.name)),
             };
             match &t.motion {
-                TargetMotion::Waypoints { points, speed, .. } if points.is_empty() || !positive(*speed) => {
+                TargetMotion::Waypoints { points, speed, .. }
+                    if points.is_empty() || !positive(*speed) =>
+                {
                     return Err(ScenarioError::BadMotion(t.name));
                 }
-                TargetMotion::Evasive { speed, flee_radius } if !(positive(*speed) && positive(*flee_radius)) => {
+                TargetMotion::Evasive { speed, flee_radius }
+                    if !(positive(*speed) && positive(*flee_radius)) =>
+                {
                     return Err(ScenarioError::BadMotion(t.name));
                 }
                 _ => {}
             }
-            targets.push(TargetSpec { name: t.name, kind: t.kind, start, hidden_at: t.hidden_at, motion: t.motion });
+            targets.push(TargetSpec {
+                name: t.name,
+                kind: t.kind,
+                start,
+                hidden_at: t.hidden_at,
+                motion: t.motion,
+            });
         }
 
         for f in &file.faults {
             if !drones.iter().any(|d| d.id.as_str() == f.drone) {
-                return Err(ScenarioError::UnknownDrone { drone: f.drone.clone(), at_s: f.at_s });
+                return Err(ScenarioError::UnknownDrone {
+                    drone: f.drone.clone(),
+                    at_s: f.at_s,
+                });
             }
         }
 
@@ -326,7 +384,11 @@ impl Scenario {
     /// The first `n` drone slots, or an error naming how many the scenario has.
     pub fn first_drones(&self, n: usize) -> Result<&[DroneSlot], String> {
         self.drones.get(..n).ok_or_else(|| {
-            format!("scenario {} has {} drone slots; {n} asked for", self.name, self.drones.len())
+            format!(
+                "scenario {} has {} drone slots; {n} asked for",
+                self.name,
+                self.drones.len()
+            )
         })
     }
 
@@ -389,8 +451,14 @@ kind = "vehicle_dies"
 
     #[test]
     fn unknown_fields_are_rejected() {
-        let e = broken("semi_axes = [5.0, 5.0, 30.0]", "semi_axes = [5.0, 5.0, 30.0]\ncolour = \"red\"");
-        assert!(matches!(&e, ScenarioError::Syntax(m) if m.contains("colour")), "{e}");
+        let e = broken(
+            "semi_axes = [5.0, 5.0, 30.0]",
+            "semi_axes = [5.0, 5.0, 30.0]\ncolour = \"red\"",
+        );
+        assert!(
+            matches!(&e, ScenarioError::Syntax(m) if m.contains("colour")),
+            "{e}"
+        );
     }
 
     #[test]
@@ -399,13 +467,22 @@ kind = "vehicle_dies"
             "semi_axes = [5.0, 5.0, 30.0]",
             "matrix = [[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]",
         );
-        assert!(matches!(e, ScenarioError::Obstacle(EllipsoidError::NotPositiveDefinite(_))), "{e}");
+        assert!(
+            matches!(
+                e,
+                ScenarioError::Obstacle(EllipsoidError::NotPositiveDefinite(_))
+            ),
+            "{e}"
+        );
     }
 
     #[test]
     fn landmark_outside_bounds_is_rejected() {
         let e = broken("position = [20.0, 0.0, 0.0]", "position = [80.0, 0.0, 0.0]");
-        assert!(matches!(e, ScenarioError::LandmarkOutOfBounds { .. }), "{e}");
+        assert!(
+            matches!(e, ScenarioError::LandmarkOutOfBounds { .. }),
+            "{e}"
+        );
     }
 
     #[test]
@@ -443,7 +520,13 @@ kind = "vehicle_dies"
         let lab = Scenario::builtin("lab").expect("lab is valid");
         let ids: Vec<_> = lab.drones.iter().map(|d| d.id.as_str()).collect();
         assert_eq!(ids, ["alfa", "bravo", "charlie"]);
-        for name in ["small_park", "large_park_north", "large_park_south", "villa", "business_district"] {
+        for name in [
+            "small_park",
+            "large_park_north",
+            "large_park_south",
+            "villa",
+            "business_district",
+        ] {
             assert!(lab.world.landmark(name).is_some(), "{name}");
         }
     }

@@ -42,7 +42,11 @@ pub enum EllipsoidError {
 
 impl Ellipsoid {
     /// Validates that `shape` is symmetric positive definite.
-    pub fn new(name: impl Into<String>, center: Vec3, shape: Matrix3<f64>) -> Result<Self, EllipsoidError> {
+    pub fn new(
+        name: impl Into<String>,
+        center: Vec3,
+        shape: Matrix3<f64>,
+    ) -> Result<Self, EllipsoidError> {
         let name = name.into();
         if !shape.iter().all(|v| v.is_finite()) || !is_finite(&center) {
             return Err(EllipsoidError::NotPositiveDefinite(name));
@@ -53,11 +57,20 @@ impl Ellipsoid {
         if shape.cholesky().is_none() {
             return Err(EllipsoidError::NotPositiveDefinite(name));
         }
-        Ok(Ellipsoid { name, center, shape })
+        Ok(Ellipsoid {
+            name,
+            center,
+            shape,
+        })
     }
 
     /// An ellipsoid with semi-axes `axes` along x, y, z, rotated by `yaw` (radians) about z.
-    pub fn from_semi_axes(name: impl Into<String>, center: Vec3, axes: Vec3, yaw: f64) -> Result<Self, EllipsoidError> {
+    pub fn from_semi_axes(
+        name: impl Into<String>,
+        center: Vec3,
+        axes: Vec3,
+        yaw: f64,
+    ) -> Result<Self, EllipsoidError> {
         let name = name.into();
         if !axes.iter().all(|a| a.is_finite() && *a > 0.0) {
             return Err(EllipsoidError::BadSemiAxes(name));
@@ -85,7 +98,9 @@ impl Ellipsoid {
     /// Semi-axis lengths and their directions (columns), from the eigen-decomposition of A.
     pub fn principal_axes(&self) -> (Vec3, Matrix3<f64>) {
         let eig = self.shape.symmetric_eigen();
-        let axes = eig.eigenvalues.map(|l| 1.0 / l.max(f64::MIN_POSITIVE).sqrt());
+        let axes = eig
+            .eigenvalues
+            .map(|l| 1.0 / l.max(f64::MIN_POSITIVE).sqrt());
         (axes, eig.eigenvectors)
     }
 
@@ -96,7 +111,11 @@ impl Ellipsoid {
         let grown = axes.map(|a| a + margin.max(0.0));
         let diag = Matrix3::from_diagonal(&grown.map(|a| 1.0 / (a * a)));
         let shape = dirs * diag * dirs.transpose();
-        Ellipsoid { name: self.name.clone(), center: self.center, shape: (shape + shape.transpose()) * 0.5 }
+        Ellipsoid {
+            name: self.name.clone(),
+            center: self.center,
+            shape: (shape + shape.transpose()) * 0.5,
+        }
     }
 
     /// True when the segment from `a` to `b` enters the ellipsoid.
@@ -106,7 +125,11 @@ impl Ellipsoid {
         let u = b - a;
         let au = self.shape * u;
         let quad = u.dot(&au);
-        let t = if quad > 0.0 { (-d.dot(&au) / quad).clamp(0.0, 1.0) } else { 0.0 };
+        let t = if quad > 0.0 {
+            (-d.dot(&au) / quad).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
         self.contains(&(a + u * t))
     }
 
@@ -195,7 +218,11 @@ impl World {
         if !self.bounds.contains(p) {
             return Err(PointRejection::OutOfBounds(*p));
         }
-        match self.obstacles.iter().find(|o| o.inflated(radius).contains(p)) {
+        match self
+            .obstacles
+            .iter()
+            .find(|o| o.inflated(radius).contains(p))
+        {
             Some(o) => Err(PointRejection::InsideObstacle(*p, o.name.clone())),
             None => Ok(()),
         }
@@ -203,7 +230,9 @@ impl World {
 
     /// The first obstacle (inflated by `radius`) that the straight segment a→b crosses.
     pub fn segment_blocked_by(&self, a: &Vec3, b: &Vec3, radius: f64) -> Option<&Ellipsoid> {
-        self.obstacles.iter().find(|o| o.inflated(radius).segment_intersects(a, b))
+        self.obstacles
+            .iter()
+            .find(|o| o.inflated(radius).segment_intersects(a, b))
     }
 
     /// The landmark closest (horizontally) to `p` within `radius`, if any.
@@ -222,7 +251,13 @@ mod tests {
     use super::*;
 
     fn tower() -> Ellipsoid {
-        Ellipsoid::from_semi_axes("tower", Vec3::new(0.0, 0.0, 0.0), Vec3::new(10.0, 10.0, 90.0), 0.0).expect("valid")
+        Ellipsoid::from_semi_axes(
+            "tower",
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::new(10.0, 10.0, 90.0),
+            0.0,
+        )
+        .expect("valid")
     }
 
     #[test]
@@ -234,7 +269,10 @@ mod tests {
         );
         let mut asym = Matrix3::identity();
         asym[(0, 1)] = 0.5;
-        assert_eq!(Ellipsoid::new("bad", Vec3::zeros(), asym), Err(EllipsoidError::NotSymmetric("bad".into())));
+        assert_eq!(
+            Ellipsoid::new("bad", Vec3::zeros(), asym),
+            Err(EllipsoidError::NotSymmetric("bad".into()))
+        );
     }
 
     #[test]
@@ -243,7 +281,13 @@ mod tests {
         assert!(t.contains(&Vec3::new(9.0, 0.0, 10.0)));
         assert!(!t.contains(&Vec3::new(11.0, 0.0, 10.0)));
         assert!(t.inflated(2.0).contains(&Vec3::new(11.0, 0.0, 10.0)));
-        let rotated = Ellipsoid::from_semi_axes("r", Vec3::zeros(), Vec3::new(20.0, 2.0, 2.0), std::f64::consts::FRAC_PI_2).expect("valid");
+        let rotated = Ellipsoid::from_semi_axes(
+            "r",
+            Vec3::zeros(),
+            Vec3::new(20.0, 2.0, 2.0),
+            std::f64::consts::FRAC_PI_2,
+        )
+        .expect("valid");
         assert!(rotated.contains(&Vec3::new(0.0, 19.0, 0.0)));
         assert!(!rotated.contains(&Vec3::new(19.0, 0.0, 0.0)));
     }

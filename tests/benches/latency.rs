@@ -35,20 +35,32 @@ fn summarize(mut samples: Vec<f64>) -> (f64, f64) {
 }
 
 fn swarm_id(tag: &str) -> SwarmId {
-    SwarmId::new(format!("bench{tag}{}", std::process::id())).unwrap_or_else(|e| panic!("bad swarm id: {e}"))
+    SwarmId::new(format!("bench{tag}{}", std::process::id()))
+        .unwrap_or_else(|e| panic!("bad swarm id: {e}"))
 }
 
 async fn zenoh_pair(swarm: &SwarmId) -> anyhow::Result<(zenoh::Session, zenoh::Session)> {
     let port = tacos_ground::launch::free_tcp_port()?;
     let endpoint = format!("tcp/127.0.0.1:{port}");
-    let ground = BusArgs::loopback(swarm.clone(), Some(endpoint.clone()), vec![]).open().await?;
-    let onboard = BusArgs::loopback(swarm.clone(), Some("tcp/127.0.0.1:0".into()), vec![endpoint]).open().await?;
+    let ground = BusArgs::loopback(swarm.clone(), Some(endpoint.clone()), vec![])
+        .open()
+        .await?;
+    let onboard = BusArgs::loopback(
+        swarm.clone(),
+        Some("tcp/127.0.0.1:0".into()),
+        vec![endpoint],
+    )
+    .open()
+    .await?;
     Ok((ground, onboard))
 }
 
 /// Sends `MESSAGES` messages one at a time; `send(i)` publishes message i, the receiver reports
 /// receipt of message i through `received`. Returns per-message latency in microseconds.
-async fn ping_series<F, Fut>(received: &tokio::sync::watch::Sender<(u64, Instant)>, mut send: F) -> anyhow::Result<Vec<f64>>
+async fn ping_series<F, Fut>(
+    received: &tokio::sync::watch::Sender<(u64, Instant)>,
+    mut send: F,
+) -> anyhow::Result<Vec<f64>>
 where
     F: FnMut(u64) -> Fut,
     Fut: std::future::Future<Output = anyhow::Result<()>>,
@@ -94,7 +106,13 @@ async fn zenoh_action() -> anyhow::Result<((f64, f64), (f64, f64))> {
         }
     });
     wait_for_match(&ground, &action_key).await?;
-    let command = |seq| ActionCommand { seq, task_id: Some("T1".into()), action: Action::Goto { target: Vec3::new(12.5, -40.0, 10.0) } };
+    let command = |seq| ActionCommand {
+        seq,
+        task_id: Some("T1".into()),
+        action: Action::Goto {
+            target: Vec3::new(12.5, -40.0, 10.0),
+        },
+    };
     let tacos = ping_series(&tx, |i| {
         let (g, k, c) = (&ground, &action_key, command(i));
         async move { Ok(tacos_bus::put(g, k, &c, true).await?) }
@@ -134,9 +152,17 @@ async fn zenoh_action() -> anyhow::Result<((f64, f64), (f64, f64))> {
 
 /// Waits until a put on `key` from `session` reaches a subscriber (routes are set up).
 async fn wait_for_match(session: &zenoh::Session, key: &str) -> anyhow::Result<()> {
-    let publisher = session.declare_publisher(key.to_owned()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let publisher = session
+        .declare_publisher(key.to_owned())
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
     let deadline = Instant::now() + Duration::from_secs(10);
-    while !publisher.matching_status().await.map_err(|e| anyhow::anyhow!("{e}"))?.matching() {
+    while !publisher
+        .matching_status()
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?
+        .matching()
+    {
         if Instant::now() > deadline {
             anyhow::bail!("no subscriber matched {key} within 10 s");
         }
@@ -191,17 +217,27 @@ fn iceoryx2_setpoint() -> anyhow::Result<(f64, f64)> {
         }
     }
     done.store(true, Ordering::Release);
-    let latencies = reader.join().map_err(|_| anyhow::anyhow!("reader thread panicked"))??;
+    let latencies = reader
+        .join()
+        .map_err(|_| anyhow::anyhow!("reader thread panicked"))??;
     Ok(summarize(latencies))
 }
 
 fn main() -> anyhow::Result<()> {
     // `cargo bench` passes `--bench`; nothing to parse.
-    let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
     let ((p50, p99), (bare_p50, bare_p99)) = runtime.block_on(zenoh_action())?;
-    eprintln!("zenoh bare put/subscribe: p50 {bare_p50:.1} us, p99 {bare_p99:.1} us ({MESSAGES} messages)");
+    eprintln!(
+        "zenoh bare put/subscribe: p50 {bare_p50:.1} us, p99 {bare_p99:.1} us ({MESSAGES} messages)"
+    );
     let (ip50, ip99) = iceoryx2_setpoint()?;
-    println!("zenoh_action p50_us={p50:.1} p99_us={p99:.1} bare_p50_us={bare_p50:.1} ratio={:.2}", p50 / bare_p50);
+    println!(
+        "zenoh_action p50_us={p50:.1} p99_us={p99:.1} bare_p50_us={bare_p50:.1} ratio={:.2}",
+        p50 / bare_p50
+    );
     println!("iceoryx2_setpoint p50_us={ip50:.1} p99_us={ip99:.1}");
     Ok(())
 }

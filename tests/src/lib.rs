@@ -12,8 +12,11 @@ pub fn unique_swarm(tag: &str) -> SwarmId {
     use std::sync::atomic::{AtomicU32, Ordering};
     static NEXT: AtomicU32 = AtomicU32::new(0);
     let n = NEXT.fetch_add(1, Ordering::Relaxed);
-    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.subsec_nanos());
-    SwarmId::new(format!("{tag}{}x{n}x{nanos}", std::process::id())).unwrap_or_else(|e| panic!("bad swarm id: {e}"))
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.subsec_nanos());
+    SwarmId::new(format!("{tag}{}x{n}x{nanos}", std::process::id()))
+        .unwrap_or_else(|e| panic!("bad swarm id: {e}"))
 }
 
 /// A simulated swarm of `n` drones of `scenario` and a ground link that is its zenoh hub.
@@ -35,12 +38,21 @@ impl SimSwarm {
         adjust: impl FnOnce(&mut StackConfig),
     ) -> anyhow::Result<SimSwarm> {
         let scenario = Scenario::builtin(scenario_name)?;
-        let mut config = StackConfig::on_loopback(unique_swarm(tag), scenario_name, scenario.clone(), n)?;
+        let mut config =
+            StackConfig::on_loopback(unique_swarm(tag), scenario_name, scenario.clone(), n)?;
         adjust(&mut config);
-        let bus = tacos_bus::BusArgs::loopback(config.swarm.clone(), Some(config.hub_endpoint.clone()), vec![]);
+        let bus = tacos_bus::BusArgs::loopback(
+            config.swarm.clone(),
+            Some(config.hub_endpoint.clone()),
+            vec![],
+        );
         let link = GroundLink::connect(&bus).await?;
         let stack = Stack::start(config)?;
-        Ok(SimSwarm { link, stack, scenario })
+        Ok(SimSwarm {
+            link,
+            stack,
+            scenario,
+        })
     }
 
     pub async fn stop(self) {
@@ -49,6 +61,12 @@ impl SimSwarm {
 }
 
 /// Runs `fut` with a deadline, naming what timed out.
-pub async fn within<T>(what: &str, limit: Duration, fut: impl std::future::Future<Output = T>) -> anyhow::Result<T> {
-    tokio::time::timeout(limit, fut).await.map_err(|_| anyhow::anyhow!("timed out after {limit:?}: {what}"))
+pub async fn within<T>(
+    what: &str,
+    limit: Duration,
+    fut: impl std::future::Future<Output = T>,
+) -> anyhow::Result<T> {
+    tokio::time::timeout(limit, fut)
+        .await
+        .map_err(|_| anyhow::anyhow!("timed out after {limit:?}: {what}"))
 }

@@ -3,12 +3,13 @@
 //! ground truth or in what the ground sees; every wait has a deadline.
 
 use std::time::{Duration, Instant};
+use tacos_ground::direct::run_actions;
 use tacos_ground::launch::Role;
 use tacos_ground::link::GroundLink;
 use tacos_ground::safety::SafetyGate;
 use tacos_ground::swarm::SwarmChange;
 use tacos_shared::action::Action;
-use tacos_shared::messages::{ActionState, SimTruth, VehicleTruth};
+use tacos_shared::messages::{SimTruth, VehicleTruth};
 use tacos_shared::px4_mode::Px4Mode;
 use tacos_shared::{DroneId, DroneMode, Vec3};
 use tacos_tests::{SimSwarm, within};
@@ -18,24 +19,6 @@ const STEP: Duration = Duration::from_secs(60);
 
 fn id(name: &str) -> DroneId {
     DroneId::new(name).unwrap_or_else(|e| panic!("{e}"))
-}
-
-async fn act(link: &GroundLink, gate: &SafetyGate, drone: &DroneId, action: Action) -> anyhow::Result<ActionState> {
-    let checked = {
-        let view = link.view();
-        gate.check(&view, drone.as_str(), &action, Instant::now())
-    }
-    .map_err(|r| anyhow::anyhow!("gate refused {action} for {drone}: {r}"))?;
-    let seq = link.send(&checked, None).await?;
-    Ok(link.wait_outcome(drone, seq, STEP).await?)
-}
-
-async fn act_ok(link: &GroundLink, gate: &SafetyGate, drone: &DroneId, action: Action) -> anyhow::Result<()> {
-    let label = action.to_string();
-    match act(link, gate, drone, action).await? {
-        ActionState::Done => Ok(()),
-        other => anyhow::bail!("{drone}: {label} ended {other:?}"),
-    }
 }
 
 fn vehicle<'a>(truth: &'a SimTruth, drone: &DroneId) -> Option<&'a VehicleTruth> {
@@ -56,14 +39,19 @@ async fn truth_until(
         }
         match tokio::time::timeout_at(deadline, truth.changed()).await {
             Ok(Ok(())) => {}
-            _ => anyhow::bail!("simulator truth never showed: {what} (last: {:?})", truth.borrow().as_ref().map(|t| &t.vehicles)),
+            _ => anyhow::bail!(
+                "simulator truth never showed: {what} (last: {:?})",
+                truth.borrow().as_ref().map(|t| &t.vehicles)
+            ),
         }
     }
 }
 
 async fn all_ready(sim: &SimSwarm, ids: &[DroneId]) -> anyhow::Result<()> {
     sim.link
-        .wait_for_drones(ids, Duration::from_secs(60), |s| s.autopilot_link && s.mode == DroneMode::Idle)
+        .wait_for_drones(ids, Duration::from_secs(60), |s| {
+            s.autopilot_link && s.mode == DroneMode::Idle
+        })
         .await?;
     Ok(())
 }
@@ -83,26 +71,50 @@ async fn fly_pattern(sim: &SimSwarm) -> anyhow::Result<()> {
     all_ready(sim, &ids).await?;
     let alt = sim.scenario.limits.takeoff_altitude;
 
-    for d in &ids {
-        act_ok(&sim.link, &gate, d, Action::ArmTakeoff).await?;
-    }
-    truth_until(&mut truth, Duration::from_secs(10), "all three airborne at take-off altitude", |t| {
-        ids.iter().all(|d| vehicle(t, d).is_some_and(|v| v.armed && v.position.z > 0.8 * alt))
-    })
+    act_all(
+        &sim.link,
+        &gate,
+        ids.iter()
+            .map(|d| (d.clone(), Action::ArmTakeoff))
+            .collect(),
+    )
+    .await?;
+    truth_until(
+        &mut truth,
+        Duration::from_secs(10),
+        "all three airborne at take-off altitude",
+        |t| {
+            ids.iter()
+                .all(|d| vehicle(t, d).is_some_and(|v| v.armed && v.position.z > 0.8 * alt))
+        },
+    )
     .await?;
 
     // A malformed payload on alfa's action key: counted, logged, and alfa keeps working.
-    sim.link.session().put(sim.link.keys().action(&ids[0]), vec![1u8, 0xff, 0xfe, 0x00]).await.map_err(|e| anyhow::anyhow!("{e}"))?;
-    within("alfa to count the malformed action", Duration::from_secs(5), async {
-        let mut changes = sim.link.changes();
-        loop {
-            let counted = sim.link.view().get(&ids[0]).and_then(|e| e.status.as_ref()).is_some_and(|s| s.malformed_actions == 1);
-            if counted {
-                break;
+    sim.link
+        .session()
+        .put(sim.link.keys().action(&ids[0]), vec![1u8, 0xff, 0xfe, 0x00])
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    within(
+        "alfa to count the malformed action",
+        Duration::from_secs(5),
+        async {
+            let mut changes = sim.link.changes();
+            loop {
+                let counted = sim
+                    .link
+                    .view()
+                    .get(&ids[0])
+                    .and_then(|e| e.status.as_ref())
+                    .is_some_and(|s| s.malformed_actions == 1);
+                if counted {
+                    break;
+                }
+                let _ = changes.recv().await;
             }
-            let _ = changes.recv().await;
-        }
-    })
+        },
+    )
     .await?;
 
     let goals: Vec<Vec3> = ids
@@ -112,43 +124,55 @@ async fn fly_pattern(sim: &SimSwarm) -> anyhow::Result<()> {
             home + Vec3::new(0.0, 30.0, alt + 2.0)
         })
         .collect();
-    act_all(&sim.link, &gate, ids.iter().cloned().zip(goals.iter().map(|g| Action::Goto { target: *g })).collect()).await?;
-    truth_until(&mut truth, Duration::from_secs(10), "each vehicle at its goto point", |t| {
-        ids.iter().zip(&goals).all(|(d, g)| vehicle(t, d).is_some_and(|v| (v.position - g).norm() < 1.5))
-    })
+    act_all(
+        &sim.link,
+        &gate,
+        ids.iter()
+            .cloned()
+            .zip(goals.iter().map(|g| Action::Goto { target: *g }))
+            .collect(),
+    )
+    .await?;
+    truth_until(
+        &mut truth,
+        Duration::from_secs(10),
+        "each vehicle at its goto point",
+        |t| {
+            ids.iter()
+                .zip(&goals)
+                .all(|(d, g)| vehicle(t, d).is_some_and(|v| (v.position - g).norm() < 1.5))
+        },
+    )
     .await?;
 
-    for d in &ids {
-        act_ok(&sim.link, &gate, d, Action::Land).await?;
-    }
-    let last = truth_until(&mut truth, Duration::from_secs(10), "all landed and disarmed", |t| {
-        ids.iter().all(|d| vehicle(t, d).is_some_and(|v| v.landed && !v.armed))
-    })
+    act_all(
+        &sim.link,
+        &gate,
+        ids.iter().map(|d| (d.clone(), Action::Land)).collect(),
+    )
+    .await?;
+    let last = truth_until(
+        &mut truth,
+        Duration::from_secs(10),
+        "all landed and disarmed",
+        |t| {
+            ids.iter()
+                .all(|d| vehicle(t, d).is_some_and(|v| v.landed && !v.armed))
+        },
+    )
     .await?;
     assert_eq!(last.separation_breaches, 0, "separation breach in truth");
     assert_eq!(last.obstacle_breaches, 0, "obstacle breach in truth");
     Ok(())
 }
 
-/// Sends one action per drone at once, then waits until every one is done.
-async fn act_all(link: &GroundLink, gate: &SafetyGate, actions: Vec<(DroneId, Action)>) -> anyhow::Result<()> {
-    let mut sent = Vec::new();
-    for (drone, action) in actions {
-        let checked = {
-            let view = link.view();
-            gate.check(&view, drone.as_str(), &action, Instant::now())
-        }
-        .map_err(|r| anyhow::anyhow!("gate refused {action} for {drone}: {r}"))?;
-        sent.push((drone, action.to_string(), link.send(&checked, None).await?));
-    }
-    for (drone, label, seq) in sent {
-        // Outcomes are recorded by the link as they arrive, so waiting in turn loses nothing.
-        match link.wait_outcome(&drone, seq, STEP).await? {
-            ActionState::Done => {}
-            other => anyhow::bail!("{drone}: {label} ended {other:?}"),
-        }
-    }
-    Ok(())
+/// Sends one action per drone at once (through the gate), then waits until every one is done.
+async fn act_all(
+    link: &GroundLink,
+    gate: &SafetyGate,
+    actions: Vec<(DroneId, Action)>,
+) -> anyhow::Result<()> {
+    Ok(run_actions(link, gate, &actions, None, STEP).await?)
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -164,10 +188,22 @@ async fn crash_onboard_and_writer(sim: &mut SimSwarm) -> anyhow::Result<()> {
     let gate = SafetyGate::new(sim.scenario.clone());
     let mut truth = sim.link.watch_truth().await?;
     all_ready(sim, &[alfa.clone(), bravo.clone()]).await?;
-    act_all(&sim.link, &gate, vec![(alfa.clone(), Action::ArmTakeoff), (bravo.clone(), Action::ArmTakeoff)]).await?;
+    act_all(
+        &sim.link,
+        &gate,
+        vec![
+            (alfa.clone(), Action::ArmTakeoff),
+            (bravo.clone(), Action::ArmTakeoff),
+        ],
+    )
+    .await?;
 
     // Alfa mid-flight: send it on a long goto and kill its onboard process once it moves.
-    let home = sim.scenario.drone(&alfa).map(|s| s.home).unwrap_or_default();
+    let home = sim
+        .scenario
+        .drone(&alfa)
+        .map(|s| s.home)
+        .unwrap_or_default();
     let far = home + Vec3::new(0.0, 60.0, sim.scenario.limits.takeoff_altitude);
     let checked = {
         let view = sim.link.view();
@@ -175,28 +211,38 @@ async fn crash_onboard_and_writer(sim: &mut SimSwarm) -> anyhow::Result<()> {
     }
     .map_err(|r| anyhow::anyhow!("{r}"))?;
     sim.link.send(&checked, None).await?;
-    truth_until(&mut truth, Duration::from_secs(15), "alfa moving north", |t| {
-        vehicle(t, &alfa).is_some_and(|v| v.velocity.y > 2.0)
-    })
+    truth_until(
+        &mut truth,
+        Duration::from_secs(15),
+        "alfa moving north",
+        |t| vehicle(t, &alfa).is_some_and(|v| v.velocity.y > 2.0),
+    )
     .await?;
 
     let mut changes = sim.link.changes();
     let killed_at = Instant::now();
     let exit = sim.stack.crash(Role::Onboard, Some(&alfa)).await;
     anyhow::ensure!(exit.is_some(), "alfa's onboard process was not running");
-    within("the ground to see alfa gone", Duration::from_secs(1), async {
-        loop {
-            match changes.recv().await {
-                Ok(SwarmChange::Left(d)) if d == alfa => break,
-                Ok(_) => {}
-                Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => {}
-                Err(e) => panic!("change stream ended: {e}"),
+    within(
+        "the ground to see alfa gone",
+        Duration::from_secs(1),
+        async {
+            loop {
+                match changes.recv().await {
+                    Ok(SwarmChange::Left(d)) if d == alfa => break,
+                    Ok(_) => {}
+                    Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => {}
+                    Err(e) => panic!("change stream ended: {e}"),
+                }
             }
-        }
-    })
+        },
+    )
     .await?;
     let seen_gone_after = killed_at.elapsed();
-    println!("ground saw alfa gone {} ms after the kill", seen_gone_after.as_millis());
+    println!(
+        "ground saw alfa gone {} ms after the kill",
+        seen_gone_after.as_millis()
+    );
 
     // The writer keeps streaming a hold at the last setpoint: alfa stays in offboard and stops.
     let after = Instant::now();
@@ -216,19 +262,35 @@ async fn crash_onboard_and_writer(sim: &mut SimSwarm) -> anyhow::Result<()> {
         last = Some(v);
     }
     let last = last.ok_or_else(|| anyhow::anyhow!("no truth"))?;
-    anyhow::ensure!(last.velocity.norm() < 0.5, "alfa still moving at {:.2} m/s", last.velocity.norm());
-    anyhow::ensure!(last.armed && last.position.z > 5.0, "alfa is not holding in the air: {last:?}");
+    anyhow::ensure!(
+        last.velocity.norm() < 0.5,
+        "alfa still moving at {:.2} m/s",
+        last.velocity.norm()
+    );
+    anyhow::ensure!(
+        last.armed && last.position.z > 5.0,
+        "alfa is not holding in the air: {last:?}"
+    );
 
     // Killing bravo's writer stops the setpoint stream: PX4 leaves offboard for hold after 1 s.
     let exit = sim.stack.crash(Role::Writer, Some(&bravo)).await;
     anyhow::ensure!(exit.is_some(), "bravo's writer was not running");
-    truth_until(&mut truth, Duration::from_secs(3), "bravo in hold after its writer died", |t| {
-        vehicle(t, &bravo).is_some_and(|v| Px4Mode::from_custom_mode(v.custom_mode) == Px4Mode::Hold && v.armed)
-    })
+    truth_until(
+        &mut truth,
+        Duration::from_secs(3),
+        "bravo in hold after its writer died",
+        |t| {
+            vehicle(t, &bravo).is_some_and(|v| {
+                Px4Mode::from_custom_mode(v.custom_mode) == Px4Mode::Hold && v.armed
+            })
+        },
+    )
     .await?;
     // And the ground learns bravo lost its autopilot link (its onboard hears no writer).
     sim.link
-        .wait_for_drones(std::slice::from_ref(&bravo), Duration::from_secs(5), |s| !s.autopilot_link && s.mode == DroneMode::Unavailable)
+        .wait_for_drones(std::slice::from_ref(&bravo), Duration::from_secs(5), |s| {
+            !s.autopilot_link && s.mode == DroneMode::Unavailable
+        })
         .await?;
     Ok(())
 }

@@ -6,7 +6,9 @@
 
 use crate::profile::{ReferenceState, StraightLine};
 use tacos_shared::action::{Action, ActionCommand, mode_forbids};
-use tacos_shared::ipc::{CommandKind, CommandOutcome, CommandResultSample, CommandSample, VehicleStateSample};
+use tacos_shared::ipc::{
+    CommandKind, CommandOutcome, CommandResultSample, CommandSample, VehicleStateSample,
+};
 use tacos_shared::messages::{ActionProgress, ActionState, FailsafeStage, FailureReason};
 use tacos_shared::px4_mode::Px4Mode;
 use tacos_shared::scenario::FlightLimits;
@@ -53,11 +55,21 @@ enum TakeoffStep {
 enum Task {
     /// Nothing commanded: the reference follows the vehicle.
     Idle,
-    Takeoff { step: TakeoffStep, ground_z: f64, deadline: f64 },
-    Goto { line: StraightLine, deadline: f64 },
+    Takeoff {
+        step: TakeoffStep,
+        ground_z: f64,
+        deadline: f64,
+    },
+    Goto {
+        line: StraightLine,
+        deadline: f64,
+    },
     /// Airborne at `hold_point` under offboard control.
     Hold,
-    Land { accepted: bool, deadline: f64 },
+    Land {
+        accepted: bool,
+        deadline: f64,
+    },
 }
 
 /// What one tick asks the shell to send.
@@ -79,7 +91,11 @@ pub struct ExecutorConfig {
 impl ExecutorConfig {
     pub fn new(limits: FlightLimits, world: World) -> Self {
         let arrive_tolerance = (2.0 * limits.drone_radius).max(0.2);
-        ExecutorConfig { limits, world, arrive_tolerance }
+        ExecutorConfig {
+            limits,
+            world,
+            arrive_tolerance,
+        }
     }
 }
 
@@ -135,7 +151,8 @@ impl Executor {
     }
 
     fn airborne(&self) -> bool {
-        self.vehicle.is_some_and(|v| v.link_ok && v.armed && !v.landed)
+        self.vehicle
+            .is_some_and(|v| v.link_ok && v.armed && !v.landed)
     }
 
     fn request(&mut self, kind: CommandKind, param: f64) {
@@ -154,7 +171,11 @@ impl Executor {
     fn fail(&mut self, reason: FailureReason) {
         self.finish(ActionState::Failed(reason));
         self.awaiting = None;
-        self.task = if self.airborne() { Task::Hold } else { Task::Idle };
+        self.task = if self.airborne() {
+            Task::Hold
+        } else {
+            Task::Idle
+        };
         if self.airborne() && self.hold_point.is_none() {
             self.hold_point = self.vehicle.map(|v| v.position);
         }
@@ -172,7 +193,9 @@ impl Executor {
 
     /// Asks for offboard unless PX4 is already there or the request is in flight.
     fn ensure_offboard(&mut self) {
-        let pending = self.awaiting.is_some_and(|c| c.kind() == Some(CommandKind::Offboard));
+        let pending = self
+            .awaiting
+            .is_some_and(|c| c.kind() == Some(CommandKind::Offboard));
         if !self.in_offboard() && !pending {
             self.request(CommandKind::Offboard, 0.0);
         }
@@ -188,7 +211,9 @@ impl Executor {
         self.progress = Some(ActionProgress::started(command));
         self.awaiting = None;
         if let Some(why) = mode_forbids(&command.action, self.mode()) {
-            self.finish(ActionState::Failed(FailureReason::InvalidForMode(why.to_owned())));
+            self.finish(ActionState::Failed(FailureReason::InvalidForMode(
+                why.to_owned(),
+            )));
             return true;
         }
         let Some(vehicle) = self.vehicle else {
@@ -199,7 +224,11 @@ impl Executor {
         match &command.action {
             Action::ArmTakeoff => {
                 let deadline = now + 30.0 + limits.takeoff_altitude / 0.5;
-                self.task = Task::Takeoff { step: TakeoffStep::Arming, ground_z: vehicle.position.z, deadline };
+                self.task = Task::Takeoff {
+                    step: TakeoffStep::Arming,
+                    ground_z: vehicle.position.z,
+                    deadline,
+                };
                 self.request(CommandKind::Arm, 0.0);
             }
             Action::Goto { target } => {
@@ -214,7 +243,13 @@ impl Executor {
                     self.fail(FailureReason::Unreachable(why));
                     return true;
                 }
-                let line = StraightLine::new(from, *target, now, limits.max_speed * 0.8, limits.max_accel * 0.8);
+                let line = StraightLine::new(
+                    from,
+                    *target,
+                    now,
+                    limits.max_speed * 0.8,
+                    limits.max_accel * 0.8,
+                );
                 let deadline = now + line.duration() * 1.5 + 15.0;
                 self.task = Task::Goto { line, deadline };
                 self.ensure_offboard();
@@ -232,7 +267,10 @@ impl Executor {
                 }
             }
             Action::Land => {
-                self.task = Task::Land { accepted: false, deadline: now + 60.0 + vehicle.position.z / 0.5 };
+                self.task = Task::Land {
+                    accepted: false,
+                    deadline: now + 60.0 + vehicle.position.z / 0.5,
+                };
                 self.request(CommandKind::Land, 0.0);
             }
             Action::StopTracking => {
@@ -278,22 +316,30 @@ impl Executor {
             Some(CommandOutcome::TimedOut) => return self.fail(FailureReason::TimedOut),
             Some(CommandOutcome::LinkLost) => return self.fail(FailureReason::AutopilotLinkLost),
             Some(CommandOutcome::Unsupported) | None => {
-                return self.fail(FailureReason::Rejected(format!("{kind:?} not supported by the writer")));
+                return self.fail(FailureReason::Rejected(format!(
+                    "{kind:?} not supported by the writer"
+                )));
             }
         }
         if kind == Some(CommandKind::Offboard) {
             self.offboard_since = Some(now);
         }
         match (&mut self.task, kind) {
-            (Task::Takeoff { step, .. }, Some(CommandKind::Arm)) if *step == TakeoffStep::Arming => {
+            (Task::Takeoff { step, .. }, Some(CommandKind::Arm))
+                if *step == TakeoffStep::Arming =>
+            {
                 *step = TakeoffStep::Commanding;
                 let altitude = self.cfg.limits.takeoff_altitude;
                 self.request(CommandKind::Takeoff, altitude);
             }
-            (Task::Takeoff { step, .. }, Some(CommandKind::Takeoff)) if *step == TakeoffStep::Commanding => {
+            (Task::Takeoff { step, .. }, Some(CommandKind::Takeoff))
+                if *step == TakeoffStep::Commanding =>
+            {
                 *step = TakeoffStep::Climbing;
             }
-            (Task::Takeoff { step, .. }, Some(CommandKind::Offboard)) if *step == TakeoffStep::Offboarding => {
+            (Task::Takeoff { step, .. }, Some(CommandKind::Offboard))
+                if *step == TakeoffStep::Offboarding =>
+            {
                 self.task = Task::Hold;
                 self.finish(ActionState::Done);
             }
@@ -323,7 +369,10 @@ impl Executor {
             }
             FailsafeStage::Landing => {
                 self.fail(FailureReason::Failsafe("ground silent: landing".into()));
-                self.task = Task::Land { accepted: false, deadline: now + 60.0 + vehicle_z / 0.5 };
+                self.task = Task::Land {
+                    accepted: false,
+                    deadline: now + 60.0 + vehicle_z / 0.5,
+                };
                 self.request(CommandKind::Land, 0.0);
             }
         }
@@ -335,7 +384,11 @@ impl Executor {
             return TickOutput::default();
         };
         if !vehicle.link_ok {
-            if self.progress.as_ref().is_some_and(|p| !p.state.is_finished()) {
+            if self
+                .progress
+                .as_ref()
+                .is_some_and(|p| !p.state.is_finished())
+            {
                 self.fail(FailureReason::AutopilotLinkLost);
             }
             self.task = Task::Idle;
@@ -343,17 +396,26 @@ impl Executor {
         self.advance(vehicle, now);
         let reference = match &self.task {
             Task::Goto { line, .. } => line.sample(now),
-            Task::Hold | Task::Takeoff { step: TakeoffStep::Offboarding, .. } => {
-                still(self.hold_point.unwrap_or(vehicle.position))
-            }
+            Task::Hold
+            | Task::Takeoff {
+                step: TakeoffStep::Offboarding,
+                ..
+            } => still(self.hold_point.unwrap_or(vehicle.position)),
             _ => still(vehicle.position),
         };
-        TickOutput { reference: Some(reference), commands: std::mem::take(&mut self.outbox) }
+        TickOutput {
+            reference: Some(reference),
+            commands: std::mem::take(&mut self.outbox),
+        }
     }
 
     fn left_offboard(&self, vehicle: &VehicleView, now: f64) -> bool {
-        let settled = self.offboard_since.is_some_and(|t| now - t > MODE_REPORT_GRACE_S);
-        let pending = self.awaiting.is_some_and(|c| c.kind() == Some(CommandKind::Offboard));
+        let settled = self
+            .offboard_since
+            .is_some_and(|t| now - t > MODE_REPORT_GRACE_S);
+        let pending = self
+            .awaiting
+            .is_some_and(|c| c.kind() == Some(CommandKind::Offboard));
         settled && !pending && vehicle.px4 != Px4Mode::Offboard
     }
 
@@ -365,16 +427,29 @@ impl Executor {
                     self.hold_point = None;
                 }
             }
-            Task::Takeoff { step, ground_z, deadline } => {
+            Task::Takeoff {
+                step,
+                ground_z,
+                deadline,
+            } => {
                 if now > deadline {
                     return self.fail(FailureReason::TimedOut);
                 }
                 let goal_z = ground_z + limits.takeoff_altitude;
-                let reached = vehicle.position.z >= goal_z - (0.1 * limits.takeoff_altitude).max(0.1);
-                self.set_running((((vehicle.position.z - ground_z) / limits.takeoff_altitude).clamp(0.0, 1.0) * 0.9) as f32);
+                let reached =
+                    vehicle.position.z >= goal_z - (0.1 * limits.takeoff_altitude).max(0.1);
+                self.set_running(
+                    (((vehicle.position.z - ground_z) / limits.takeoff_altitude).clamp(0.0, 1.0)
+                        * 0.9) as f32,
+                );
                 if step == TakeoffStep::Climbing && reached {
-                    self.hold_point = Some(Vec3::new(vehicle.position.x, vehicle.position.y, goal_z));
-                    self.task = Task::Takeoff { step: TakeoffStep::Offboarding, ground_z, deadline };
+                    self.hold_point =
+                        Some(Vec3::new(vehicle.position.x, vehicle.position.y, goal_z));
+                    self.task = Task::Takeoff {
+                        step: TakeoffStep::Offboarding,
+                        ground_z,
+                        deadline,
+                    };
                     self.request(CommandKind::Offboard, 0.0);
                 }
             }
@@ -382,7 +457,10 @@ impl Executor {
                 let target = line.target();
                 if self.left_offboard(&vehicle, now) {
                     self.hold_point = Some(vehicle.position);
-                    return self.fail(FailureReason::Rejected(format!("the autopilot left offboard for {:?}", vehicle.px4)));
+                    return self.fail(FailureReason::Rejected(format!(
+                        "the autopilot left offboard for {:?}",
+                        vehicle.px4
+                    )));
                 }
                 let close = (vehicle.position - target).norm() <= self.cfg.arrive_tolerance;
                 let slow = vehicle.velocity.norm() <= (0.1 * limits.max_speed).max(0.2);
@@ -413,7 +491,8 @@ impl Executor {
                 } else if now > deadline {
                     self.fail(FailureReason::TimedOut);
                 } else if accepted {
-                    let progress = 1.0 - (vehicle.position.z / limits.takeoff_altitude.max(0.1)).clamp(0.0, 1.0);
+                    let progress = 1.0
+                        - (vehicle.position.z / limits.takeoff_altitude.max(0.1)).clamp(0.0, 1.0);
                     self.set_running((progress * 0.95) as f32);
                 }
             }
@@ -422,7 +501,11 @@ impl Executor {
 }
 
 fn still(position: Vec3) -> ReferenceState {
-    ReferenceState { position, velocity: Vec3::zeros(), acceleration: Vec3::zeros() }
+    ReferenceState {
+        position,
+        velocity: Vec3::zeros(),
+        acceleration: Vec3::zeros(),
+    }
 }
 
 #[cfg(test)]
@@ -447,12 +530,21 @@ mod tests {
     }
 
     fn accept(ex: &mut Executor, cmd: &CommandSample, now: f64) {
-        let r = CommandResultSample { seq: cmd.seq, kind: cmd.kind, outcome: CommandOutcome::Accepted as u32, ..Default::default() };
+        let r = CommandResultSample {
+            seq: cmd.seq,
+            kind: cmd.kind,
+            outcome: CommandOutcome::Accepted as u32,
+            ..Default::default()
+        };
         ex.on_result(&r, now);
     }
 
     fn cmd(seq: u64, action: Action) -> ActionCommand {
-        ActionCommand { seq, task_id: None, action }
+        ActionCommand {
+            seq,
+            task_id: None,
+            action,
+        }
     }
 
     fn state_of(ex: &Executor) -> ActionState {
@@ -474,10 +566,18 @@ mod tests {
         assert_eq!(out.commands[0].kind(), Some(CommandKind::Takeoff));
         assert_eq!(out.commands[0].param, 10.0);
         accept(&mut ex, &out.commands[0], 0.2);
-        ex.on_vehicle(&state(home + Vec3::new(0.0, 0.0, 5.0), true, Px4Mode::Takeoff));
+        ex.on_vehicle(&state(
+            home + Vec3::new(0.0, 0.0, 5.0),
+            true,
+            Px4Mode::Takeoff,
+        ));
         assert!(ex.tick(1.0).commands.is_empty());
         assert!(matches!(state_of(&ex), ActionState::Running { .. }));
-        ex.on_vehicle(&state(home + Vec3::new(0.0, 0.0, 9.95), true, Px4Mode::Hold));
+        ex.on_vehicle(&state(
+            home + Vec3::new(0.0, 0.0, 9.95),
+            true,
+            Px4Mode::Hold,
+        ));
         let out = ex.tick(3.0);
         assert_eq!(out.commands[0].kind(), Some(CommandKind::Offboard));
         assert_eq!(out.reference.map(|r| r.position.z), Some(10.0));
@@ -490,24 +590,71 @@ mod tests {
     fn goto_before_takeoff_is_refused_by_mode() {
         let mut ex = lab();
         ex.on_vehicle(&state(Vec3::new(-50.0, -132.5, 0.0), false, Px4Mode::Hold));
-        ex.on_command(&cmd(1, Action::Goto { target: Vec3::new(0.0, -100.0, 10.0) }), 0.0);
-        assert!(matches!(state_of(&ex), ActionState::Failed(FailureReason::InvalidForMode(_))));
+        ex.on_command(
+            &cmd(
+                1,
+                Action::Goto {
+                    target: Vec3::new(0.0, -100.0, 10.0),
+                },
+            ),
+            0.0,
+        );
+        assert!(matches!(
+            state_of(&ex),
+            ActionState::Failed(FailureReason::InvalidForMode(_))
+        ));
         assert!(ex.tick(0.0).commands.is_empty());
     }
 
     #[test]
     fn goto_into_or_through_a_skyscraper_is_unreachable() {
         let mut ex = lab();
-        ex.on_vehicle(&state(Vec3::new(-40.0, -40.0, 10.0), true, Px4Mode::Offboard));
-        ex.on_command(&cmd(1, Action::Goto { target: Vec3::new(-18.0, -18.0, 10.0) }), 0.0);
-        assert!(matches!(state_of(&ex), ActionState::Failed(FailureReason::Unreachable(_))));
-        ex.on_command(&cmd(2, Action::Goto { target: Vec3::new(40.0, 40.0, 10.0) }), 0.0);
+        ex.on_vehicle(&state(
+            Vec3::new(-40.0, -40.0, 10.0),
+            true,
+            Px4Mode::Offboard,
+        ));
+        ex.on_command(
+            &cmd(
+                1,
+                Action::Goto {
+                    target: Vec3::new(-18.0, -18.0, 10.0),
+                },
+            ),
+            0.0,
+        );
+        assert!(matches!(
+            state_of(&ex),
+            ActionState::Failed(FailureReason::Unreachable(_))
+        ));
+        ex.on_command(
+            &cmd(
+                2,
+                Action::Goto {
+                    target: Vec3::new(40.0, 40.0, 10.0),
+                },
+            ),
+            0.0,
+        );
         match state_of(&ex) {
-            ActionState::Failed(FailureReason::Unreachable(why)) => assert!(why.contains("skyscraper"), "{why}"),
+            ActionState::Failed(FailureReason::Unreachable(why)) => {
+                assert!(why.contains("skyscraper"), "{why}")
+            }
             other => panic!("{other:?}"),
         }
-        ex.on_command(&cmd(3, Action::Goto { target: Vec3::new(-40.0, 400.0, 10.0) }), 0.0);
-        assert!(matches!(state_of(&ex), ActionState::Failed(FailureReason::Unreachable(_))));
+        ex.on_command(
+            &cmd(
+                3,
+                Action::Goto {
+                    target: Vec3::new(-40.0, 400.0, 10.0),
+                },
+            ),
+            0.0,
+        );
+        assert!(matches!(
+            state_of(&ex),
+            ActionState::Failed(FailureReason::Unreachable(_))
+        ));
     }
 
     #[test]
@@ -533,11 +680,31 @@ mod tests {
         ex.on_vehicle(&state(Vec3::new(-50.0, -132.5, 0.0), false, Px4Mode::Hold));
         ex.on_command(&cmd(1, Action::ArmTakeoff), 0.0);
         let arm = ex.tick(0.0).commands[0];
-        ex.on_result(&CommandResultSample { seq: arm.seq, kind: arm.kind, outcome: CommandOutcome::Rejected as u32, mav_result: 1, _reserved: 0 }, 0.5);
-        assert!(matches!(state_of(&ex), ActionState::Failed(FailureReason::Rejected(_))));
+        ex.on_result(
+            &CommandResultSample {
+                seq: arm.seq,
+                kind: arm.kind,
+                outcome: CommandOutcome::Rejected as u32,
+                mav_result: 1,
+                _reserved: 0,
+            },
+            0.5,
+        );
+        assert!(matches!(
+            state_of(&ex),
+            ActionState::Failed(FailureReason::Rejected(_))
+        ));
         ex.on_command(&cmd(2, Action::ArmTakeoff), 1.0);
         let arm = ex.tick(1.0).commands[0];
-        ex.on_result(&CommandResultSample { seq: arm.seq, kind: arm.kind, outcome: CommandOutcome::TimedOut as u32, ..Default::default() }, 4.0);
+        ex.on_result(
+            &CommandResultSample {
+                seq: arm.seq,
+                kind: arm.kind,
+                outcome: CommandOutcome::TimedOut as u32,
+                ..Default::default()
+            },
+            4.0,
+        );
         assert_eq!(state_of(&ex), ActionState::Failed(FailureReason::TimedOut));
     }
 
@@ -546,14 +713,25 @@ mod tests {
         let mut ex = lab();
         let start = Vec3::new(-40.0, -100.0, 10.0);
         ex.on_vehicle(&state(start, true, Px4Mode::Hold));
-        ex.on_command(&cmd(1, Action::Goto { target: Vec3::new(-40.0, -60.0, 10.0) }), 0.0);
+        ex.on_command(
+            &cmd(
+                1,
+                Action::Goto {
+                    target: Vec3::new(-40.0, -60.0, 10.0),
+                },
+            ),
+            0.0,
+        );
         let off = ex.tick(0.0).commands[0];
         accept(&mut ex, &off, 0.1);
         ex.on_vehicle(&state(start, true, Px4Mode::Offboard));
         ex.tick(1.0);
         ex.on_vehicle(&state(start, true, Px4Mode::Hold));
         ex.tick(3.0);
-        assert!(matches!(state_of(&ex), ActionState::Failed(FailureReason::Rejected(_))));
+        assert!(matches!(
+            state_of(&ex),
+            ActionState::Failed(FailureReason::Rejected(_))
+        ));
 
         let mut lost = state(start, true, Px4Mode::Hold);
         lost.link_ok = 0;
@@ -576,13 +754,27 @@ mod tests {
         let mut ex = lab();
         let p = Vec3::new(-40.0, -100.0, 10.0);
         ex.on_vehicle(&state(p, true, Px4Mode::Offboard));
-        ex.on_command(&cmd(1, Action::Goto { target: Vec3::new(-40.0, -60.0, 10.0) }), 0.0);
+        ex.on_command(
+            &cmd(
+                1,
+                Action::Goto {
+                    target: Vec3::new(-40.0, -60.0, 10.0),
+                },
+            ),
+            0.0,
+        );
         ex.tick(0.5);
         ex.set_failsafe(Some(FailsafeStage::Holding), 1.0);
-        assert!(matches!(state_of(&ex), ActionState::Failed(FailureReason::Failsafe(_))));
+        assert!(matches!(
+            state_of(&ex),
+            ActionState::Failed(FailureReason::Failsafe(_))
+        ));
         assert_eq!(ex.tick(1.1).reference.map(|r| r.position), Some(p));
         ex.set_failsafe(Some(FailsafeStage::Landing), 5.0);
         let out = ex.tick(5.0);
-        assert_eq!(out.commands.last().and_then(|c| c.kind()), Some(CommandKind::Land));
+        assert_eq!(
+            out.commands.last().and_then(|c| c.kind()),
+            Some(CommandKind::Land)
+        );
     }
 }

@@ -12,7 +12,11 @@ pub struct FailsafeTimer {
 impl FailsafeTimer {
     /// Silence is counted from `now` until the ground is first heard.
     pub fn new(hold_after: f64, land_after: f64, now: f64) -> Self {
-        FailsafeTimer { hold_after, land_after: land_after.max(hold_after), last_heard: now }
+        FailsafeTimer {
+            hold_after,
+            land_after: land_after.max(hold_after),
+            last_heard: now,
+        }
     }
 
     pub fn heard(&mut self, now: f64) {

@@ -34,8 +34,21 @@ impl StraightLine {
         let v_peak = speed.min((distance * accel).sqrt());
         let t_ramp = v_peak / accel;
         let ramp_distance = v_peak * t_ramp; // both ramps together
-        let t_cruise = if v_peak > 0.0 { (distance - ramp_distance).max(0.0) / v_peak } else { 0.0 };
-        StraightLine { from, to, start, distance, v_peak, accel, t_ramp, t_cruise }
+        let t_cruise = if v_peak > 0.0 {
+            (distance - ramp_distance).max(0.0) / v_peak
+        } else {
+            0.0
+        };
+        StraightLine {
+            from,
+            to,
+            start,
+            distance,
+            v_peak,
+            accel,
+            t_ramp,
+            t_cruise,
+        }
     }
 
     pub fn target(&self) -> Vec3 {
@@ -69,7 +82,11 @@ impl StraightLine {
             (0.5 * a * tr * tr + self.v_peak * (t - tr), self.v_peak, 0.0)
         } else if t < 2.0 * tr + tc {
             let td = t - tr - tc;
-            (0.5 * a * tr * tr + self.v_peak * tc + self.v_peak * td - 0.5 * a * td * td, self.v_peak - a * td, -a)
+            (
+                0.5 * a * tr * tr + self.v_peak * tc + self.v_peak * td - 0.5 * a * td * td,
+                self.v_peak - a * td,
+                -a,
+            )
         } else {
             (self.distance, 0.0, 0.0)
         }
@@ -77,11 +94,19 @@ impl StraightLine {
 
     pub fn sample(&self, now: f64) -> ReferenceState {
         if self.distance <= 0.0 {
-            return ReferenceState { position: self.to, velocity: Vec3::zeros(), acceleration: Vec3::zeros() };
+            return ReferenceState {
+                position: self.to,
+                velocity: Vec3::zeros(),
+                acceleration: Vec3::zeros(),
+            };
         }
         let dir = (self.to - self.from) / self.distance;
         let (s, v, a) = self.along(now);
-        ReferenceState { position: self.from + dir * s, velocity: dir * v, acceleration: dir * a }
+        ReferenceState {
+            position: self.from + dir * s,
+            velocity: dir * v,
+            acceleration: dir * a,
+        }
     }
 }
 
@@ -98,7 +123,10 @@ mod tests {
             let s = line.sample(t);
             assert!(s.velocity.norm() <= 5.0 + 1e-9);
             assert!(s.acceleration.norm() <= 2.0 + 1e-9);
-            assert!((s.position - last).norm() <= 5.0 * 0.01 + 1e-9, "jump at t={t}");
+            assert!(
+                (s.position - last).norm() <= 5.0 * 0.01 + 1e-9,
+                "jump at t={t}"
+            );
             last = s.position;
             t += 0.01;
         }

@@ -12,7 +12,7 @@ use tacos_shared::ipc::SetpointSample;
 use tacos_shared::messages::{DroneStatus, GroundHeartbeat};
 use tacos_shared::scenario::Scenario;
 use tokio::time::MissedTickBehavior;
-use tracing::{info, info_span, warn, Instrument};
+use tracing::{Instrument, info, info_span, warn};
 
 #[derive(Debug, Clone)]
 pub struct OnboardConfig {
@@ -57,16 +57,24 @@ pub enum OnboardError {
 }
 
 fn unix_nanos() -> u64 {
-    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
 }
 
 /// Runs the drone until `shutdown` completes.
-pub async fn run(cfg: OnboardConfig, shutdown: impl Future<Output = ()>) -> Result<(), OnboardError> {
+pub async fn run(
+    cfg: OnboardConfig,
+    shutdown: impl Future<Output = ()>,
+) -> Result<(), OnboardError> {
     let span = info_span!("drone", id = %cfg.drone);
     run_inner(cfg, shutdown).instrument(span).await
 }
 
-async fn run_inner(cfg: OnboardConfig, shutdown: impl Future<Output = ()>) -> Result<(), OnboardError> {
+async fn run_inner(
+    cfg: OnboardConfig,
+    shutdown: impl Future<Output = ()>,
+) -> Result<(), OnboardError> {
     let keys = cfg.bus.keys();
     let drone = cfg.drone.clone();
     let session = cfg.bus.open().await?;
@@ -80,7 +88,10 @@ async fn run_inner(cfg: OnboardConfig, shutdown: impl Future<Output = ()>) -> Re
 
     let origin = Instant::now();
     let now = || origin.elapsed().as_secs_f64();
-    let mut executor = Executor::new(ExecutorConfig::new(cfg.scenario.limits, cfg.scenario.world.clone()));
+    let mut executor = Executor::new(ExecutorConfig::new(
+        cfg.scenario.limits,
+        cfg.scenario.world.clone(),
+    ));
     let mut failsafe = FailsafeTimer::new(cfg.failsafe_hold_s, cfg.failsafe_land_s, now());
     let mut control = tokio::time::interval(Duration::from_secs_f64(1.0 / cfg.control_rate_hz));
     control.set_missed_tick_behavior(MissedTickBehavior::Skip);
@@ -170,7 +181,7 @@ async fn run_inner(cfg: OnboardConfig, shutdown: impl Future<Output = ()>) -> Re
                     }
                 }
                 ticks += 1;
-                if ticks % status_every == 0 {
+                if ticks.is_multiple_of(status_every) {
                     publish_now = true;
                 }
             }

@@ -24,7 +24,11 @@ pub enum IpcError {
     #[error("iceoryx2 service {service}: {reason}")]
     Service { service: String, reason: String },
     #[error("iceoryx2 {port} port on {service}: {reason}")]
-    Port { service: String, port: &'static str, reason: String },
+    Port {
+        service: String,
+        port: &'static str,
+        reason: String,
+    },
     #[error("iceoryx2 send on {service}: {reason}")]
     Send { service: String, reason: String },
     #[error("iceoryx2 receive on {service}: {reason}")]
@@ -39,7 +43,10 @@ pub struct IpcNode {
 }
 
 fn service_name(name: &str) -> Result<ServiceName, IpcError> {
-    ServiceName::new(name).map_err(|e| IpcError::Service { service: name.to_owned(), reason: format!("{e:?}") })
+    ServiceName::new(name).map_err(|e| IpcError::Service {
+        service: name.to_owned(),
+        reason: format!("{e:?}"),
+    })
 }
 
 impl IpcNode {
@@ -53,7 +60,11 @@ impl IpcNode {
             .map_err(|e| IpcError::Node(format!("{e:?}")))?;
         // A previous run that was killed leaves its node behind; reclaim it so services open.
         let _ = node.try_cleanup_dead_nodes();
-        Ok(IpcNode { node, swarm: swarm.clone(), drone: drone.clone() })
+        Ok(IpcNode {
+            node,
+            swarm: swarm.clone(),
+            drone: drone.clone(),
+        })
     }
 
     fn name(&self, channel: IpcChannel) -> String {
@@ -65,7 +76,13 @@ impl IpcNode {
         channel: IpcChannel,
         buffer: usize,
         history: usize,
-    ) -> Result<(String, iceoryx2::service::port_factory::publish_subscribe::PortFactory<Svc, T, ()>), IpcError> {
+    ) -> Result<
+        (
+            String,
+            iceoryx2::service::port_factory::publish_subscribe::PortFactory<Svc, T, ()>,
+        ),
+        IpcError,
+    > {
         let name = self.name(channel);
         let factory = self
             .node
@@ -77,7 +94,10 @@ impl IpcNode {
             .history_size(history)
             .enable_safe_overflow(true)
             .open_or_create()
-            .map_err(|e| IpcError::Service { service: name.clone(), reason: format!("{e:?}") })?;
+            .map_err(|e| IpcError::Service {
+                service: name.clone(),
+                reason: format!("{e:?}"),
+            })?;
         Ok((name, factory))
     }
 
@@ -91,7 +111,11 @@ impl IpcNode {
         let port = factory
             .publisher_builder()
             .create()
-            .map_err(|e| IpcError::Port { service: name.clone(), port: "publisher", reason: format!("{e:?}") })?;
+            .map_err(|e| IpcError::Port {
+                service: name.clone(),
+                port: "publisher",
+                reason: format!("{e:?}"),
+            })?;
         Ok(Sender { port, name })
     }
 
@@ -105,11 +129,23 @@ impl IpcNode {
         let port = factory
             .subscriber_builder()
             .create()
-            .map_err(|e| IpcError::Port { service: name.clone(), port: "subscriber", reason: format!("{e:?}") })?;
+            .map_err(|e| IpcError::Port {
+                service: name.clone(),
+                port: "subscriber",
+                reason: format!("{e:?}"),
+            })?;
         Ok(Receiver { port, name })
     }
 
-    fn event(&self) -> Result<(String, iceoryx2::service::port_factory::event::PortFactory<Svc>), IpcError> {
+    fn event(
+        &self,
+    ) -> Result<
+        (
+            String,
+            iceoryx2::service::port_factory::event::PortFactory<Svc>,
+        ),
+        IpcError,
+    > {
         let name = self.name(IpcChannel::Wakeup);
         let factory = self
             .node
@@ -118,7 +154,10 @@ impl IpcNode {
             .max_notifiers(2)
             .max_listeners(2)
             .open_or_create()
-            .map_err(|e| IpcError::Service { service: name.clone(), reason: format!("{e:?}") })?;
+            .map_err(|e| IpcError::Service {
+                service: name.clone(),
+                reason: format!("{e:?}"),
+            })?;
         Ok((name, factory))
     }
 
@@ -128,11 +167,18 @@ impl IpcNode {
         let wakeup = events
             .notifier_builder()
             .create()
-            .map_err(|e| IpcError::Port { service: wake_name.clone(), port: "notifier", reason: format!("{e:?}") })?;
+            .map_err(|e| IpcError::Port {
+                service: wake_name.clone(),
+                port: "notifier",
+                reason: format!("{e:?}"),
+            })?;
         Ok(OnboardPorts {
             setpoints: self.publisher(IpcChannel::Setpoint, SETPOINT_BUFFER, 1)?,
             commands: self.publisher(IpcChannel::Command, COMMAND_BUFFER, 0)?,
-            wakeup: Wake { port: wakeup, name: wake_name },
+            wakeup: Wake {
+                port: wakeup,
+                name: wake_name,
+            },
             results: self.subscriber(IpcChannel::CommandResult, COMMAND_BUFFER, 0)?,
             state: self.subscriber(IpcChannel::VehicleState, STATE_BUFFER, 1)?,
         })
@@ -144,7 +190,11 @@ impl IpcNode {
         let listener = events
             .listener_builder()
             .create()
-            .map_err(|e| IpcError::Port { service: wake_name.clone(), port: "listener", reason: format!("{e:?}") })?;
+            .map_err(|e| IpcError::Port {
+                service: wake_name.clone(),
+                port: "listener",
+                reason: format!("{e:?}"),
+            })?;
         Ok(WriterPorts {
             setpoints: self.subscriber(IpcChannel::Setpoint, SETPOINT_BUFFER, 1)?,
             commands: self.subscriber(IpcChannel::Command, COMMAND_BUFFER, 0)?,
@@ -168,14 +218,17 @@ pub struct Sender<T: std::fmt::Debug + ZeroCopySend + 'static> {
 
 impl<T: std::fmt::Debug + ZeroCopySend + 'static> Sender<T> {
     pub fn send(&self, value: T) -> Result<(), IpcError> {
-        let sample = self
-            .port
-            .loan_uninit()
-            .map_err(|e| IpcError::Send { service: self.name.clone(), reason: format!("{e:?}") })?;
+        let sample = self.port.loan_uninit().map_err(|e| IpcError::Send {
+            service: self.name.clone(),
+            reason: format!("{e:?}"),
+        })?;
         sample
             .write_payload(value)
             .send()
-            .map_err(|e| IpcError::Send { service: self.name.clone(), reason: format!("{e:?}") })?;
+            .map_err(|e| IpcError::Send {
+                service: self.name.clone(),
+                reason: format!("{e:?}"),
+            })?;
         Ok(())
     }
 }
@@ -192,7 +245,10 @@ impl<T: std::fmt::Debug + ZeroCopySend + Copy + 'static> Receiver<T> {
         match self.port.receive() {
             Ok(Some(sample)) => Ok(Some(*sample)),
             Ok(None) => Ok(None),
-            Err(e) => Err(IpcError::Receive { service: self.name.clone(), reason: format!("{e:?}") }),
+            Err(e) => Err(IpcError::Receive {
+                service: self.name.clone(),
+                reason: format!("{e:?}"),
+            }),
         }
     }
 
@@ -236,7 +292,10 @@ impl OnboardPorts {
             .port
             .notify()
             .map(|_| ())
-            .map_err(|e| IpcError::Send { service: self.wakeup.name.clone(), reason: format!("{e:?}") })
+            .map_err(|e| IpcError::Send {
+                service: self.wakeup.name.clone(),
+                reason: format!("{e:?}"),
+            })
     }
 
     pub fn send_setpoint(&self, setpoint: SetpointSample) -> Result<(), IpcError> {
@@ -266,7 +325,10 @@ impl WriterPorts {
         let mut woken = false;
         self.wakeup
             .timed_wait(|_| woken = true, timeout)
-            .map_err(|e| IpcError::Receive { service: self.wake_name.clone(), reason: format!("{e:?}") })?;
+            .map_err(|e| IpcError::Receive {
+                service: self.wake_name.clone(),
+                reason: format!("{e:?}"),
+            })?;
         Ok(woken)
     }
 
@@ -285,7 +347,10 @@ mod tests {
     use tacos_shared::ipc::CommandKind;
 
     fn unique_swarm() -> SwarmId {
-        let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.subsec_nanos()).unwrap_or(0);
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.subsec_nanos())
+            .unwrap_or(0);
         SwarmId::new(format!("t{}x{nanos}", std::process::id())).expect("valid id")
     }
 
@@ -298,17 +363,31 @@ mod tests {
         let writer = writer_node.writer_ports().expect("writer ports");
         let onboard = onboard_node.onboard_ports().expect("onboard ports");
 
-        let sp = SetpointSample { seq: 3, position: [1.0, 2.0, 3.0], ..Default::default() };
+        let sp = SetpointSample {
+            seq: 3,
+            position: [1.0, 2.0, 3.0],
+            ..Default::default()
+        };
         onboard.send_setpoint(sp).expect("send");
-        assert!(writer.wait_for_wakeup(Duration::from_secs(2)).expect("wait"));
+        assert!(
+            writer
+                .wait_for_wakeup(Duration::from_secs(2))
+                .expect("wait")
+        );
         assert_eq!(writer.setpoints.latest().expect("recv"), Some(sp));
 
-        onboard.send_command(CommandSample::new(9, CommandKind::Takeoff, 10.0)).expect("send");
+        onboard
+            .send_command(CommandSample::new(9, CommandKind::Takeoff, 10.0))
+            .expect("send");
         let cmds = writer.commands.drain().expect("recv");
         assert_eq!(cmds.len(), 1);
         assert_eq!(cmds[0].kind(), Some(CommandKind::Takeoff));
 
-        let state = VehicleStateSample { link_ok: 1, position: [4.0, 5.0, 6.0], ..Default::default() };
+        let state = VehicleStateSample {
+            link_ok: 1,
+            position: [4.0, 5.0, 6.0],
+            ..Default::default()
+        };
         writer.publish_state(state).expect("publish");
         assert_eq!(onboard.state.latest().expect("recv"), Some(state));
     }

@@ -45,8 +45,12 @@ impl SitlConfig {
                 self.speed
             )));
         }
-        if self.drones == 0 {
-            return Err(SitlError::Config("--drones must be at least 1".into()));
+        // MAVLink system ids are 1..=255 and vehicle i is system i + 1.
+        if !(1..=255).contains(&self.drones) {
+            return Err(SitlError::Config(format!(
+                "--drones must be in 1..=255, got {}",
+                self.drones
+            )));
         }
         let slots = self
             .scenario

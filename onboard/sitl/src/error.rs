@@ -6,12 +6,11 @@ use tacos_bus::BusError;
 pub enum SitlError {
     #[error("{0}")]
     Config(String),
-    #[error("cannot bind UDP {addr} for vehicle {drone} (port in use?): {source}")]
+    #[error("cannot bind UDP {addr} for vehicle {drone} (port in use?): {error}")]
     Bind {
         drone: String,
         addr: std::net::SocketAddr,
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
     },
     #[error(transparent)]
     Bus(#[from] BusError),

@@ -2,6 +2,7 @@
 
 use anyhow::Context;
 use clap::Parser;
+use std::process::ExitCode;
 use tacos_bus::{BusArgs, load_scenario};
 use tacos_sitl::SitlConfig;
 use tacos_sitl::config::{DEFAULT_MAVLINK_BASE_PORT, DEFAULT_SITL_BASE_PORT};
@@ -31,7 +32,17 @@ struct Cli {
 }
 
 #[tokio::main]
-async fn main() -> anyhow::Result<()> {
+async fn main() -> ExitCode {
+    match run().await {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("tacos-sitl: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+async fn run() -> anyhow::Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
             EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info")),
@@ -48,9 +59,7 @@ async fn main() -> anyhow::Result<()> {
         speed: cli.speed,
         bus: cli.bus,
     };
-    tacos_sitl::run(config, shutdown_signal())
-        .await
-        .context("tacos-sitl")?;
+    tacos_sitl::run(config, shutdown_signal()).await?;
     Ok(())
 }
 

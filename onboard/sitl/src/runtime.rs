@@ -45,10 +45,10 @@ pub async fn run(config: SitlConfig, shutdown: impl Future<Output = ()>) -> Resu
         let local = SocketAddr::from((Ipv4Addr::LOCALHOST, config.sitl_port(i)));
         let socket = UdpSocket::bind(local)
             .await
-            .map_err(|source| SitlError::Bind {
+            .map_err(|error| SitlError::Bind {
                 drone: slot.id.to_string(),
                 addr: local,
-                source,
+                error,
             })?;
         links.push(VehicleLink {
             socket: Arc::new(socket),

@@ -4,9 +4,9 @@
 use serde::Serialize;
 use serde::de::DeserializeOwned;
 use std::path::PathBuf;
+use tacos_shared::SwarmId;
 use tacos_shared::codec::{self, CodecError};
 use tacos_shared::keys::Keys;
-use tacos_shared::SwarmId;
 use zenoh::Session;
 use zenoh::qos::{CongestionControl, Priority};
 use zenoh::sample::Sample;
@@ -18,7 +18,11 @@ pub enum BusError {
     #[error("could not open the zenoh session: {0}")]
     Open(String),
     #[error("zenoh {what} on {key}: {reason}")]
-    Declare { what: &'static str, key: String, reason: String },
+    Declare {
+        what: &'static str,
+        key: String,
+        reason: String,
+    },
     #[error("zenoh put on {key}: {reason}")]
     Put { key: String, reason: String },
     #[error(transparent)]
@@ -77,12 +81,29 @@ impl BusArgs {
         let mut set = |key: &str, value: String| {
             config
                 .insert_json5(key, &value)
-                .map_err(|e| BusError::Config { key: key.to_owned(), reason: e.to_string() })
+                .map_err(|e| BusError::Config {
+                    key: key.to_owned(),
+                    reason: e.to_string(),
+                })
         };
         let json_list = |items: &[String]| {
-            format!("[{}]", items.iter().map(|s| format!("{s:?}")).collect::<Vec<_>>().join(","))
+            format!(
+                "[{}]",
+                items
+                    .iter()
+                    .map(|s| format!("{s:?}"))
+                    .collect::<Vec<_>>()
+                    .join(",")
+            )
         };
-        set("mode", if self.client { "\"client\"".into() } else { "\"peer\"".into() })?;
+        set(
+            "mode",
+            if self.client {
+                "\"client\"".into()
+            } else {
+                "\"peer\"".into()
+            },
+        )?;
         if self.config_file.is_none() || self.multicast {
             set("scouting/multicast/enabled", self.multicast.to_string())?;
         }
@@ -101,21 +122,36 @@ impl BusArgs {
 
     pub async fn open(&self) -> Result<Session, BusError> {
         let config = self.zenoh_config()?;
-        zenoh::open(config).await.map_err(|e| BusError::Open(e.to_string()))
+        zenoh::open(config)
+            .await
+            .map_err(|e| BusError::Open(e.to_string()))
     }
 }
 
 /// Encodes `value` and puts it on `key`. `urgent` marks commands: reliable, never dropped,
 /// sent at once at high priority; telemetry may be dropped under congestion instead.
-pub async fn put<T: Serialize>(session: &Session, key: &str, value: &T, urgent: bool) -> Result<(), BusError> {
+pub async fn put<T: Serialize>(
+    session: &Session,
+    key: &str,
+    value: &T,
+    urgent: bool,
+) -> Result<(), BusError> {
     let bytes = codec::encode(value)?;
     let builder = session.put(key, bytes);
     let builder = if urgent {
-        builder.congestion_control(CongestionControl::Block).priority(Priority::InteractiveHigh).express(true)
+        builder
+            .congestion_control(CongestionControl::Block)
+            .priority(Priority::InteractiveHigh)
+            .express(true)
     } else {
-        builder.congestion_control(CongestionControl::Drop).priority(Priority::Data)
+        builder
+            .congestion_control(CongestionControl::Drop)
+            .priority(Priority::Data)
     };
-    builder.await.map_err(|e| BusError::Put { key: key.to_owned(), reason: e.to_string() })
+    builder.await.map_err(|e| BusError::Put {
+        key: key.to_owned(),
+        reason: e.to_string(),
+    })
 }
 
 /// Decodes a sample's payload with the wire codec.
@@ -131,16 +167,27 @@ pub async fn subscribe(
     session
         .declare_subscriber(key.to_owned())
         .await
-        .map_err(|e| BusError::Declare { what: "subscriber", key: key.to_owned(), reason: e.to_string() })
+        .map_err(|e| BusError::Declare {
+            what: "subscriber",
+            key: key.to_owned(),
+            reason: e.to_string(),
+        })
 }
 
 /// Declares this process's liveliness token on `key`; dropping it (or dying) withdraws it.
-pub async fn declare_alive(session: &Session, key: &str) -> Result<zenoh::liveliness::LivelinessToken, BusError> {
+pub async fn declare_alive(
+    session: &Session,
+    key: &str,
+) -> Result<zenoh::liveliness::LivelinessToken, BusError> {
     session
         .liveliness()
         .declare_token(key.to_owned())
         .await
-        .map_err(|e| BusError::Declare { what: "liveliness token", key: key.to_owned(), reason: e.to_string() })
+        .map_err(|e| BusError::Declare {
+            what: "liveliness token",
+            key: key.to_owned(),
+            reason: e.to_string(),
+        })
 }
 
 /// Subscribes to liveliness changes under `key` (with the current state first).
@@ -153,7 +200,11 @@ pub async fn watch_alive(
         .declare_subscriber(key.to_owned())
         .history(true)
         .await
-        .map_err(|e| BusError::Declare { what: "liveliness subscriber", key: key.to_owned(), reason: e.to_string() })
+        .map_err(|e| BusError::Declare {
+            what: "liveliness subscriber",
+            key: key.to_owned(),
+            reason: e.to_string(),
+        })
 }
 
 /// Loads a scenario given on a command line: a built-in name (`city`, `lab`) or a TOML file path.
@@ -162,7 +213,10 @@ pub fn load_scenario(arg: &str) -> Result<tacos_shared::scenario::Scenario, Scen
     if BUILTIN.contains(&arg) {
         return Ok(Scenario::builtin(arg)?);
     }
-    let text = std::fs::read_to_string(arg).map_err(|e| ScenarioLoadError::Read { path: arg.to_owned(), reason: e.to_string() })?;
+    let text = std::fs::read_to_string(arg).map_err(|e| ScenarioLoadError::Read {
+        path: arg.to_owned(),
+        reason: e.to_string(),
+    })?;
     Ok(Scenario::from_toml(&text)?)
 }
 
