@@ -67,18 +67,29 @@ pub async fn run_fixed_pattern(
 
     let ids = stack.config.drone_ids();
     tokio::pin!(interrupt);
-    let result = tokio::select! {
+    let died = |e: crate::launch::ChildExit| DemoError::ChildDied {
+        name: e.name,
+        status: match e.status {
+            Ok(s) => s.to_string(),
+            Err(e) => e,
+        },
+        logs: logs.clone(),
+    };
+    let mut result = tokio::select! {
         r = fly(&link, &gate, &ids, truth, opts.verbose) => r,
         exit = stack.next_exit() => Err(match exit {
-            Some(e) => DemoError::ChildDied {
-                name: e.name,
-                status: match e.status { Ok(s) => s.to_string(), Err(e) => e },
-                logs: logs.clone(),
-            },
+            Some(e) => died(e),
             None => DemoError::Step("the process supervisor stopped".into()),
         }),
         _ = &mut interrupt => Err(DemoError::Interrupted),
     };
+    // The link can notice a drone vanish before the supervisor reaps its process: name the
+    // process as the cause when that is what happened.
+    if matches!(result, Err(DemoError::Step(_) | DemoError::Link(_))) {
+        if let Some(exit) = stack.exit_within(Duration::from_millis(500)).await {
+            result = Err(died(exit));
+        }
+    }
     stack.shutdown(Duration::from_secs(3)).await;
     result
 }

@@ -378,6 +378,17 @@ impl Stack {
         Some(exit)
     }
 
+    /// A child exit that happens within `wait`, if any: used to tell "a drone vanished" apart
+    /// from "its process died", which the link may notice first.
+    pub async fn exit_within(&mut self, wait: Duration) -> Option<ChildExit> {
+        let exit = tokio::time::timeout(wait, self.exits.recv())
+            .await
+            .ok()
+            .flatten()?;
+        self.mark_exited(&exit);
+        Some(exit)
+    }
+
     /// SIGTERM to every child, SIGKILL to those still running after `grace`; waits for all.
     pub async fn shutdown(mut self, grace: Duration) {
         let running: Vec<(Role, Option<DroneId>)> = self
