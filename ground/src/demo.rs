@@ -85,10 +85,10 @@ pub async fn run_fixed_pattern(
     };
     // The link can notice a drone vanish before the supervisor reaps its process: name the
     // process as the cause when that is what happened.
-    if matches!(result, Err(DemoError::Step(_) | DemoError::Link(_))) {
-        if let Some(exit) = stack.exit_within(Duration::from_millis(500)).await {
-            result = Err(died(exit));
-        }
+    if matches!(result, Err(DemoError::Step(_) | DemoError::Link(_)))
+        && let Some(exit) = stack.exit_within(Duration::from_millis(500)).await
+    {
+        result = Err(died(exit));
     }
     stack.shutdown(Duration::from_secs(3)).await;
     result
