@@ -172,9 +172,12 @@ impl fmt::Display for WorldEvent {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct PathMessage {
     pub drone: DroneId,
+    /// Publisher's wall clock, seconds since the Unix epoch (for the age of the path).
     pub stamp: f64,
     pub dt: f64,
     pub positions: Vec<Vec3>,
+    /// The target this drone is tracking, so trackers of one target spread around it.
+    pub tracking: Option<String>,
 }
 
 /// A run-time fault injection request to the simulator (`sim/faults`).
