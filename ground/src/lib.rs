@@ -8,6 +8,7 @@ pub mod demo;
 pub mod direct;
 pub mod launch;
 pub mod link;
+pub mod mission;
 pub mod safety;
 pub mod swarm;
 pub mod table;

@@ -8,7 +8,10 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tacos_bus::{BusArgs, BusError};
 use tacos_shared::keys::Keys;
-use tacos_shared::messages::{ActionState, DroneStatus, GroundHeartbeat, SimTruth, WorldEvent};
+use tacos_shared::messages::{
+    ActionState, DroneStatus, GroundHeartbeat, SimTruth, TargetObservation, TargetsMessage,
+    WorldEvent,
+};
 use tacos_shared::{ActionCommand, DroneId};
 use tokio::sync::{broadcast, watch};
 use tokio::task::JoinHandle;
@@ -44,6 +47,8 @@ struct Shared {
     view: Mutex<SwarmView>,
     version: watch::Sender<u64>,
     changes: broadcast::Sender<SwarmChange>,
+    /// Joins and departures only: rare, so a slow reader never misses one to lag.
+    membership: broadcast::Sender<SwarmChange>,
     malformed_status: AtomicU64,
 }
 
@@ -56,6 +61,9 @@ impl Shared {
 
     fn changed(&self, change: SwarmChange) {
         self.version.send_modify(|v| *v += 1);
+        if !matches!(change, SwarmChange::Status(_)) {
+            let _ = self.membership.send(change.clone());
+        }
         let _ = self.changes.send(change);
     }
 }
@@ -83,10 +91,12 @@ impl GroundLink {
         let keys = bus.keys();
         let (version, _) = watch::channel(0);
         let (changes, _) = broadcast::channel(256);
+        let (membership, _) = broadcast::channel(64);
         let shared = Arc::new(Shared {
             view: Mutex::new(SwarmView::default()),
             version,
             changes,
+            membership,
             malformed_status: AtomicU64::new(0),
         });
         let mut tasks = Vec::new();
@@ -170,6 +180,11 @@ impl GroundLink {
 
     pub fn changes(&self) -> broadcast::Receiver<SwarmChange> {
         self.shared.changes.subscribe()
+    }
+
+    /// Drones joining and leaving the swarm.
+    pub fn membership(&self) -> broadcast::Receiver<SwarmChange> {
+        self.shared.membership.subscribe()
     }
 
     pub fn malformed_status_count(&self) -> u64 {
@@ -287,6 +302,27 @@ impl GroundLink {
                         }
                     }
                     Err(e) => warn!(error = %e, "malformed sim truth ignored"),
+                }
+            }
+        });
+        Ok(rx)
+    }
+
+    /// Follows `world/targets`: the newest observation of every visible target.
+    pub async fn watch_targets(
+        &self,
+    ) -> Result<watch::Receiver<Vec<TargetObservation>>, LinkError> {
+        let sub = tacos_bus::subscribe(&self.session, &self.keys.targets()).await?;
+        let (tx, rx) = watch::channel(Vec::new());
+        tokio::spawn(async move {
+            while let Ok(sample) = sub.recv_async().await {
+                match tacos_bus::decode::<TargetsMessage>(&sample) {
+                    Ok(message) => {
+                        if tx.send(message.targets).is_err() {
+                            break;
+                        }
+                    }
+                    Err(e) => warn!(error = %e, "malformed targets message ignored"),
                 }
             }
         });

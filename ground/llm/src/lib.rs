@@ -3,6 +3,17 @@
 //! Every backend takes a [`ChatRequest`] (messages plus, usually, the JSON schema the reply must
 //! follow) and returns a [`ChatReply`] or a typed [`LlmError`]. Chain-of-thought text that a
 //! server returns is kept in `ChatReply::reasoning` for the mission log and never acted on.
+//!
+//! - [`openai::OpenAiBackend`]: any OpenAI-compatible server (Ollama, vLLM, llama.cpp server, a
+//!   cloud API) over HTTP, configured by [`openai::OpenAiConfig`] (explicit, from a file, or from
+//!   `TACOS_LLM_URL` / `TACOS_LLM_MODEL` / `TACOS_LLM_API_KEY`).
+//! - [`scripted::ScriptedBackend`]: recorded replies played in order, for tests.
+
+pub mod openai;
+pub mod scripted;
+
+pub use openai::{ConfigError, OpenAiBackend, OpenAiConfig, TokenLimitField};
+pub use scripted::{ScriptedBackend, ScriptedReply};
 
 use std::future::Future;
 use std::pin::Pin;
@@ -24,13 +35,22 @@ pub struct ChatMessage {
 
 impl ChatMessage {
     pub fn system(content: impl Into<String>) -> Self {
-        ChatMessage { role: Role::System, content: content.into() }
+        ChatMessage {
+            role: Role::System,
+            content: content.into(),
+        }
     }
     pub fn user(content: impl Into<String>) -> Self {
-        ChatMessage { role: Role::User, content: content.into() }
+        ChatMessage {
+            role: Role::User,
+            content: content.into(),
+        }
     }
     pub fn assistant(content: impl Into<String>) -> Self {
-        ChatMessage { role: Role::Assistant, content: content.into() }
+        ChatMessage {
+            role: Role::Assistant,
+            content: content.into(),
+        }
     }
 }
 
@@ -101,4 +121,81 @@ pub trait LlmBackend: Send + Sync {
 
     /// Backend and model, for the status bar and the mission log (e.g. `openai http://…/v1 gpt-oss:20b`).
     fn describe(&self) -> String;
+}
+
+/// Splits a `<think>…</think>` block off the start of `content` (what llama.cpp's server and some
+/// chat templates do with reasoning models): returns `(reasoning, answer)`.
+///
+/// Also accepts a reply whose opening tag was in the prompt (the template opened the block, so the
+/// content is `reasoning…</think>answer`). An unterminated `<think>` is all reasoning: the answer is
+/// then empty. Content without tags comes back unchanged with no reasoning.
+pub fn split_think_tags(content: &str) -> (Option<String>, String) {
+    const OPEN: &str = "<think>";
+    const CLOSE: &str = "</think>";
+    let non_empty = |text: &str| {
+        let text = text.trim();
+        (!text.is_empty()).then(|| text.to_string())
+    };
+    let start = content.trim_start();
+    if let Some(rest) = start.strip_prefix(OPEN) {
+        return match rest.split_once(CLOSE) {
+            Some((thought, answer)) => (non_empty(thought), answer.trim().to_string()),
+            None => (non_empty(rest), String::new()),
+        };
+    }
+    if !content.contains(OPEN)
+        && let Some((thought, answer)) = content.split_once(CLOSE)
+        && !answer.trim().is_empty()
+    {
+        return (non_empty(thought), answer.trim().to_string());
+    }
+    (None, content.to_string())
+}
+
+/// A rough token count: whitespace-separated words (what [`ScriptedBackend`] reports as usage).
+pub fn rough_token_count(text: &str) -> u32 {
+    u32::try_from(text.split_whitespace().count()).unwrap_or(u32::MAX)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn think_tags_at_the_start_become_reasoning() {
+        let (reasoning, answer) =
+            split_think_tags("  <think>\nfly north first\n</think>\n{\"plan\":[]}");
+        assert_eq!(reasoning.as_deref(), Some("fly north first"));
+        assert_eq!(answer, "{\"plan\":[]}");
+    }
+
+    #[test]
+    fn closing_tag_only_splits_too() {
+        let (reasoning, answer) = split_think_tags("hmm, alfa is closer</think>{\"a\":1}");
+        assert_eq!(reasoning.as_deref(), Some("hmm, alfa is closer"));
+        assert_eq!(answer, "{\"a\":1}");
+    }
+
+    #[test]
+    fn unterminated_think_is_all_reasoning() {
+        let (reasoning, answer) = split_think_tags("<think>still thinking");
+        assert_eq!(reasoning.as_deref(), Some("still thinking"));
+        assert_eq!(answer, "");
+    }
+
+    #[test]
+    fn plain_content_is_unchanged() {
+        let (reasoning, answer) = split_think_tags(" {\"x\": \"<think> inside\"} ");
+        assert_eq!(reasoning, None);
+        assert_eq!(answer, " {\"x\": \"<think> inside\"} ");
+        let (reasoning, answer) = split_think_tags("<think></think>{}");
+        assert_eq!(reasoning, None);
+        assert_eq!(answer, "{}");
+    }
+
+    #[test]
+    fn rough_tokens_are_words() {
+        assert_eq!(rough_token_count(""), 0);
+        assert_eq!(rough_token_count(" take off\n alfa  "), 3);
+    }
 }

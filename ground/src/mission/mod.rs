@@ -1,0 +1,14 @@
+//! The language-model layers of the paper (its section III): the Coordinator turns the pilot's
+//! words into a plan, the Supervisor runs that plan cycle by cycle on live telemetry, and the
+//! swarm replans by itself when a drone is lost or joins. `mnl` collapses both into one model.
+//!
+//! Every call a model proposes is resolved (`resolve`), checked at the safety gate, and only
+//! then sent; rejected replies go back to their model with the reasons (`engine`). Direct
+//! commands (`directives`) never wait for a model. Everything is written to the mission `log`.
+
+pub mod directives;
+pub mod engine;
+pub mod log;
+pub mod resolve;
+
+pub use engine::{Mission, MissionConfig, MissionError, MissionStats, MissionUpdate, Mode};

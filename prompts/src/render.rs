@@ -1,0 +1,265 @@
+//! Compact renderings of the mission state for prompts. Small models read short, regular lines
+//! best, and the prompt must stay small as the swarm grows (one line per drone, landmarks
+//! grouped by kind).
+
+use crate::reply::Call;
+use std::collections::BTreeMap;
+use std::fmt::Write;
+use tacos_shared::messages::TargetObservation;
+use tacos_shared::world::World;
+use tacos_shared::{DroneMode, Vec3};
+
+/// One drone as the models see it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DroneLine {
+    pub id: String,
+    pub mode: DroneMode,
+    pub position: Vec3,
+    pub speed: f64,
+    /// The task and action it is on (or last did), e.g. `T2 goto(car_7)`.
+    pub action: Option<String>,
+    /// `running 40%`, `done`, `failed: unreachable …`.
+    pub state: Option<String>,
+}
+
+/// Where a plan task stands.
+#[derive(Debug, Clone, PartialEq)]
+pub enum TaskStatus {
+    NotStarted,
+    Running,
+    Done,
+    Failed(String),
+}
+
+impl TaskStatus {
+    fn label(&self) -> String {
+        match self {
+            TaskStatus::NotStarted => "not started".into(),
+            TaskStatus::Running => "running".into(),
+            TaskStatus::Done => "done".into(),
+            TaskStatus::Failed(why) => format!("failed: {why}"),
+        }
+    }
+}
+
+/// What the Coordinator remembers of the mission.
+#[derive(Debug, Clone, PartialEq)]
+pub enum HistoryEntry {
+    Pilot(String),
+    Plan { reasoning: String, plan: Vec<Call> },
+    Event(String),
+    Executed { call: Call, outcome: String },
+}
+
+fn p(v: &Vec3) -> String {
+    format!("({:.0}, {:.0}, {:.0})", v.x, v.y, v.z)
+}
+
+pub fn swarm(drones: &[DroneLine]) -> String {
+    let mut out = String::new();
+    for d in drones {
+        let _ = write!(out, "- {}: {} at {}", d.id, d.mode, p(&d.position));
+        if d.speed > 0.3 {
+            let _ = write!(out, ", speed {:.1} m/s", d.speed);
+        }
+        match (&d.action, &d.state) {
+            (Some(a), Some(s)) => {
+                let _ = write!(out, "; last action {a}: {s}");
+            }
+            _ => out.push_str("; no action yet"),
+        }
+        out.push('\n');
+    }
+    if drones.is_empty() {
+        out.push_str("- (no drones)\n");
+    }
+    out
+}
+
+pub fn world(world: &World, targets: &[TargetObservation], events: &[String]) -> String {
+    let b = &world.bounds;
+    let mut out = format!(
+        "Flight area: x {:.0}..{:.0}, y {:.0}..{:.0}, z {:.0}..{:.0} m (+y is north, z is up).\n",
+        b.min.x, b.max.x, b.min.y, b.max.y, b.min.z, b.max.z
+    );
+    if !world.obstacles.is_empty() {
+        out.push_str("Obstacles (never fly into them):");
+        for o in &world.obstacles {
+            let (axes, _) = o.principal_axes();
+            let _ = write!(
+                out,
+                " {} at ({:.0}, {:.0}) radius {:.0} m;",
+                o.name,
+                o.center.x,
+                o.center.y,
+                axes.x.min(axes.y)
+            );
+        }
+        out.push('\n');
+    }
+    let mut by_kind: BTreeMap<&str, Vec<String>> = BTreeMap::new();
+    for l in &world.landmarks {
+        by_kind.entry(l.kind.as_str()).or_default().push(format!(
+            "{} ({:.0}, {:.0})",
+            l.name, l.position.x, l.position.y
+        ));
+    }
+    out.push_str("Landmarks:\n");
+    for (kind, names) in by_kind {
+        let _ = writeln!(out, "- {kind}: {}", names.join(", "));
+    }
+    if !targets.is_empty() {
+        out.push_str("Moving targets:");
+        for t in targets {
+            let _ = write!(
+                out,
+                " {} at {} moving ({:.1}, {:.1}) m/s;",
+                t.name,
+                p(&t.position),
+                t.velocity.x,
+                t.velocity.y
+            );
+        }
+        out.push('\n');
+    }
+    for e in events {
+        let _ = writeln!(out, "Event: {e}");
+    }
+    out
+}
+
+pub fn plan(tasks: &[(Call, TaskStatus)]) -> String {
+    if tasks.is_empty() {
+        return "(none)\n".into();
+    }
+    let mut out = String::new();
+    for (call, status) in tasks {
+        let _ = writeln!(out, "- {call}: {}", status.label());
+    }
+    out
+}
+
+pub fn history(entries: &[HistoryEntry]) -> String {
+    if entries.is_empty() {
+        return "(mission start)\n".into();
+    }
+    let mut out = String::new();
+    for e in entries {
+        match e {
+            HistoryEntry::Pilot(text) => {
+                let _ = writeln!(out, "[pilot] {text}");
+            }
+            HistoryEntry::Plan { reasoning, plan } => {
+                let calls: Vec<String> = plan.iter().map(|c| c.to_string()).collect();
+                let _ = writeln!(out, "[plan] {reasoning} => {}", calls.join("; "));
+            }
+            HistoryEntry::Event(text) => {
+                let _ = writeln!(out, "[event] {text}");
+            }
+            HistoryEntry::Executed { call, outcome } => {
+                let _ = writeln!(out, "[executed] {call}: {outcome}");
+            }
+        }
+    }
+    out
+}
+
+/// The Coordinator's user message.
+pub fn coordinator_request(
+    swarm_text: &str,
+    world_text: &str,
+    pending: &str,
+    history_text: &str,
+    instruction: &str,
+) -> String {
+    format!(
+        "## Swarm state\n{swarm_text}\n## World\n{world_text}\n## Pending plan\n{pending}\n## History\n{history_text}\n## Instruction\n{instruction}\n"
+    )
+}
+
+/// The Supervisor's user message. `reasoning` is `None` in the `wor` ablation.
+pub fn supervisor_request(
+    reasoning: Option<&str>,
+    plan_text: &str,
+    swarm_text: &str,
+    world_text: &str,
+    memory: &[String],
+) -> String {
+    let mut out = String::new();
+    if let Some(r) = reasoning {
+        let _ = write!(out, "## Coordinator's reasoning\n{r}\n\n");
+    }
+    let _ = write!(
+        out,
+        "## Plan\n{plan_text}\n## Swarm state\n{swarm_text}\n## World\n{world_text}\n## Your memory for this plan\n"
+    );
+    if memory.is_empty() {
+        out.push_str("(nothing issued yet)\n");
+    }
+    for m in memory {
+        let _ = writeln!(out, "- {m}");
+    }
+    out
+}
+
+/// The monolithic model's user message: instructions, state, and executed actions only.
+pub fn monolithic_request(
+    instructions: &[String],
+    swarm_text: &str,
+    world_text: &str,
+    executed: &[String],
+) -> String {
+    let mut out = String::from("## Pilot's instructions\n");
+    for i in instructions {
+        let _ = writeln!(out, "- {i}");
+    }
+    let _ = write!(
+        out,
+        "\n## Swarm state\n{swarm_text}\n## World\n{world_text}\n## Executed actions\n"
+    );
+    if executed.is_empty() {
+        out.push_str("(none)\n");
+    }
+    for e in executed {
+        let _ = writeln!(out, "- {e}");
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tacos_shared::scenario::Scenario;
+
+    #[test]
+    fn the_city_renders_every_landmark_once() {
+        let city = Scenario::builtin("city").expect("city");
+        let text = world(&city.world, &[], &["suspect seen at car_7 by alfa".into()]);
+        for l in &city.world.landmarks {
+            assert_eq!(
+                text.matches(&format!("{} (", l.name)).count(),
+                1,
+                "{}",
+                l.name
+            );
+        }
+        assert!(text.contains("Event: suspect seen at car_7"));
+        assert!(text.contains("skyscraper_1 at (-18, -18) radius 8 m"));
+    }
+
+    #[test]
+    fn swarm_lines_are_compact() {
+        let line = DroneLine {
+            id: "alfa".into(),
+            mode: DroneMode::Flying,
+            position: Vec3::new(1.0, 2.0, 10.0),
+            speed: 0.0,
+            action: Some("T1 alfa arm_takeoff()".into()),
+            state: Some("done".into()),
+        };
+        assert_eq!(
+            swarm(&[line]),
+            "- alfa: flying at (1, 2, 10); last action T1 alfa arm_takeoff(): done\n"
+        );
+    }
+}

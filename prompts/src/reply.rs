@@ -1,0 +1,150 @@
+//! Model replies as types, and their parsing. Parsing checks the shape only; whether a call may
+//! fly is the safety gate's business (in `tacos-ground`).
+
+use serde::{Deserialize, Serialize};
+use std::fmt;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ActionName {
+    ArmTakeoff,
+    Goto,
+    StartTracking,
+    StopTracking,
+    Land,
+    Hold,
+}
+
+/// One atomic API call: a task id, a drone, an action and its argument.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Call {
+    pub task: String,
+    pub drone: String,
+    pub action: ActionName,
+    /// A landmark or target name, or "none".
+    pub target: String,
+    /// A point for goto, metres in the world frame.
+    pub xyz: Option<[f64; 3]>,
+}
+
+impl Call {
+    /// The target, unless it is "none" or empty.
+    pub fn target_name(&self) -> Option<&str> {
+        let t = self.target.trim();
+        (!t.is_empty() && t != crate::schema::NO_TARGET).then_some(t)
+    }
+}
+
+impl fmt::Display for Call {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let action = serde_json::to_value(self.action)
+            .ok()
+            .and_then(|v| v.as_str().map(str::to_owned))
+            .unwrap_or_default();
+        let arg = match (self.target_name(), self.xyz) {
+            (Some(t), _) => t.to_owned(),
+            (None, Some([x, y, z])) => format!("{x:.1}, {y:.1}, {z:.1}"),
+            (None, None) => String::new(),
+        };
+        write!(f, "{} {} {action}({arg})", self.task, self.drone)
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CoordinatorReply {
+    pub reasoning: String,
+    pub plan: Vec<Call>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SupervisorReply {
+    pub reasoning: String,
+    pub actions: Vec<Call>,
+    pub plan_complete: bool,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MonolithicReply {
+    pub reasoning: String,
+    pub actions: Vec<Call>,
+    pub done: bool,
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ReplyError {
+    #[error("the reply is not JSON: {0}")]
+    NotJson(String),
+    #[error("the reply does not have the required structure: {0}")]
+    Shape(String),
+}
+
+fn parse<T: for<'de> Deserialize<'de>>(text: &str) -> Result<T, ReplyError> {
+    // Models wrap JSON in code fences now and then; accept exactly that and nothing looser.
+    let trimmed = text.trim();
+    let body = trimmed
+        .strip_prefix("```json")
+        .or_else(|| trimmed.strip_prefix("```"))
+        .and_then(|rest| rest.strip_suffix("```"))
+        .unwrap_or(trimmed);
+    let value: serde_json::Value =
+        serde_json::from_str(body).map_err(|e| ReplyError::NotJson(e.to_string()))?;
+    serde_json::from_value(value).map_err(|e| ReplyError::Shape(e.to_string()))
+}
+
+impl CoordinatorReply {
+    pub fn parse(text: &str) -> Result<Self, ReplyError> {
+        parse(text)
+    }
+}
+
+impl SupervisorReply {
+    pub fn parse(text: &str) -> Result<Self, ReplyError> {
+        parse(text)
+    }
+}
+
+impl MonolithicReply {
+    pub fn parse(text: &str) -> Result<Self, ReplyError> {
+        parse(text)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_good_replies_and_rejects_broken_ones() {
+        let good = r#"{"reasoning":"r","plan":[{"task":"T1","drone":"alfa","action":"goto","target":"car_7","xyz":null}]}"#;
+        let reply = CoordinatorReply::parse(good).expect("valid");
+        assert_eq!(reply.plan[0].target_name(), Some("car_7"));
+        assert_eq!(reply.plan[0].to_string(), "T1 alfa goto(car_7)");
+        assert!(CoordinatorReply::parse(&format!("```json\n{good}\n```")).is_ok());
+        assert!(matches!(
+            CoordinatorReply::parse("take off!"),
+            Err(ReplyError::NotJson(_))
+        ));
+        assert!(matches!(
+            CoordinatorReply::parse(&good[..good.len() - 3]),
+            Err(ReplyError::NotJson(_))
+        ));
+        assert!(matches!(
+            CoordinatorReply::parse(r#"{"reasoning":"r"}"#),
+            Err(ReplyError::Shape(_))
+        ));
+        let unknown_action = good.replace("goto", "teleport");
+        assert!(matches!(
+            CoordinatorReply::parse(&unknown_action),
+            Err(ReplyError::Shape(_))
+        ));
+        let extra = good.replace(r#""reasoning":"r""#, r#""reasoning":"r","mood":"happy""#);
+        assert!(matches!(
+            CoordinatorReply::parse(&extra),
+            Err(ReplyError::Shape(_))
+        ));
+    }
+}

@@ -1,0 +1,102 @@
+//! JSON schemas of the model outputs, built from the files in `prompts/schemas/` with the enums
+//! of this mission filled in (the drones and places that exist), so a server with
+//! `response_format: json_schema` or a grammar-constrained model cannot name anything else.
+
+use serde_json::Value;
+
+const CALL: &str = include_str!("../schemas/call.schema.json");
+const COORDINATOR: &str = include_str!("../schemas/coordinator.schema.json");
+const SUPERVISOR: &str = include_str!("../schemas/supervisor.schema.json");
+const MONOLITHIC: &str = include_str!("../schemas/monolithic.schema.json");
+
+/// "none" stands for "no target" in the `target` field.
+pub const NO_TARGET: &str = "none";
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Output {
+    Coordinator,
+    Supervisor,
+    Monolithic,
+}
+
+impl Output {
+    pub fn name(self) -> &'static str {
+        match self {
+            Output::Coordinator => "coordinator_plan",
+            Output::Supervisor => "supervisor_cycle",
+            Output::Monolithic => "monolithic_cycle",
+        }
+    }
+}
+
+fn fill(value: &mut Value, drones: &[String], targets: &[String], call: &Value) {
+    match value {
+        Value::Array(items) if items.len() == 1 && items[0] == "$DRONES" => {
+            *items = drones.iter().map(|d| Value::String(d.clone())).collect();
+        }
+        Value::Array(items) if items.len() == 1 && items[0] == "$TARGETS" => {
+            *items = std::iter::once(NO_TARGET.to_owned())
+                .chain(targets.iter().cloned())
+                .map(Value::String)
+                .collect();
+        }
+        Value::String(s) if s == "$CALL" => *value = call.clone(),
+        Value::Array(items) => items
+            .iter_mut()
+            .for_each(|v| fill(v, drones, targets, call)),
+        Value::Object(map) => map
+            .values_mut()
+            .for_each(|v| fill(v, drones, targets, call)),
+        _ => {}
+    }
+}
+
+/// The schema of `output` for a mission with these drone ids and target/landmark names.
+pub fn build(output: Output, drones: &[String], targets: &[String]) -> Value {
+    let parse = |text: &str| serde_json::from_str::<Value>(text).unwrap_or(Value::Null);
+    let mut call = parse(CALL);
+    fill(&mut call, drones, targets, &Value::Null);
+    let mut schema = parse(match output {
+        Output::Coordinator => COORDINATOR,
+        Output::Supervisor => SUPERVISOR,
+        Output::Monolithic => MONOLITHIC,
+    });
+    fill(&mut schema, drones, targets, &call);
+    schema
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn schema_files_are_valid_json() {
+        for text in [CALL, COORDINATOR, SUPERVISOR, MONOLITHIC] {
+            serde_json::from_str::<Value>(text).expect("schema file parses");
+        }
+    }
+
+    #[test]
+    fn enums_are_filled_with_the_mission() {
+        let s = build(
+            Output::Coordinator,
+            &["alfa".into(), "bravo".into()],
+            &["car_1".into()],
+        );
+        let call = &s["properties"]["plan"]["items"];
+        assert_eq!(
+            call["properties"]["drone"]["enum"],
+            serde_json::json!(["alfa", "bravo"])
+        );
+        assert_eq!(
+            call["properties"]["target"]["enum"],
+            serde_json::json!(["none", "car_1"])
+        );
+        assert!(!s.to_string().contains('$'), "a placeholder was left: {s}");
+        let s = build(Output::Supervisor, &["alfa".into()], &[]);
+        assert_eq!(
+            s["properties"]["actions"]["items"]["properties"]["drone"]["enum"],
+            serde_json::json!(["alfa"])
+        );
+    }
+}

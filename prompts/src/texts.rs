@@ -1,0 +1,41 @@
+//! The prompt texts, compiled in so nothing is read from disk at run time.
+
+/// The Coordinator's configuration prompt: the action API, rules, output structure.
+pub const COORDINATOR: &str = include_str!("../text/coordinator.md");
+/// The Supervisor's configuration prompt.
+pub const SUPERVISOR: &str = include_str!("../text/supervisor.md");
+/// The single model of the monolithic (`mnl`) ablation.
+pub const MONOLITHIC: &str = include_str!("../text/monolithic.md");
+/// Few-shot examples for the Coordinator (instruction, context, ideal reasoning and plan).
+pub const COORDINATOR_EXAMPLES: &str = include_str!("../text/coordinator_examples.json");
+
+/// One few-shot example.
+#[derive(Debug, Clone, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Example {
+    pub context: String,
+    pub instruction: String,
+    pub reply: serde_json::Value,
+}
+
+/// The Coordinator's few-shot examples, parsed.
+pub fn coordinator_examples() -> Result<Vec<Example>, serde_json::Error> {
+    serde_json::from_str(COORDINATOR_EXAMPLES)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::reply::CoordinatorReply;
+
+    #[test]
+    fn examples_parse_and_follow_the_reply_shape() {
+        let examples = coordinator_examples().expect("examples are valid JSON");
+        assert!(examples.len() >= 3);
+        for e in examples {
+            let text = e.reply.to_string();
+            CoordinatorReply::parse(&text)
+                .unwrap_or_else(|err| panic!("example {:?}: {err}", e.instruction));
+        }
+    }
+}
