@@ -1,13 +1,17 @@
-//! `tacos-ground demo --no-llm`: brings up a simulated swarm on loopback and flies a fixed
-//! pattern through the same gate and link a pilot uses — all take off, each flies to a point,
-//! all land — checking every phase against the simulator's ground truth.
+//! `tacos-ground demo`: brings up a simulated swarm on loopback and flies it, either with the
+//! language-model layers (the pilot's lines go to the Coordinator and Supervisor) or, with
+//! `--no-llm`, a fixed pattern through the same gate and link a pilot uses — all take off, each
+//! flies to a point, all land — checking every phase against the simulator's ground truth.
 
 use crate::direct::run_actions;
 use crate::launch::{Stack, StackConfig};
 use crate::link::{GroundLink, LinkError};
+use crate::pilot::{SessionOptions, SessionReport, run_session};
 use crate::safety::SafetyGate;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tacos_bus::BusArgs;
+use tacos_llm::LlmBackend;
 use tacos_shared::action::Action;
 use tacos_shared::messages::SimTruth;
 use tacos_shared::scenario::Scenario;
@@ -41,11 +45,23 @@ pub struct DemoOptions {
     pub verbose: bool,
 }
 
+/// What the demo does once the swarm is up.
+pub enum DemoPlan {
+    /// All take off, each flies to a point, all land; checked in the simulator's truth.
+    Fixed,
+    /// A pilot session with the language-model layers.
+    Llm {
+        backend: Arc<dyn LlmBackend>,
+        session: SessionOptions,
+    },
+}
+
 /// Runs the whole demo; every child is shut down before this returns.
-pub async fn run_fixed_pattern(
+pub async fn run_demo(
     opts: DemoOptions,
+    plan: DemoPlan,
     interrupt: impl std::future::Future<Output = ()>,
-) -> Result<(), DemoError> {
+) -> Result<Option<SessionReport>, DemoError> {
     let swarm = SwarmId::new(format!("demo{}", std::process::id()))
         .map_err(|e| DemoError::Step(e.to_string()))?;
     let config = StackConfig::on_loopback(
@@ -55,12 +71,14 @@ pub async fn run_fixed_pattern(
         opts.drones,
     )?;
     let logs = config.log_dir.display().to_string();
-    let link = GroundLink::connect(&BusArgs::loopback(
-        swarm,
-        Some(config.hub_endpoint.clone()),
-        vec![],
-    ))
-    .await?;
+    let link = Arc::new(
+        GroundLink::connect(&BusArgs::loopback(
+            swarm,
+            Some(config.hub_endpoint.clone()),
+            vec![],
+        ))
+        .await?,
+    );
     let mut stack = Stack::start(config)?;
     let truth = link.watch_truth().await?;
     let gate = SafetyGate::new(opts.scenario.clone());
@@ -76,7 +94,18 @@ pub async fn run_fixed_pattern(
         logs: logs.clone(),
     };
     let mut result = tokio::select! {
-        r = fly(&link, &gate, &ids, truth, opts.verbose) => r,
+        r = async {
+            match plan {
+                DemoPlan::Fixed => fly(&link, &gate, &ids, truth, opts.verbose).await.map(|()| None),
+                DemoPlan::Llm { backend, session } => {
+                    link.wait_for_drones(&ids, Duration::from_secs(60), |s| s.autopilot_link && s.mode == DroneMode::Idle).await?;
+                    let report = run_session(link.clone(), gate.clone(), backend, session)
+                        .await
+                        .map_err(|e| DemoError::Step(e.to_string()))?;
+                    Ok(Some(report))
+                }
+            }
+        } => r,
         exit = stack.next_exit() => Err(match exit {
             Some(e) => died(e),
             None => DemoError::Step("the process supervisor stopped".into()),

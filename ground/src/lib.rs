@@ -9,6 +9,7 @@ pub mod direct;
 pub mod launch;
 pub mod link;
 pub mod mission;
+pub mod pilot;
 pub mod safety;
 pub mod swarm;
 pub mod table;

@@ -2,11 +2,16 @@
 
 use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
+use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tacos_bus::BusArgs;
-use tacos_ground::demo::{DemoOptions, run_fixed_pattern};
+use tacos_ground::demo::{DemoOptions, DemoPlan, run_demo};
 use tacos_ground::link::GroundLink;
+use tacos_ground::mission::{MissionConfig, Mode};
+use tacos_ground::pilot::SessionOptions;
 use tacos_ground::safety::SafetyGate;
+use tacos_llm::{LlmBackend, OpenAiBackend, OpenAiConfig};
 use tacos_shared::action::Action;
 use tacos_shared::messages::ActionState;
 
@@ -60,7 +65,62 @@ enum Cmd {
         /// The pattern flown with --no-llm.
         #[arg(long, default_value = "fixed")]
         pattern: String,
+        /// No interactive pilot input: carry out the --say lines and exit.
+        #[arg(long)]
+        no_terminal: bool,
+        /// A pilot line, carried out before anything else (repeatable, in order).
+        #[arg(long)]
+        say: Vec<String>,
+        /// tacos (full), wor (Supervisor without the Coordinator's reasoning), mnl (one model).
+        #[arg(long, default_value = "tacos")]
+        mode: Mode,
+        #[command(flatten)]
+        llm: LlmArgs,
+        /// The mission log (JSON lines); default: missions-out/<time>-<mode>.jsonl
+        #[arg(long)]
+        log: Option<PathBuf>,
     },
+    /// Print a mission log's timeline.
+    Replay { log: PathBuf },
+}
+
+/// Which language model to use: a server, or the embedded model by default.
+#[derive(Debug, Clone, clap::Args)]
+struct LlmArgs {
+    /// Base URL of an OpenAI-compatible server (Ollama, vLLM, llama.cpp server, a cloud API),
+    /// e.g. http://127.0.0.1:11434/v1. Without it the embedded offline model is used.
+    #[arg(long, env = "TACOS_LLM_URL")]
+    llm_url: Option<String>,
+    /// The model name on that server.
+    #[arg(long, env = "TACOS_LLM_MODEL")]
+    model: Option<String>,
+    /// Seconds to wait for one model reply.
+    #[arg(long, default_value_t = 120.0)]
+    llm_timeout: f64,
+}
+
+impl LlmArgs {
+    fn backend(&self) -> anyhow::Result<Arc<dyn LlmBackend>> {
+        match &self.llm_url {
+            Some(url) => {
+                let model = self
+                    .model
+                    .clone()
+                    .context("--llm-url needs --model (or TACOS_LLM_MODEL)")?;
+                let mut config = OpenAiConfig::new(url.clone(), model)
+                    .with_timeout(Duration::from_secs_f64(self.llm_timeout));
+                if let Some(key) = std::env::var("TACOS_LLM_API_KEY")
+                    .ok()
+                    .or_else(|| std::env::var("OPENAI_API_KEY").ok())
+                    .filter(|k| !k.is_empty())
+                {
+                    config = config.with_api_key(key);
+                }
+                Ok(Arc::new(OpenAiBackend::new(config)?))
+            }
+            None => bail!("the embedded model is not wired in yet: give --llm-url and --model"),
+        }
+    }
 }
 
 fn main() -> std::process::ExitCode {
@@ -105,7 +165,30 @@ fn run() -> anyhow::Result<()> {
                 map,
                 no_llm,
                 pattern,
-            } => demo(drones, &map, no_llm, &pattern).await,
+                no_terminal,
+                say,
+                mode,
+                llm,
+                log,
+            } => {
+                demo(DemoArgs {
+                    drones,
+                    map,
+                    no_llm,
+                    pattern,
+                    no_terminal,
+                    say,
+                    mode,
+                    llm,
+                    log,
+                })
+                .await
+            }
+            Cmd::Replay { log } => {
+                let lines = tacos_ground::mission::log::read(&log)?;
+                print!("{}", tacos_ground::mission::log::timeline(&lines));
+                Ok(())
+            }
         }
     })
 }
@@ -170,24 +253,71 @@ async fn send(
     }
 }
 
-async fn demo(drones: usize, map: &str, no_llm: bool, pattern: &str) -> anyhow::Result<()> {
-    if !no_llm {
-        bail!("the LLM layers are not part of this build yet: run the fixed pattern with --no-llm");
-    }
-    if pattern != "fixed" {
-        bail!("unknown pattern {pattern:?} (available: fixed)");
-    }
-    let scenario = tacos_bus::load_scenario(map)?;
+struct DemoArgs {
+    drones: usize,
+    map: String,
+    no_llm: bool,
+    pattern: String,
+    no_terminal: bool,
+    say: Vec<String>,
+    mode: Mode,
+    llm: LlmArgs,
+    log: Option<PathBuf>,
+}
+
+async fn demo(args: DemoArgs) -> anyhow::Result<()> {
+    let scenario = tacos_bus::load_scenario(&args.map)?;
     let opts = DemoOptions {
-        scenario_arg: map.to_owned(),
+        scenario_arg: args.map.clone(),
         scenario,
-        drones,
+        drones: args.drones,
         verbose: true,
     };
-    run_fixed_pattern(opts, async {
+    let interrupt = async {
         let _ = tokio::signal::ctrl_c().await;
-    })
-    .await?;
-    println!("demo finished: all drones took off, reached their points and landed");
+    };
+    if args.no_llm {
+        if args.pattern != "fixed" {
+            bail!("unknown pattern {:?} (available: fixed)", args.pattern);
+        }
+        run_demo(opts, DemoPlan::Fixed, interrupt).await?;
+        println!("demo finished: all drones took off, reached their points and landed");
+        return Ok(());
+    }
+    let backend = args.llm.backend()?;
+    let log_path = args.log.clone().unwrap_or_else(|| {
+        let secs = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs());
+        PathBuf::from("missions-out").join(format!("{secs}-{}.jsonl", args.mode.as_str()))
+    });
+    println!(
+        "model: {}; mission log: {}",
+        backend.describe(),
+        log_path.display()
+    );
+    let session = SessionOptions {
+        mission: MissionConfig {
+            mode: args.mode,
+            ..MissionConfig::default()
+        },
+        say: args.say.clone(),
+        interactive: !args.no_terminal,
+        log_path,
+        line_timeout: Duration::from_secs(600),
+        verbose: true,
+    };
+    let report = run_demo(opts, DemoPlan::Llm { backend, session }, interrupt).await?;
+    if let Some(report) = report {
+        let s = &report.stats;
+        println!(
+            "demo finished: {} model calls, {} supervisor cycles, {} actions sent, {} gate rejections; mission log {}",
+            s.model_calls,
+            s.cycles_total,
+            s.actions_sent,
+            s.gate_rejections,
+            report.log_path.display()
+        );
+    }
     Ok(())
 }

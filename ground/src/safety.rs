@@ -82,6 +82,7 @@ impl CheckedAction {
 }
 
 /// The gate's view of the world: the scenario and the names of trackable targets.
+#[derive(Clone)]
 pub struct SafetyGate {
     scenario: Scenario,
     targets: Vec<String>,

@@ -21,7 +21,7 @@ pub fn unique_swarm(tag: &str) -> SwarmId {
 
 /// A simulated swarm of `n` drones of `scenario` and a ground link that is its zenoh hub.
 pub struct SimSwarm {
-    pub link: GroundLink,
+    pub link: std::sync::Arc<GroundLink>,
     pub stack: Stack,
     pub scenario: Scenario,
 }
@@ -46,7 +46,7 @@ impl SimSwarm {
             Some(config.hub_endpoint.clone()),
             vec![],
         );
-        let link = GroundLink::connect(&bus).await?;
+        let link = std::sync::Arc::new(GroundLink::connect(&bus).await?);
         let stack = Stack::start(config)?;
         Ok(SimSwarm {
             link,
@@ -69,4 +69,59 @@ pub async fn within<T>(
     tokio::time::timeout(limit, fut)
         .await
         .map_err(|_| anyhow::anyhow!("timed out after {limit:?}: {what}"))
+}
+
+/// A stand-in for a language model that answers from what the prompt says, the way a model
+/// would: `policy` sees each request (system prompt, user message, any repair turns) and
+/// returns the reply text, or an error as a server would. It records every request.
+pub struct PolicyBackend<F> {
+    policy: F,
+    pub requests: std::sync::Mutex<Vec<tacos_llm::ChatRequest>>,
+}
+
+impl<F> PolicyBackend<F>
+where
+    F: Fn(&tacos_llm::ChatRequest) -> Result<String, tacos_llm::LlmError> + Send + Sync,
+{
+    pub fn new(policy: F) -> Self {
+        PolicyBackend {
+            policy,
+            requests: std::sync::Mutex::new(Vec::new()),
+        }
+    }
+}
+
+impl<F> tacos_llm::LlmBackend for PolicyBackend<F>
+where
+    F: Fn(&tacos_llm::ChatRequest) -> Result<String, tacos_llm::LlmError> + Send + Sync,
+{
+    fn chat<'a>(
+        &'a self,
+        request: &'a tacos_llm::ChatRequest,
+    ) -> tacos_llm::BoxFuture<'a, Result<tacos_llm::ChatReply, tacos_llm::LlmError>> {
+        Box::pin(async move {
+            let start = std::time::Instant::now();
+            if let Ok(mut log) = self.requests.lock() {
+                log.push(request.clone());
+            }
+            // A model takes a moment; the engine must not depend on instant answers.
+            tokio::time::sleep(Duration::from_millis(20)).await;
+            let content = (self.policy)(request)?;
+            let words = |t: &str| t.split_whitespace().count() as u32;
+            Ok(tacos_llm::ChatReply {
+                usage: tacos_llm::Usage {
+                    prompt_tokens: request.messages.iter().map(|m| words(&m.content)).sum(),
+                    completion_tokens: words(&content),
+                },
+                content,
+                reasoning: None,
+                latency: start.elapsed(),
+                model: "policy".into(),
+            })
+        })
+    }
+
+    fn describe(&self) -> String {
+        "policy test model".into()
+    }
 }

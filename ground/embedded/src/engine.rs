@@ -1,0 +1,439 @@
+//! The model in process: candle's quantized llama on CPU, llguidance masking the logits.
+
+use std::fs::File;
+use std::io::{Cursor, Read, Seek};
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use candle_core::quantized::{GgmlDType, QTensor, gguf_file};
+use candle_core::{Device, Tensor};
+use candle_transformers::models::quantized_llama::{MAX_SEQ_LEN, ModelWeights};
+use llguidance::api::TopLevelGrammar;
+use llguidance::{Matcher, ParserFactory};
+use tacos_llm::{ChatRequest, LlmError};
+
+use crate::template::chatml_segments;
+use crate::tokenizer::ModelTokenizer;
+
+/// How the weights are held in memory. The file is Q4_1; candle's Q4_1 dot product is scalar
+/// code, while its Q8_0 one uses AVX2/AVX-VNNI and its f32 matmul uses `gemm`, so converting at
+/// load time is faster on x86 at the cost of memory and a second or so of start-up.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WeightFormat {
+    /// As stored in the file (Q4_1, ~100 MB).
+    AsStored,
+    /// Re-quantized to Q8_0 (~150 MB): no measurable quality loss from Q4_1.
+    Q8_0,
+    /// Dequantized to f32 (~540 MB).
+    F32,
+}
+
+impl WeightFormat {
+    pub fn parse(s: &str) -> Option<WeightFormat> {
+        match s.to_ascii_lowercase().as_str() {
+            "q4_1" | "stored" | "as-stored" => Some(WeightFormat::AsStored),
+            "q8_0" | "q8" => Some(WeightFormat::Q8_0),
+            "f32" => Some(WeightFormat::F32),
+            _ => None,
+        }
+    }
+}
+
+/// Prompt tokens are fed in chunks of this many, to bound the attention scratch memory.
+const PREFILL_CHUNK: usize = 512;
+
+/// What one call produced.
+#[derive(Debug, Clone)]
+pub struct Generation {
+    pub text: String,
+    pub prompt_tokens: u32,
+    pub completion_tokens: u32,
+    /// Time to process the prompt (up to the first logits).
+    pub prefill: Duration,
+    /// Time of the decoding steps.
+    pub decode: Duration,
+    /// How many of the completion tokens the grammar forced (fed without sampling).
+    pub forced_tokens: u32,
+}
+
+pub struct Engine {
+    weights: ModelWeights,
+    pub tokenizer: ModelTokenizer,
+    factory: ParserFactory,
+    device: Device,
+}
+
+fn gen_err(context: &str) -> impl Fn(candle_core::Error) -> LlmError + '_ {
+    move |e| LlmError::Generation(format!("{context}: {e}"))
+}
+
+fn unavailable(path: &Path) -> impl Fn(String) -> LlmError + '_ {
+    move |e| LlmError::ModelUnavailable(format!("cannot load {}: {e}", path.display()))
+}
+
+impl Engine {
+    pub fn load(path: &Path, format: WeightFormat) -> Result<Engine, LlmError> {
+        let t0 = Instant::now();
+        let bad = unavailable(path);
+        let device = Device::Cpu;
+        let mut file = File::open(path).map_err(|e| bad(e.to_string()))?;
+        let ct = gguf_file::Content::read(&mut file).map_err(|e| bad(e.to_string()))?;
+        let arch = ct
+            .metadata
+            .get("general.architecture")
+            .and_then(|v| v.to_string().ok());
+        if arch.map(String::as_str) != Some("llama") {
+            return Err(bad(format!("architecture {arch:?} is not llama")));
+        }
+        // candle lists the dims outermost first: (vocab, hidden).
+        let n_vocab = match ct
+            .tensor_infos
+            .get("token_embd.weight")
+            .map(|i| i.shape.dims())
+        {
+            Some([n_vocab, _hidden]) => *n_vocab,
+            other => return Err(bad(format!("token_embd.weight has shape {other:?}"))),
+        };
+        let tokenizer = ModelTokenizer::from_gguf(&ct, n_vocab).map_err(&bad)?;
+        let weights = match format {
+            WeightFormat::AsStored => ModelWeights::from_gguf(ct, &mut file, &device),
+            WeightFormat::Q8_0 => {
+                convert(ct, &mut file, GgmlDType::Q8_0, &device).and_then(|mut c| {
+                    let ct = gguf_file::Content::read(&mut c)?;
+                    ModelWeights::from_gguf(ct, &mut c, &device)
+                })
+            }
+            WeightFormat::F32 => {
+                convert(ct, &mut file, GgmlDType::F32, &device).and_then(|mut c| {
+                    let ct = gguf_file::Content::read(&mut c)?;
+                    ModelWeights::from_gguf(ct, &mut c, &device)
+                })
+            }
+        }
+        .map_err(|e| bad(e.to_string()))?;
+        let mut factory = ParserFactory::new_simple(&tokenizer.tok_env)
+            .map_err(|e| bad(format!("llguidance: {e}")))?;
+        // Grammar errors are returned to the caller; do not also print them.
+        factory.quiet();
+        tracing::info!(
+            path = %path.display(),
+            ?format,
+            load_ms = t0.elapsed().as_millis() as u64,
+            "embedded model loaded"
+        );
+        Ok(Engine {
+            weights,
+            tokenizer,
+            factory,
+            device,
+        })
+    }
+
+    /// Renders and tokenizes the request's prompt.
+    pub fn prompt_tokens(&self, request: &ChatRequest) -> Result<Vec<u32>, LlmError> {
+        let segments = chatml_segments(&request.messages, true);
+        self.tokenizer
+            .encode_segments(&segments)
+            .map_err(LlmError::Generation)
+    }
+
+    /// One chat completion. `cancel` is polled between steps: when set, the call stops with
+    /// `LlmError::Generation("cancelled")`.
+    pub fn generate(
+        &self,
+        request: &ChatRequest,
+        cancel: &AtomicBool,
+    ) -> Result<Generation, LlmError> {
+        let prompt = self.prompt_tokens(request)?;
+        let max_tokens = request.max_tokens as usize;
+        if prompt.len() >= MAX_SEQ_LEN {
+            return Err(LlmError::Generation(format!(
+                "the prompt has {} tokens; the embedded model's window is {MAX_SEQ_LEN}",
+                prompt.len()
+            )));
+        }
+        let mut matcher = match &request.schema {
+            Some(s) => Some(self.matcher(&s.schema)?),
+            None => None,
+        };
+        let mut rng = SplitMix64::new(request.seed.unwrap_or_else(time_seed));
+        let temperature = request.temperature;
+
+        // A private KV cache: the clone shares the weight tensors.
+        let mut model = self.weights.clone();
+        model.clear_kv_cache();
+
+        let t0 = Instant::now();
+        let mut pos = 0usize;
+        let mut logits = Vec::new();
+        for chunk in prompt.chunks(PREFILL_CHUNK) {
+            if cancel.load(Ordering::Relaxed) {
+                return Err(LlmError::Generation("cancelled".to_string()));
+            }
+            logits = self.forward(&mut model, chunk, pos)?;
+            pos += chunk.len();
+        }
+        let prefill = t0.elapsed();
+
+        let t1 = Instant::now();
+        let mut out: Vec<u32> = Vec::new();
+        let mut forced = 0u32;
+        let finished = loop {
+            if cancel.load(Ordering::Relaxed) {
+                return Err(LlmError::Generation("cancelled".to_string()));
+            }
+            if out.len() >= max_tokens {
+                // At the limit: complete only if the grammar is satisfied (nothing can follow).
+                break match &mut matcher {
+                    Some(m) => m.is_accepting().unwrap_or(false),
+                    None => false,
+                };
+            }
+            let next = match &mut matcher {
+                Some(m) => {
+                    let mask = m
+                        .compute_mask()
+                        .map_err(|e| LlmError::Generation(format!("grammar: {e}")))?;
+                    sample(&logits, Some(&mask), temperature, &mut rng)
+                }
+                None => sample(&logits, None, temperature, &mut rng),
+            };
+            let Some(next) = next else {
+                return Err(LlmError::Generation(
+                    "the grammar allows no token".to_string(),
+                ));
+            };
+            if self.tokenizer.is_end(next) {
+                break true;
+            }
+            let mut feed = vec![next];
+            if let Some(m) = &mut matcher {
+                m.consume_token(next)
+                    .map_err(|e| LlmError::Generation(format!("grammar: {e}")))?;
+                if !m.is_stopped() {
+                    let ff = m.consume_ff_tokens();
+                    forced += ff.len() as u32;
+                    feed.extend(ff);
+                }
+            }
+            out.extend_from_slice(&feed);
+            if matcher.as_ref().is_some_and(Matcher::is_stopped) {
+                break out.len() <= max_tokens;
+            }
+            if out.len() > max_tokens {
+                break false;
+            }
+            if pos + feed.len() >= MAX_SEQ_LEN {
+                break false;
+            }
+            logits = self.forward(&mut model, &feed, pos)?;
+            pos += feed.len();
+        };
+        let decode = t1.elapsed();
+        if let Some(m) = &matcher
+            && let Some(e) = m.get_error()
+        {
+            return Err(LlmError::Generation(format!("grammar: {e}")));
+        }
+        if !finished {
+            return Err(LlmError::Truncated(request.max_tokens));
+        }
+        Ok(Generation {
+            text: self.tokenizer.decode(&out),
+            prompt_tokens: prompt.len() as u32,
+            completion_tokens: out.len() as u32,
+            prefill,
+            decode,
+            forced_tokens: forced,
+        })
+    }
+
+    fn matcher(&self, schema: &serde_json::Value) -> Result<Matcher, LlmError> {
+        let mut schema = schema.clone();
+        // Compact, fixed whitespace unless the caller chose otherwise: a small model given free
+        // whitespace tends to spend its budget on newlines.
+        if let Some(obj) = schema.as_object_mut()
+            && !obj.contains_key("x-guidance")
+        {
+            obj.insert(
+                "x-guidance".to_string(),
+                serde_json::json!({
+                    "whitespace_flexible": false,
+                    "item_separator": ", ",
+                    "key_separator": ": ",
+                }),
+            );
+        }
+        let grammar = TopLevelGrammar::from_json_schema(schema);
+        let m = Matcher::new(self.factory.create_parser(grammar));
+        if let Some(e) = m.get_error() {
+            return Err(LlmError::Generation(format!(
+                "the JSON schema cannot be compiled to a grammar: {e}"
+            )));
+        }
+        Ok(m)
+    }
+
+    fn forward(
+        &self,
+        model: &mut ModelWeights,
+        tokens: &[u32],
+        pos: usize,
+    ) -> Result<Vec<f32>, LlmError> {
+        let input = Tensor::new(tokens, &self.device)
+            .and_then(|t| t.unsqueeze(0))
+            .map_err(gen_err("input"))?;
+        let logits = model.forward(&input, pos).map_err(gen_err("forward"))?;
+        logits
+            .squeeze(0)
+            .and_then(|t| t.to_dtype(candle_core::DType::F32))
+            .and_then(|t| t.to_vec1::<f32>())
+            .map_err(gen_err("logits"))
+    }
+}
+
+/// Reads every tensor, converts the quantized matrices to `dtype`, and writes a GGUF image in
+/// memory that `ModelWeights::from_gguf` reads back.
+fn convert<R: Read + Seek>(
+    ct: gguf_file::Content,
+    file: &mut R,
+    dtype: GgmlDType,
+    device: &Device,
+) -> candle_core::Result<Cursor<Vec<u8>>> {
+    let mut names: Vec<&String> = ct.tensor_infos.keys().collect();
+    names.sort();
+    let mut tensors: Vec<(&str, QTensor)> = Vec::with_capacity(names.len());
+    for name in names {
+        let qt = ct.tensor(file, name, device)?;
+        let src = qt.dtype();
+        let matrix = qt.shape().rank() == 2;
+        // token_embd is also the (tied) output matrix; it is Q8_0 already in this file.
+        let qt = if matrix && src != dtype && src != GgmlDType::Q8_0 && src != GgmlDType::F32 {
+            let t = qt.dequantize(device)?;
+            QTensor::quantize(&t, dtype)?
+        } else {
+            qt
+        };
+        tensors.push((name.as_str(), qt));
+    }
+    let metadata: Vec<(&str, &gguf_file::Value)> =
+        ct.metadata.iter().map(|(k, v)| (k.as_str(), v)).collect();
+    let refs: Vec<(&str, &QTensor)> = tensors.iter().map(|(n, t)| (*n, t)).collect();
+    let mut buf = Cursor::new(Vec::new());
+    gguf_file::write(&mut buf, &metadata, &refs)?;
+    buf.set_position(0);
+    Ok(buf)
+}
+
+/// The next token: argmax at temperature ≤ 0.01, otherwise a draw from the softmax at that
+/// temperature, over the tokens the mask allows (all when no mask).
+fn sample(
+    logits: &[f32],
+    mask: Option<&llguidance::toktrie::SimpleVob>,
+    temperature: f32,
+    rng: &mut SplitMix64,
+) -> Option<u32> {
+    let mut allowed: Vec<usize> = Vec::new();
+    match mask {
+        Some(m) => m.iter_set_entries(|i| {
+            if i < logits.len() && logits[i].is_finite() {
+                allowed.push(i)
+            }
+        }),
+        None => allowed.extend((0..logits.len()).filter(|i| logits[*i].is_finite())),
+    }
+    let best = allowed
+        .iter()
+        .copied()
+        .max_by(|a, b| logits[*a].total_cmp(&logits[*b]))?;
+    // NaN and tiny temperatures mean greedy.
+    if temperature.is_nan() || temperature <= 0.01 {
+        return Some(best as u32);
+    }
+    let max = logits[best];
+    let weights: Vec<f64> = allowed
+        .iter()
+        .map(|i| (((logits[*i] - max) / temperature) as f64).exp())
+        .collect();
+    let total: f64 = weights.iter().sum();
+    let mut r = rng.next_f64() * total;
+    for (i, w) in allowed.iter().zip(&weights) {
+        if r < *w {
+            return Some(*i as u32);
+        }
+        r -= w;
+    }
+    Some(best as u32)
+}
+
+fn time_seed() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_nanos() as u64)
+        .unwrap_or(0x5eed)
+}
+
+/// A small deterministic generator (SplitMix64) for seeded sampling.
+struct SplitMix64(u64);
+
+impl SplitMix64 {
+    fn new(seed: u64) -> Self {
+        SplitMix64(seed)
+    }
+    fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+    fn next_f64(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use llguidance::toktrie::SimpleVob;
+
+    #[test]
+    fn greedy_respects_the_mask() {
+        let logits = [0.1, 5.0, 2.0, 3.0];
+        let mut rng = SplitMix64::new(1);
+        assert_eq!(sample(&logits, None, 0.0, &mut rng), Some(1));
+        let mut mask = SimpleVob::alloc(4);
+        mask.allow_token(2);
+        mask.allow_token(3);
+        assert_eq!(sample(&logits, Some(&mask), 0.0, &mut rng), Some(3));
+        let empty = SimpleVob::alloc(4);
+        assert_eq!(sample(&logits, Some(&empty), 0.0, &mut rng), None);
+    }
+
+    #[test]
+    fn sampling_is_seeded_and_stays_in_the_mask() {
+        let logits = [1.0, 1.0, 1.0, 1.0, 1.0, 1.0];
+        let mut mask = SimpleVob::alloc(6);
+        mask.allow_token(1);
+        mask.allow_token(4);
+        let draw = |seed| {
+            let mut rng = SplitMix64::new(seed);
+            (0..32)
+                .map(|_| sample(&logits, Some(&mask), 1.0, &mut rng))
+                .collect::<Vec<_>>()
+        };
+        let a = draw(7);
+        assert_eq!(a, draw(7));
+        assert!(a.iter().all(|t| *t == Some(1) || *t == Some(4)));
+        assert!(a.contains(&Some(1)) && a.contains(&Some(4)));
+    }
+
+    #[test]
+    fn weight_format_names() {
+        assert_eq!(WeightFormat::parse("Q8_0"), Some(WeightFormat::Q8_0));
+        assert_eq!(WeightFormat::parse("f32"), Some(WeightFormat::F32));
+        assert_eq!(WeightFormat::parse("q4_1"), Some(WeightFormat::AsStored));
+        assert_eq!(WeightFormat::parse("q5"), None);
+    }
+}

@@ -1,0 +1,184 @@
+//! The tokenizer, built from the GGUF metadata alone (no `tokenizer.json`, no network), and its
+//! byte-level view for llguidance.
+//!
+//! SmolLM2 uses a GPT-2 style byte-level BPE (`tokenizer.ggml.model = gpt2`) whose pre-tokenizer
+//! (`tokenizer.ggml.pre = smollm`) splits digits one by one before the GPT-2 regex: the same
+//! `Sequence[Digits(individual), ByteLevel]` as the model's `tokenizer.json` on the Hub.
+
+use std::str::FromStr;
+
+use candle_core::quantized::gguf_file::{Content, Value};
+use llguidance::toktrie::TokEnv;
+use serde_json::{Map, json};
+use tokenizers::Tokenizer;
+use toktrie_hf_tokenizers::ByteTokenizer;
+
+use crate::template::Segment;
+
+/// GGUF token types (llama.cpp `llama_token_type`).
+const TOKEN_TYPE_CONTROL: i32 = 3;
+const TOKEN_TYPE_USER_DEFINED: i32 = 4;
+
+/// The tokenizer of the loaded model.
+pub struct ModelTokenizer {
+    /// Encodes message text: control tokens written in the text are *not* recognised, so a
+    /// message cannot forge a turn.
+    text: Tokenizer,
+    pub im_start: u32,
+    pub im_end: u32,
+    pub end_of_text: u32,
+    pub tok_env: TokEnv,
+}
+
+fn md<'a>(ct: &'a Content, key: &str) -> Result<&'a Value, String> {
+    ct.metadata
+        .get(key)
+        .ok_or_else(|| format!("GGUF metadata has no `{key}`"))
+}
+
+fn md_strings(ct: &Content, key: &str) -> Result<Vec<String>, String> {
+    let arr = md(ct, key)?.to_vec().map_err(|e| format!("`{key}`: {e}"))?;
+    arr.iter()
+        .map(|v| v.to_string().cloned().map_err(|e| format!("`{key}`: {e}")))
+        .collect()
+}
+
+fn md_i32s(ct: &Content, key: &str) -> Result<Vec<i32>, String> {
+    let arr = md(ct, key)?.to_vec().map_err(|e| format!("`{key}`: {e}"))?;
+    arr.iter()
+        .map(|v| v.to_i32().map_err(|e| format!("`{key}`: {e}")))
+        .collect()
+}
+
+/// The `tokenizer.json` equivalent of the GGUF tokenizer metadata.
+pub fn tokenizer_json(ct: &Content) -> Result<serde_json::Value, String> {
+    let model = md(ct, "tokenizer.ggml.model")?
+        .to_string()
+        .map_err(|e| e.to_string())?;
+    if model != "gpt2" {
+        return Err(format!(
+            "unsupported tokenizer model `{model}` (only byte-level BPE `gpt2`)"
+        ));
+    }
+    let pre = match ct.metadata.get("tokenizer.ggml.pre") {
+        Some(v) => v.to_string().map_err(|e| e.to_string())?.clone(),
+        None => "default".to_string(),
+    };
+    let byte_level = json!({
+        "type": "ByteLevel", "add_prefix_space": false, "trim_offsets": true, "use_regex": true
+    });
+    let pre_tokenizer = match pre.as_str() {
+        "smollm" => json!({
+            "type": "Sequence",
+            "pretokenizers": [{"type": "Digits", "individual_digits": true}, byte_level]
+        }),
+        "gpt2" | "default" => byte_level,
+        other => return Err(format!("unsupported pre-tokenizer `{other}`")),
+    };
+    let tokens = md_strings(ct, "tokenizer.ggml.tokens")?;
+    let types = md_i32s(ct, "tokenizer.ggml.token_type")?;
+    let merges = md_strings(ct, "tokenizer.ggml.merges")?;
+    if types.len() != tokens.len() {
+        return Err(format!(
+            "{} tokens but {} token types",
+            tokens.len(),
+            types.len()
+        ));
+    }
+    let mut vocab = Map::with_capacity(tokens.len());
+    let mut added = Vec::new();
+    for (id, (tok, ty)) in tokens.iter().zip(&types).enumerate() {
+        vocab.insert(tok.clone(), json!(id));
+        if *ty == TOKEN_TYPE_CONTROL || *ty == TOKEN_TYPE_USER_DEFINED {
+            added.push(json!({
+                "id": id, "content": tok, "single_word": false, "lstrip": false, "rstrip": false,
+                "normalized": false, "special": *ty == TOKEN_TYPE_CONTROL,
+            }));
+        }
+    }
+    Ok(json!({
+        "version": "1.0",
+        "truncation": null,
+        "padding": null,
+        "added_tokens": added,
+        "normalizer": null,
+        "pre_tokenizer": pre_tokenizer,
+        "post_processor": null,
+        "decoder": {"type": "ByteLevel", "add_prefix_space": true, "trim_offsets": true, "use_regex": true},
+        "model": {
+            "type": "BPE", "dropout": null, "unk_token": null, "continuing_subword_prefix": null,
+            "end_of_word_suffix": null, "fuse_unk": false, "byte_fallback": false,
+            "ignore_merges": false, "vocab": vocab, "merges": merges,
+        },
+    }))
+}
+
+impl ModelTokenizer {
+    /// Builds the tokenizer from the GGUF metadata; `n_vocab` is the model's output size.
+    pub fn from_gguf(ct: &Content, n_vocab: usize) -> Result<ModelTokenizer, String> {
+        let spec = tokenizer_json(ct)?;
+        let hf = Tokenizer::from_str(&spec.to_string()).map_err(|e| format!("tokenizer: {e}"))?;
+        let id = |t: &str| {
+            hf.token_to_id(t)
+                .ok_or_else(|| format!("the vocabulary has no {t}"))
+        };
+        let im_start = id(crate::template::IM_START)?;
+        let im_end = id(crate::template::IM_END)?;
+        let end_of_text = id("<|endoftext|>")?;
+        if n_vocab < hf.get_vocab_size(true) {
+            return Err(format!(
+                "the model's output has {n_vocab} logits but the tokenizer {} tokens",
+                hf.get_vocab_size(true)
+            ));
+        }
+        let mut text = hf.clone();
+        text.set_encode_special_tokens(true);
+
+        let mut bt = ByteTokenizer::from_tokenizer(hf).map_err(|e| format!("toktrie: {e}"))?;
+        bt.hf_model = "SmolLM2-135M-Instruct".to_string();
+        // The chat turn ends with <|im_end|>; <|endoftext|> also ends a generation.
+        bt.set_eos_tokens(&[im_end, end_of_text]);
+        let tok_env = bt
+            .into_tok_env(Some(n_vocab))
+            .map_err(|e| format!("toktrie: {e}"))?;
+        Ok(ModelTokenizer {
+            text,
+            im_start,
+            im_end,
+            end_of_text,
+            tok_env,
+        })
+    }
+
+    /// Token ids of plain text (control-token spellings are encoded as text).
+    pub fn encode_text(&self, s: &str) -> Result<Vec<u32>, String> {
+        let enc = self
+            .text
+            .encode(s, false)
+            .map_err(|e| format!("tokenizer: {e}"))?;
+        Ok(enc.get_ids().to_vec())
+    }
+
+    /// Token ids of a rendered prompt.
+    pub fn encode_segments(&self, segments: &[Segment]) -> Result<Vec<u32>, String> {
+        let mut ids = Vec::new();
+        for s in segments {
+            match s {
+                Segment::ImStart => ids.push(self.im_start),
+                Segment::ImEnd => ids.push(self.im_end),
+                Segment::Text(t) => ids.extend(self.encode_text(t)?),
+            }
+        }
+        Ok(ids)
+    }
+
+    /// Text of generated tokens (control tokens dropped, invalid UTF-8 replaced).
+    pub fn decode(&self, ids: &[u32]) -> String {
+        let bytes = self.tok_env.tok_trie().decode_ext(ids, false);
+        String::from_utf8_lossy(&bytes).into_owned()
+    }
+
+    pub fn is_end(&self, id: u32) -> bool {
+        id == self.im_end || id == self.end_of_text
+    }
+}

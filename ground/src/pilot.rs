@@ -1,0 +1,184 @@
+//! A pilot's session with the language-model layers, without the full-screen terminal: lines
+//! given up front (`--say`) or typed on standard input, updates printed as they happen.
+
+use crate::link::GroundLink;
+use crate::mission::log::MissionLog;
+use crate::mission::{Mission, MissionConfig, MissionStats, MissionUpdate};
+use crate::safety::SafetyGate;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tacos_llm::LlmBackend;
+use tokio::io::AsyncBufReadExt;
+use tokio::sync::mpsc;
+
+#[derive(Debug, Clone)]
+pub struct SessionOptions {
+    pub mission: MissionConfig,
+    /// Pilot lines sent one after the other, each once the previous one's plan completed.
+    pub say: Vec<String>,
+    /// Then read further lines from standard input until it closes.
+    pub interactive: bool,
+    pub log_path: PathBuf,
+    /// Longest wait for one line's plan to complete.
+    pub line_timeout: Duration,
+    pub verbose: bool,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum SessionError {
+    #[error(transparent)]
+    Log(#[from] crate::mission::log::LogError),
+    #[error(transparent)]
+    Link(#[from] crate::link::LinkError),
+    #[error("{line:?}: {reason}")]
+    Line { line: String, reason: String },
+}
+
+#[derive(Debug, Clone)]
+pub struct SessionReport {
+    pub stats: MissionStats,
+    pub log_path: PathBuf,
+}
+
+fn describe(update: &MissionUpdate) -> String {
+    match update {
+        MissionUpdate::Thinking { layer } => format!("{layer} thinking…"),
+        MissionUpdate::Plan { reasoning, calls } => format!(
+            "coordinator: {reasoning}\n           plan: {}",
+            calls.join("; ")
+        ),
+        MissionUpdate::Cycle {
+            plan_cycle,
+            reasoning,
+            actions,
+        } => {
+            format!(
+                "supervisor cycle {plan_cycle}: {reasoning} → [{}]",
+                actions.join("; ")
+            )
+        }
+        MissionUpdate::Rejected { call, reason } => {
+            format!("safety gate rejected {call} ({reason})")
+        }
+        MissionUpdate::Sent { drone, action, seq } => format!("sent #{seq} {action} to {drone}"),
+        MissionUpdate::Outcome {
+            drone,
+            action,
+            outcome,
+        } => format!("{drone}: {action} {outcome}"),
+        MissionUpdate::Event(text) => format!("event: {text}"),
+        MissionUpdate::PlanComplete { cycles } => {
+            format!("plan complete after {cycles} supervisor cycles")
+        }
+        MissionUpdate::Error(text) => format!("error: {text}"),
+        MissionUpdate::Call {
+            layer,
+            latency,
+            prompt_tokens,
+            completion_tokens,
+        } => format!(
+            "{layer} answered in {:.1} s ({prompt_tokens} + {completion_tokens} tokens)",
+            latency.as_secs_f64()
+        ),
+    }
+}
+
+/// Runs the session; returns when every line was carried out (or stdin closed).
+pub async fn run_session(
+    link: Arc<GroundLink>,
+    gate: SafetyGate,
+    backend: Arc<dyn LlmBackend>,
+    opts: SessionOptions,
+) -> Result<SessionReport, SessionError> {
+    let log = Arc::new(MissionLog::create(&opts.log_path)?);
+    let (updates_tx, mut updates) = mpsc::unbounded_channel();
+    let mission = Mission::new(
+        opts.mission.clone(),
+        backend,
+        gate,
+        link,
+        log.clone(),
+        updates_tx,
+    )
+    .await?;
+    let (lines_tx, lines_rx) = mpsc::channel(16);
+    let mission_task = tokio::spawn(mission.run(lines_rx));
+    let start = Instant::now();
+    let say = |text: &str| {
+        if opts.verbose {
+            println!("[{:>6.1}s] {text}", start.elapsed().as_secs_f64());
+        }
+    };
+
+    let mut result = Ok(());
+    for line in &opts.say {
+        say(&format!("pilot: {line}"));
+        if lines_tx.send(line.clone()).await.is_err() {
+            result = Err(SessionError::Line {
+                line: line.clone(),
+                reason: "the mission stopped".into(),
+            });
+            break;
+        }
+        let deadline = tokio::time::Instant::now() + opts.line_timeout;
+        let outcome = loop {
+            match tokio::time::timeout_at(deadline, updates.recv()).await {
+                Err(_) => break Err(format!("not carried out within {:?}", opts.line_timeout)),
+                Ok(None) => break Err("the mission stopped".to_owned()),
+                Ok(Some(update)) => {
+                    say(&describe(&update));
+                    match update {
+                        MissionUpdate::PlanComplete { .. } => break Ok(()),
+                        MissionUpdate::Error(reason) => break Err(reason),
+                        // A direct command is carried out at once; nothing more to wait for.
+                        MissionUpdate::Event(text) if text.starts_with("direct command") => {
+                            break Ok(());
+                        }
+                        _ => {}
+                    }
+                }
+            }
+        };
+        if let Err(reason) = outcome {
+            result = Err(SessionError::Line {
+                line: line.clone(),
+                reason,
+            });
+            break;
+        }
+    }
+
+    if result.is_ok() && opts.interactive {
+        let mut stdin = tokio::io::BufReader::new(tokio::io::stdin()).lines();
+        println!(
+            "type an instruction for the swarm (\"land all\", \"alfa, take off\", …); Ctrl-D to end"
+        );
+        loop {
+            tokio::select! {
+                line = stdin.next_line() => match line {
+                    Ok(Some(text)) if text.trim() == "quit" => break,
+                    Ok(Some(text)) => {
+                        if lines_tx.send(text).await.is_err() {
+                            break;
+                        }
+                    }
+                    _ => break,
+                },
+                update = updates.recv() => match update {
+                    Some(u) => say(&describe(&u)),
+                    None => break,
+                },
+            }
+        }
+    }
+    drop(lines_tx);
+    let stats = match tokio::time::timeout(Duration::from_secs(5), mission_task).await {
+        Ok(Ok(stats)) => stats,
+        _ => MissionStats::default(),
+    };
+    result.map(|()| SessionReport {
+        stats,
+        log_path: log.path().to_owned(),
+    })
+}

@@ -1,0 +1,333 @@
+//! The language-model layers on a real simulated swarm, with a stand-in model that answers from
+//! its prompt: broken replies are repaired, nothing the gate rejects reaches a drone, the
+//! Supervisor sequences a multi-step plan over several cycles, and a drone killed mid-plan makes
+//! the Coordinator replan and give its subtask to another drone.
+
+use serde_json::{Value, json};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+use tacos_ground::launch::Role;
+use tacos_ground::mission::log::{self, MissionLog, Record};
+use tacos_ground::mission::{Mission, MissionConfig, MissionUpdate};
+use tacos_ground::safety::SafetyGate;
+use tacos_llm::{ChatRequest, LlmError, Role as ChatRole};
+use tacos_shared::{DroneId, DroneMode};
+use tacos_tests::{PolicyBackend, SimSwarm, within};
+use tokio::sync::mpsc;
+
+fn call(task: &str, drone: &str, action: &str, target: &str) -> Value {
+    json!({ "task": task, "drone": drone, "action": action, "target": target, "xyz": null })
+}
+
+/// The plan the stand-in Coordinator settles on: three take-offs, then a goto each.
+fn good_plan() -> Value {
+    json!({
+        "reasoning": "All three take off, then each inspects a car near its pad.",
+        "plan": [
+            call("T1", "alfa", "arm_takeoff", "none"),
+            call("T2", "bravo", "arm_takeoff", "none"),
+            call("T3", "charlie", "arm_takeoff", "none"),
+            call("T4", "alfa", "goto", "car_11"),
+            call("T5", "bravo", "goto", "car_1"),
+            call("T6", "charlie", "goto", "car_12"),
+        ]
+    })
+}
+
+fn section<'a>(text: &'a str, title: &str) -> &'a str {
+    let start = text
+        .find(&format!("## {title}\n"))
+        .map(|i| i + title.len() + 4)
+        .unwrap_or(text.len());
+    let rest = &text[start..];
+    &rest[..rest.find("\n## ").unwrap_or(rest.len())]
+}
+
+/// Plan lines: `- T4 alfa goto(car_11): not started` → (task, drone, action, target, status).
+fn plan_lines(text: &str) -> Vec<(String, String, String, String, String)> {
+    section(text, "Plan")
+        .lines()
+        .chain(section(text, "Pending plan").lines())
+        .filter_map(|l| {
+            let l = l.strip_prefix("- ")?;
+            let (call, status) = l.rsplit_once("): ")?;
+            let mut words = call.splitn(3, ' ');
+            let (task, drone, rest) = (words.next()?, words.next()?, words.next()?);
+            let (action, target) = rest.split_once('(')?;
+            let target = if target.is_empty() { "none" } else { target };
+            Some((
+                task.into(),
+                drone.into(),
+                action.into(),
+                target.into(),
+                status.into(),
+            ))
+        })
+        .collect()
+}
+
+/// Swarm lines: `- alfa: flying at (…); last action T1 arm_takeoff(): done` → (drone, mode, busy, last).
+fn swarm_lines(text: &str) -> Vec<(String, String, bool, String)> {
+    section(text, "Swarm state")
+        .lines()
+        .filter_map(|l| {
+            let l = l.strip_prefix("- ")?;
+            let (drone, rest) = l.split_once(": ")?;
+            let mode = rest.split(' ').next()?.to_owned();
+            Some((drone.into(), mode, rest.contains("running"), rest.into()))
+        })
+        .collect()
+}
+
+fn repairs(request: &ChatRequest) -> usize {
+    request
+        .messages
+        .iter()
+        .filter(|m| m.role == ChatRole::User && m.content.starts_with("Your reply was rejected"))
+        .count()
+}
+
+/// The stand-in model. `first_supervisor_misbehaves` makes its first Supervisor reply issue a goto
+/// before take-off and a target that does not exist.
+fn policy(
+    first_supervisor_misbehaves: Arc<AtomicBool>,
+) -> impl Fn(&ChatRequest) -> Result<String, LlmError> + Send + Sync {
+    move |request: &ChatRequest| {
+        let system = &request.messages[0].content;
+        let user = request
+            .messages
+            .iter()
+            .rev()
+            .find(|m| m.role == ChatRole::User && m.content.starts_with("## "))
+            .map_or("", |m| m.content.as_str());
+        if system.starts_with("You are the Coordinator") {
+            if user.contains("(automatic replan)") {
+                // Reassign the unfinished subtasks of unavailable drones to an available one.
+                let swarm = swarm_lines(user);
+                let gone: Vec<&String> = swarm
+                    .iter()
+                    .filter(|(_, m, _, _)| m == "unavailable")
+                    .map(|(d, _, _, _)| d)
+                    .collect();
+                let spare = swarm
+                    .iter()
+                    .find(|(d, m, _, _)| m == "flying" && !gone.contains(&d))
+                    .map(|(d, _, _, _)| d.clone())
+                    .unwrap_or_default();
+                let plan: Vec<Value> = plan_lines(user)
+                    .into_iter()
+                    .filter(|(_, _, _, _, status)| status != "done")
+                    .map(|(task, drone, action, target, _)| {
+                        let drone = if gone.contains(&&drone) {
+                            spare.clone()
+                        } else {
+                            drone
+                        };
+                        call(&task, &drone, &action, &target)
+                    })
+                    .collect();
+                return Ok(json!({ "reasoning": format!("Reassigning the lost drone's work to {spare}."), "plan": plan }).to_string());
+            }
+            return Ok(match repairs(request) {
+                0 => "Sure! All drones will take off and inspect the cars.".to_owned(),
+                1 => json!({
+                    "reasoning": "Alfa flies to the top of the tower, zulu helps.",
+                    "plan": [
+                        { "task": "T1", "drone": "alfa", "action": "goto", "target": "none", "xyz": [18.0, 18.0, 20.0] },
+                        call("T2", "zulu", "arm_takeoff", "none"),
+                    ]
+                })
+                .to_string(),
+                _ => good_plan().to_string(),
+            });
+        }
+        // Supervisor: start every task whose drone can do it now.
+        let swarm = swarm_lines(user);
+        let mut actions: Vec<Value> = Vec::new();
+        if first_supervisor_misbehaves.swap(false, Ordering::SeqCst) {
+            actions.push(call("T4", "alfa", "goto", "car_11"));
+            actions.push(call("T9", "bravo", "start_tracking", "ghost"));
+        } else {
+            for (task, drone, action, target, status) in plan_lines(user) {
+                if status != "not started" && !status.starts_with("failed") {
+                    continue;
+                }
+                let Some((_, mode, busy, _)) = swarm.iter().find(|(d, _, _, _)| *d == drone) else {
+                    continue;
+                };
+                let ready = !busy
+                    && match action.as_str() {
+                        "arm_takeoff" => mode == "idle",
+                        _ => mode == "flying",
+                    };
+                if ready && !actions.iter().any(|a| a["drone"] == drone.as_str()) {
+                    actions.push(call(&task, &drone, &action, &target));
+                }
+            }
+        }
+        let complete = plan_lines(user).iter().all(|(_, _, _, _, s)| s == "done");
+        Ok(json!({ "reasoning": "Start what can start now.", "actions": actions, "plan_complete": complete }).to_string())
+    }
+}
+
+struct Running {
+    sim: SimSwarm,
+    updates: mpsc::UnboundedReceiver<MissionUpdate>,
+    lines: mpsc::Sender<String>,
+    log_path: std::path::PathBuf,
+}
+
+async fn start(tag: &str) -> anyhow::Result<Running> {
+    let sim = SimSwarm::start(tag, "city", 3).await?;
+    let ids: Vec<DroneId> = ["alfa", "bravo", "charlie"]
+        .iter()
+        .map(|d| DroneId::new(*d))
+        .collect::<Result<_, _>>()?;
+    sim.link
+        .wait_for_drones(&ids, Duration::from_secs(60), |s| {
+            s.autopilot_link && s.mode == DroneMode::Idle
+        })
+        .await?;
+    Ok(Running {
+        sim,
+        updates: mpsc::unbounded_channel().1,
+        lines: mpsc::channel(1).0,
+        log_path: Default::default(),
+    })
+}
+
+async fn launch_mission(
+    run: &mut Running,
+    link: Arc<tacos_ground::link::GroundLink>,
+    misbehave: bool,
+) -> anyhow::Result<()> {
+    let log_path =
+        std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm("mlog")));
+    let log = Arc::new(MissionLog::create(&log_path)?);
+    let backend = Arc::new(PolicyBackend::new(policy(Arc::new(AtomicBool::new(
+        misbehave,
+    )))));
+    let (tx, updates) = mpsc::unbounded_channel();
+    let cfg = MissionConfig {
+        cycle_timeout: Duration::from_secs(3),
+        ..MissionConfig::default()
+    };
+    let mission = Mission::new(
+        cfg,
+        backend,
+        SafetyGate::new(run.sim.scenario.clone()),
+        link,
+        log,
+        tx,
+    )
+    .await?;
+    let (lines, rx) = mpsc::channel(4);
+    tokio::spawn(mission.run(rx));
+    run.updates = updates;
+    run.lines = lines;
+    run.log_path = log_path;
+    Ok(())
+}
+
+async fn until(
+    updates: &mut mpsc::UnboundedReceiver<MissionUpdate>,
+    limit: Duration,
+    mut stop: impl FnMut(&MissionUpdate) -> bool,
+) -> anyhow::Result<Vec<MissionUpdate>> {
+    let mut seen = Vec::new();
+    within("the mission to reach the expected point", limit, async {
+        while let Some(u) = updates.recv().await {
+            let done = stop(&u);
+            if let MissionUpdate::Error(e) = &u {
+                panic!("mission error: {e}");
+            }
+            seen.push(u);
+            if done {
+                return;
+            }
+        }
+    })
+    .await
+    .map_err(|e| anyhow::anyhow!("{e}; updates so far: {seen:#?}"))?;
+    Ok(seen)
+}
+
+fn sent_tasks(lines: &[log::Line]) -> Vec<(String, String)> {
+    lines
+        .iter()
+        .filter_map(|l| match &l.record {
+            Record::ActionSent { drone, task, .. } => {
+                Some((task.clone().unwrap_or_default(), drone.clone()))
+            }
+            _ => None,
+        })
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn broken_replies_are_repaired_and_the_plan_runs_over_several_cycles() -> anyhow::Result<()> {
+    let mut run = start("mission").await?;
+    let link = run.sim.link.clone();
+    let result = async {
+        launch_mission(&mut run, link.clone(), true).await?;
+        run.lines.send("all drones take off, then inspect the cars near the pads".into()).await?;
+        until(&mut run.updates, Duration::from_secs(120), |u| matches!(u, MissionUpdate::PlanComplete { .. })).await?;
+        let lines = log::read(&run.log_path)?;
+        let sent = sent_tasks(&lines);
+        let mut tasks: Vec<&str> = sent.iter().map(|(t, _)| t.as_str()).collect();
+        tasks.sort();
+        assert_eq!(tasks, ["T1", "T2", "T3", "T4", "T5", "T6"], "exactly the checked plan was sent: {sent:?}");
+        let rejected: Vec<&String> = lines
+            .iter()
+            .filter_map(|l| match &l.record {
+                Record::GateRejected { call, .. } => Some(call),
+                _ => None,
+            })
+            .collect();
+        for expected in ["zulu", "18.0, 18.0, 20.0", "T4 alfa goto(car_11)", "ghost"] {
+            assert!(rejected.iter().any(|r| r.contains(expected)), "no rejection mentioning {expected:?}: {rejected:?}");
+        }
+        // The goto refused before take-off was sent later, once alfa flew: never before.
+        let first_t4 = lines.iter().position(|l| matches!(&l.record, Record::ActionSent { task: Some(t), .. } if t == "T4"));
+        let alfa_up = lines.iter().position(|l| matches!(&l.record, Record::ActionOutcome { drone, outcome, task: Some(t), .. } if drone == "alfa" && t == "T1" && outcome == "done"));
+        assert!(first_t4 > alfa_up, "T4 was sent before alfa's take-off finished");
+        let outcomes: Vec<&String> = lines.iter().filter_map(|l| match &l.record { Record::ActionOutcome { outcome, .. } => Some(outcome), _ => None }).collect();
+        assert!(outcomes.iter().all(|o| *o == "done"), "every sent action succeeded: {outcomes:?}");
+        let cycles = lines.iter().filter(|l| matches!(l.record, Record::SupervisorCycle { .. })).count();
+        assert!(cycles >= 2, "the plan needs at least two supervisor cycles, saw {cycles}");
+        // The repair turns carried the reasons back to the model.
+        assert!(lines.iter().any(|l| matches!(&l.record, Record::LlmRequest { layer, attempt: 3, .. } if layer == "coordinator")));
+        anyhow::Ok(())
+    }
+    .await;
+    drop(run.lines);
+    run.sim.stop().await;
+    result
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_drone_killed_mid_plan_has_its_subtask_reassigned() -> anyhow::Result<()> {
+    let mut run = start("replan").await?;
+    let link = run.sim.link.clone();
+    let result = async {
+        launch_mission(&mut run, link.clone(), false).await?;
+        run.lines.send("all drones take off, then inspect the cars near the pads".into()).await?;
+        until(&mut run.updates, Duration::from_secs(90), |u| matches!(u, MissionUpdate::Sent { drone, action, .. } if drone == "bravo" && action.starts_with("goto"))).await?;
+        let bravo = DroneId::new("bravo")?;
+        run.sim.stack.crash(Role::Onboard, Some(&bravo)).await.ok_or_else(|| anyhow::anyhow!("bravo's onboard was not running"))?;
+        until(&mut run.updates, Duration::from_secs(150), |u| matches!(u, MissionUpdate::PlanComplete { .. })).await?;
+        let lines = log::read(&run.log_path)?;
+        assert!(lines.iter().any(|l| matches!(&l.record, Record::Replan { reason } if reason.contains("bravo"))), "no replan for bravo");
+        let t5: Vec<(String, String)> = sent_tasks(&lines).into_iter().filter(|(t, _)| t == "T5").collect();
+        assert_eq!(t5.first().map(|(_, d)| d.as_str()), Some("bravo"));
+        let reassigned = t5.iter().find(|(_, d)| d != "bravo").ok_or_else(|| anyhow::anyhow!("T5 never given to another drone: {t5:?}"))?;
+        let done = lines.iter().any(|l| matches!(&l.record, Record::ActionOutcome { drone, task: Some(t), outcome, .. } if *drone == reassigned.1 && t == "T5" && outcome == "done"));
+        assert!(done, "{} did not finish bravo's T5", reassigned.1);
+        anyhow::Ok(())
+    }
+    .await;
+    drop(run.lines);
+    run.sim.stop().await;
+    result
+}
