@@ -10,6 +10,8 @@ pub mod launch;
 pub mod link;
 pub mod mission;
 pub mod pilot;
+pub mod plot;
 pub mod safety;
 pub mod swarm;
 pub mod table;
+pub mod tui;

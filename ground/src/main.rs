@@ -82,6 +82,16 @@ enum Cmd {
     },
     /// Print a mission log's timeline.
     Replay { log: PathBuf },
+    /// Draw a mission's trajectories over the map, coloured by speed (SVG).
+    Plot {
+        log: PathBuf,
+        /// Output file (.svg).
+        #[arg(short, long, default_value = "mission.svg")]
+        output: PathBuf,
+        /// The map, when not the one the log names (city, lab or a scenario file).
+        #[arg(long)]
+        map: Option<String>,
+    },
 }
 
 /// Which language model to use: a server, or the embedded model by default.
@@ -184,6 +194,7 @@ fn run() -> anyhow::Result<()> {
                 })
                 .await
             }
+            Cmd::Plot { log, output, map } => plot(&log, &output, map.as_deref()),
             Cmd::Replay { log } => {
                 let lines = tacos_ground::mission::log::read(&log)?;
                 print!("{}", tacos_ground::mission::log::timeline(&lines));
@@ -251,6 +262,27 @@ async fn send(
         ActionState::Failed(why) => bail!("{drone}: {action} failed: {why}"),
         ActionState::Running { .. } => bail!("{drone}: {action} did not finish"),
     }
+}
+
+fn plot(log: &std::path::Path, output: &std::path::Path, map: Option<&str>) -> anyhow::Result<()> {
+    use tacos_ground::mission::log::{Record, read};
+    let lines = read(log)?;
+    let named = lines.iter().find_map(|l| match &l.record {
+        Record::MissionStart { scenario, .. } => Some(scenario.clone()),
+        _ => None,
+    });
+    let map = map
+        .map(str::to_owned)
+        .or(named)
+        .context("the log names no map: give --map")?;
+    let scenario = tacos_bus::load_scenario(&map)?;
+    if output.extension().is_some_and(|e| e != "svg") {
+        bail!("only SVG output is supported: name the file *.svg");
+    }
+    std::fs::write(output, tacos_ground::plot::svg(&lines, &scenario))
+        .with_context(|| format!("writing {}", output.display()))?;
+    println!("wrote {}", output.display());
+    Ok(())
 }
 
 struct DemoArgs {

@@ -292,6 +292,7 @@ impl Mission {
         };
         let mut tick = tokio::time::interval(Duration::from_millis(250));
         let mut last_cycle = Instant::now();
+        let mut ticks: u64 = 0;
         loop {
             let mut cycle_due = false;
             tokio::select! {
@@ -319,6 +320,10 @@ impl Mission {
                     cycle_due = self.busy();
                 },
                 _ = tick.tick() => {
+                    ticks += 1;
+                    if ticks.is_multiple_of(2) {
+                        self.log_positions();
+                    }
                     cycle_due = self.poll_outcomes() || (self.busy() && last_cycle.elapsed() >= self.cfg.cycle_timeout);
                 }
             }
@@ -333,6 +338,22 @@ impl Mission {
             outcome: "pilot closed the session".into(),
         });
         self.stats
+    }
+
+    /// Where every drone is, for `tacos-ground plot` (twice a second).
+    fn log_positions(&self) {
+        let view = self.link.view();
+        for entry in view.drones().filter(|e| e.alive) {
+            if let Some(s) = &entry.status {
+                self.log.note(Record::Position {
+                    drone: entry.id.to_string(),
+                    x: s.position.x,
+                    y: s.position.y,
+                    z: s.position.z,
+                    speed: s.velocity.norm(),
+                });
+            }
+        }
     }
 
     /// A line from the pilot: a direct command, or an instruction for the models.

@@ -1,0 +1,255 @@
+//! `tacos-ground plot`: a mission's trajectories over the map, coloured by speed (blue slow, red
+//! fast), as the paper's figures show them. Written as SVG by hand: no drawing library needed.
+
+use crate::mission::log::{Line, Record};
+use std::collections::BTreeMap;
+use std::fmt::Write;
+use tacos_shared::scenario::Scenario;
+use tacos_shared::world::LandmarkKind;
+
+const WIDTH: f64 = 1000.0;
+const MARGIN: f64 = 40.0;
+
+struct Frame {
+    min_x: f64,
+    max_y: f64,
+    scale: f64,
+}
+
+impl Frame {
+    fn px(&self, x: f64, y: f64) -> (f64, f64) {
+        (
+            MARGIN + (x - self.min_x) * self.scale,
+            MARGIN + (self.max_y - y) * self.scale,
+        )
+    }
+}
+
+fn kind_colour(kind: LandmarkKind) -> &'static str {
+    match kind {
+        LandmarkKind::Car => "#7f7f7f",
+        LandmarkKind::Villa => "#c49c6b",
+        LandmarkKind::Tree => "#2e8b3a",
+        LandmarkKind::Skyscraper => "#404a5a",
+        LandmarkKind::Pad => "#e0a000",
+        LandmarkKind::Park => "#5fbf5f",
+        LandmarkKind::District => "#6a6aa0",
+        LandmarkKind::Building => "#8a6a50",
+    }
+}
+
+/// Blue → cyan → yellow → red as `t` goes 0 → 1.
+pub fn speed_colour(t: f64) -> String {
+    let t = t.clamp(0.0, 1.0);
+    let stops = [
+        (0.0, (40.0, 60.0, 220.0)),
+        (0.35, (40.0, 200.0, 220.0)),
+        (0.7, (240.0, 210.0, 40.0)),
+        (1.0, (220.0, 40.0, 30.0)),
+    ];
+    let mut out = stops[0].1;
+    for w in stops.windows(2) {
+        let ((t0, c0), (t1, c1)) = (w[0], w[1]);
+        if t >= t0 && t <= t1 {
+            let f = (t - t0) / (t1 - t0);
+            out = (
+                c0.0 + f * (c1.0 - c0.0),
+                c0.1 + f * (c1.1 - c0.1),
+                c0.2 + f * (c1.2 - c0.2),
+            );
+        }
+    }
+    format!("#{:02x}{:02x}{:02x}", out.0 as u8, out.1 as u8, out.2 as u8)
+}
+
+/// The SVG picture of a mission log over its scenario's map.
+pub fn svg(lines: &[Line], scenario: &Scenario) -> String {
+    let b = &scenario.world.bounds;
+    let span_x = (b.max.x - b.min.x).max(1e-6);
+    let span_y = (b.max.y - b.min.y).max(1e-6);
+    let scale = (WIDTH - 2.0 * MARGIN) / span_x;
+    let height = span_y * scale + 2.0 * MARGIN + 40.0;
+    let f = Frame {
+        min_x: b.min.x,
+        max_y: b.max.y,
+        scale,
+    };
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        r#"<svg xmlns="http://www.w3.org/2000/svg" width="{WIDTH:.0}" height="{height:.0}" viewBox="0 0 {WIDTH:.0} {height:.0}" font-family="sans-serif" font-size="10">"#
+    );
+    let _ = writeln!(
+        out,
+        r##"<rect x="0" y="0" width="{WIDTH:.0}" height="{height:.0}" fill="#ffffff"/>"##
+    );
+    let (x0, y0) = f.px(b.min.x, b.max.y);
+    let _ = writeln!(
+        out,
+        r##"<rect x="{x0:.1}" y="{y0:.1}" width="{:.1}" height="{:.1}" fill="#f4f6f0" stroke="#333" stroke-width="1"/>"##,
+        span_x * scale,
+        span_y * scale
+    );
+
+    for o in &scenario.world.obstacles {
+        // The footprint: the ellipsoid projected on the ground plane (a Schur complement).
+        let a = &o.shape;
+        let azz = a[(2, 2)].max(1e-12);
+        let m = nalgebra_2x2([
+            [
+                a[(0, 0)] - a[(0, 2)] * a[(2, 0)] / azz,
+                a[(0, 1)] - a[(0, 2)] * a[(2, 1)] / azz,
+            ],
+            [
+                a[(1, 0)] - a[(1, 2)] * a[(2, 0)] / azz,
+                a[(1, 1)] - a[(1, 2)] * a[(2, 1)] / azz,
+            ],
+        ]);
+        let (rx, ry, angle) = m;
+        let (cx, cy) = f.px(o.center.x, o.center.y);
+        let _ = writeln!(
+            out,
+            r##"<ellipse cx="{cx:.1}" cy="{cy:.1}" rx="{:.1}" ry="{:.1}" transform="rotate({:.1} {cx:.1} {cy:.1})" fill="#404a5a" fill-opacity="0.35" stroke="#404a5a"/>"##,
+            rx * scale,
+            ry * scale,
+            -angle.to_degrees()
+        );
+    }
+    for l in &scenario.world.landmarks {
+        let (x, y) = f.px(l.position.x, l.position.y);
+        let colour = kind_colour(l.kind);
+        let _ = writeln!(
+            out,
+            r#"<rect x="{:.1}" y="{:.1}" width="6" height="6" fill="{colour}"><title>{} ({})</title></rect>"#,
+            x - 3.0,
+            y - 3.0,
+            l.name,
+            l.kind
+        );
+        let _ = writeln!(
+            out,
+            r##"<text x="{:.1}" y="{:.1}" fill="#555" font-size="7">{}</text>"##,
+            x + 4.0,
+            y - 3.0,
+            l.name
+        );
+    }
+
+    let mut tracks: BTreeMap<&str, Vec<(f64, f64, f64)>> = BTreeMap::new();
+    for line in lines {
+        if let Record::Position {
+            drone, x, y, speed, ..
+        } = &line.record
+        {
+            tracks
+                .entry(drone.as_str())
+                .or_default()
+                .push((*x, *y, *speed));
+        }
+    }
+    let max_speed = scenario.limits.max_speed.max(1e-6);
+    for (drone, points) in &tracks {
+        for w in points.windows(2) {
+            let (a, b) = (w[0], w[1]);
+            let (x1, y1) = f.px(a.0, a.1);
+            let (x2, y2) = f.px(b.0, b.1);
+            let colour = speed_colour(0.5 * (a.2 + b.2) / max_speed);
+            let _ = writeln!(
+                out,
+                r#"<line x1="{x1:.1}" y1="{y1:.1}" x2="{x2:.1}" y2="{y2:.1}" stroke="{colour}" stroke-width="2" stroke-linecap="round"/>"#
+            );
+        }
+        if let Some(last) = points.last() {
+            let (x, y) = f.px(last.0, last.1);
+            let _ = writeln!(
+                out,
+                r##"<circle cx="{x:.1}" cy="{y:.1}" r="3" fill="#000"/><text x="{:.1}" y="{:.1}" font-weight="bold">{drone}</text>"##,
+                x + 5.0,
+                y + 4.0
+            );
+        }
+    }
+
+    // Speed colour bar.
+    let bar_y = height - 28.0;
+    for i in 0..100 {
+        let _ = writeln!(
+            out,
+            r#"<rect x="{:.1}" y="{bar_y:.1}" width="2.1" height="10" fill="{}"/>"#,
+            MARGIN + 2.0 * i as f64,
+            speed_colour(i as f64 / 99.0)
+        );
+    }
+    let _ = writeln!(
+        out,
+        r#"<text x="{MARGIN:.0}" y="{:.1}">0 m/s</text><text x="{:.0}" y="{:.1}">{max_speed:.0} m/s</text>"#,
+        bar_y + 22.0,
+        MARGIN + 190.0,
+        bar_y + 22.0
+    );
+    let _ = writeln!(
+        out,
+        r#"<text x="{:.0}" y="{:.1}">{} — {} trajectories, coloured by speed</text>"#,
+        MARGIN + 260.0,
+        bar_y + 9.0,
+        scenario.name,
+        tracks.len()
+    );
+    out.push_str("</svg>\n");
+    out
+}
+
+/// Radii and angle of the ellipse `{p : pᵀ M p ≤ 1}` for a symmetric positive definite 2×2 M.
+fn nalgebra_2x2(m: [[f64; 2]; 2]) -> (f64, f64, f64) {
+    let (a, b, c) = (m[0][0], 0.5 * (m[0][1] + m[1][0]), m[1][1]);
+    let mean = 0.5 * (a + c);
+    let diff = (0.25 * (a - c).powi(2) + b * b).sqrt();
+    let (l1, l2) = ((mean + diff).max(1e-12), (mean - diff).max(1e-12));
+    let angle = 0.5 * (2.0 * b).atan2(a - c);
+    // The eigenvector of l1 is at `angle`; its radius is 1/sqrt(l1).
+    (1.0 / l1.sqrt(), 1.0 / l2.sqrt(), angle)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mission::log::Line;
+
+    #[test]
+    fn draws_the_map_and_speed_coloured_tracks() {
+        let city = Scenario::builtin("city").expect("city");
+        let lines: Vec<Line> = (0..10)
+            .map(|i| Line {
+                t: i as f64,
+                record: Record::Position {
+                    drone: "alfa".into(),
+                    x: -40.0,
+                    y: -130.0 + 5.0 * i as f64,
+                    z: 10.0,
+                    speed: i as f64,
+                },
+            })
+            .collect();
+        let svg = svg(&lines, &city);
+        assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
+        assert_eq!(svg.matches("<ellipse").count(), 4, "four skyscrapers");
+        assert_eq!(svg.matches("<title>").count(), 51, "every landmark");
+        assert_eq!(
+            svg.matches(r#"stroke-width="2""#).count(),
+            9,
+            "nine track segments"
+        );
+        assert!(
+            svg.contains(&speed_colour(0.5 * (8.0 + 9.0) / 8.0)),
+            "the fastest segment is red"
+        );
+    }
+
+    #[test]
+    fn footprint_of_a_round_tower() {
+        let (rx, ry, _) = nalgebra_2x2([[1.0 / 64.0, 0.0], [0.0, 1.0 / 64.0]]);
+        assert!((rx - 8.0).abs() < 1e-9 && (ry - 8.0).abs() < 1e-9);
+        assert_eq!(speed_colour(0.0), "#283cdc");
+        assert_eq!(speed_colour(1.0), "#dc281e");
+    }
+}
