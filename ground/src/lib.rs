@@ -14,4 +14,3 @@ pub mod plot;
 pub mod safety;
 pub mod swarm;
 pub mod table;
-pub mod tui;
