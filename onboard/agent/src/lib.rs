@@ -8,5 +8,6 @@ pub mod executor;
 pub mod failsafe;
 pub mod profile;
 pub mod runtime;
+pub mod tracker;
 
 pub use runtime::{OnboardConfig, OnboardError, run};
