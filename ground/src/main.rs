@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tacos_bus::BusArgs;
+use tacos_embedded::{EmbeddedBackend, EmbeddedOptions};
 use tacos_ground::demo::{DemoOptions, DemoPlan, run_demo};
 use tacos_ground::link::GroundLink;
 use tacos_ground::mission::{MissionConfig, Mode};
@@ -128,7 +129,8 @@ impl LlmArgs {
                 }
                 Ok(Arc::new(OpenAiBackend::new(config)?))
             }
-            None => bail!("the embedded model is not wired in yet: give --llm-url and --model"),
+            // The embedded model: fetched on first use (pip), loaded on the first call.
+            None => Ok(Arc::new(EmbeddedBackend::lazy(EmbeddedOptions::from_env()))),
         }
     }
 }
@@ -145,6 +147,12 @@ fn main() -> std::process::ExitCode {
 }
 
 fn run() -> anyhow::Result<()> {
+    // candle's quantized kernels spin a thread pool per matrix product; on a small companion or
+    // a loaded 2-core machine one thread is several times faster. Set before any thread starts.
+    if std::env::var_os("CANDLE_NUM_THREADS").is_none() {
+        // SAFETY: nothing else runs yet: no threads have been started in this process.
+        unsafe { std::env::set_var("CANDLE_NUM_THREADS", "1") };
+    }
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),

@@ -18,10 +18,14 @@ use crate::tokenizer::ModelTokenizer;
 
 /// How the weights are held in memory. The file is Q4_1; candle's Q4_1 dot product is scalar
 /// code, while its Q8_0 one uses AVX2/AVX-VNNI and its f32 matmul uses `gemm`, so converting at
-/// load time is faster on x86 at the cost of memory and a second or so of start-up.
+/// load time is much faster on x86, at the cost of memory and about a second of start-up.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum WeightFormat {
-    /// As stored in the file (Q4_1, ~100 MB).
+    /// Q8_0 when candle's quantized kernels run single-threaded (`CANDLE_NUM_THREADS=1`, or one
+    /// core), else f32: candle's multi-threaded quantized kernels collapse when the cores are
+    /// busy with other work, its f32 matmul does not.
+    Auto,
+    /// As stored in the file (Q4_1, ~100 MB). Slowest.
     AsStored,
     /// Re-quantized to Q8_0 (~150 MB): no measurable quality loss from Q4_1.
     Q8_0,
@@ -32,10 +36,40 @@ pub enum WeightFormat {
 impl WeightFormat {
     pub fn parse(s: &str) -> Option<WeightFormat> {
         match s.to_ascii_lowercase().as_str() {
+            "auto" => Some(WeightFormat::Auto),
             "q4_1" | "stored" | "as-stored" => Some(WeightFormat::AsStored),
             "q8_0" | "q8" => Some(WeightFormat::Q8_0),
             "f32" => Some(WeightFormat::F32),
             _ => None,
+        }
+    }
+
+    /// `Auto` made concrete for this process (reads `CANDLE_NUM_THREADS` / `RAYON_NUM_THREADS`,
+    /// as candle does).
+    pub fn resolve(self) -> WeightFormat {
+        match self {
+            WeightFormat::Auto => {
+                let env_threads =
+                    ["CANDLE_NUM_THREADS", "RAYON_NUM_THREADS"]
+                        .iter()
+                        .find_map(|k| {
+                            std::env::var(k)
+                                .ok()
+                                .and_then(|v| v.trim().parse::<usize>().ok())
+                                .filter(|n| *n > 0)
+                        });
+                let threads = env_threads.unwrap_or_else(|| {
+                    std::thread::available_parallelism()
+                        .map(|n| n.get())
+                        .unwrap_or(1)
+                });
+                if threads == 1 {
+                    WeightFormat::Q8_0
+                } else {
+                    WeightFormat::F32
+                }
+            }
+            concrete => concrete,
         }
     }
 }
@@ -96,8 +130,11 @@ impl Engine {
             other => return Err(bad(format!("token_embd.weight has shape {other:?}"))),
         };
         let tokenizer = ModelTokenizer::from_gguf(&ct, n_vocab).map_err(&bad)?;
+        let format = format.resolve();
         let weights = match format {
-            WeightFormat::AsStored => ModelWeights::from_gguf(ct, &mut file, &device),
+            WeightFormat::Auto | WeightFormat::AsStored => {
+                ModelWeights::from_gguf(ct, &mut file, &device)
+            }
             WeightFormat::Q8_0 => {
                 convert(ct, &mut file, GgmlDType::Q8_0, &device).and_then(|mut c| {
                     let ct = gguf_file::Content::read(&mut c)?;
@@ -434,6 +471,9 @@ mod tests {
         assert_eq!(WeightFormat::parse("Q8_0"), Some(WeightFormat::Q8_0));
         assert_eq!(WeightFormat::parse("f32"), Some(WeightFormat::F32));
         assert_eq!(WeightFormat::parse("q4_1"), Some(WeightFormat::AsStored));
+        assert_eq!(WeightFormat::parse("auto"), Some(WeightFormat::Auto));
         assert_eq!(WeightFormat::parse("q5"), None);
+        assert_ne!(WeightFormat::Auto.resolve(), WeightFormat::Auto);
+        assert_eq!(WeightFormat::F32.resolve(), WeightFormat::F32);
     }
 }

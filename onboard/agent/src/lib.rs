@@ -6,6 +6,7 @@
 
 pub mod executor;
 pub mod failsafe;
+pub mod planner;
 pub mod profile;
 pub mod runtime;
 pub mod tracker;

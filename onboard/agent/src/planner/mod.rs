@@ -1,0 +1,585 @@
+//! The distributed collision-free planner: each drone solves its own small QP (clarabel) at
+//! 20 Hz or more. Pure: no I/O, no clocks, no threads; the caller passes the time.
+//!
+//! - Model: double integrator, state (p, v), piecewise-constant acceleration over
+//!   `horizon_steps` steps of `dt` (default 20 × 0.1 s = 2 s).
+//! - Cost: track the goal's position (and its velocity, for moving goals) with a heavier last
+//!   step, penalise acceleration and jerk (change of acceleration between steps, including from
+//!   the previous plan's acceleration now).
+//! - Limits: speed and acceleration as exact second-order cones (`‖v_k‖ ≤ v̄`, `‖a_k‖ ≤ ā`;
+//!   no polyhedral approximation is needed, clarabel takes the cones natively), the workspace
+//!   box shrunk by the drone radius on every control point.
+//! - Obstacles: each ellipsoid inflated by the drone radius (plus `obstacle_margin`) is kept out
+//!   by, per segment, its tangent half-space at the point where the ray from its centre through
+//!   the previous plan (or the current position, on the first solve) meets its surface. All
+//!   Bézier control points of the segment must lie in it, so the whole curve does.
+//! - Neighbours: per segment, a separating half-space between my previous plan and the
+//!   neighbour's published path (time-aligned by its age, held at its end) in a downwash-scaled
+//!   metric (vertical distances count `1 / downwash_factor`), each side keeping half the safety
+//!   distance plus margins (one of them growing with the path's age), rotated by
+//!   `right_hand_angle` so head-on pairs both veer right.
+//! - Every obstacle and neighbour constraint group has its own slack with a heavy L1 penalty, so
+//!   the QP stays feasible; if the solver still fails, the result is a braking plan.
+//! - A detour waypoint (see `route`) steers the reference around the first obstacle blocking the
+//!   straight line to the goal, to avoid the local minimum in front of it.
+//!
+//! Constraints that cannot be active are dropped before solving: a segment's control points
+//! stay within `max(max_speed, |v₀|) × (k + 1) dt` of the current position and within
+//! `|v₀| dt/2 + max_accel ((k + 1) dt)² / 2` of the coasting point `p₀ + v₀ (k + ½) dt`, so a
+//! half-space containing either ball is redundant. Neighbour sets are range-based (so symmetric):
+//! see [`neighbours_in_range`].
+
+pub mod constraints;
+pub mod plan;
+pub mod qp;
+mod route;
+
+#[cfg(test)]
+mod tests;
+
+pub use constraints::{Downwash, HalfSpace, path_point, separating_half_space, tangent_half_space};
+pub use plan::Plan;
+pub use qp::{ConstraintKind, CostWeights, QpError, SegmentConstraint};
+
+use qp::{QpInput, QpWorkspace};
+use tacos_shared::geometry::is_finite;
+use tacos_shared::messages::PathMessage;
+use tacos_shared::scenario::FlightLimits;
+use tacos_shared::world::{Bounds, Ellipsoid, World};
+use tacos_shared::{DroneId, Vec3};
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct PlannerConfig {
+    pub horizon_steps: usize,
+    /// Seconds per step.
+    pub dt: f64,
+    pub max_speed: f64,
+    pub max_accel: f64,
+    pub workspace: Bounds,
+    /// The obstacles as they are (not inflated).
+    pub obstacles: Vec<Ellipsoid>,
+    pub drone_radius: f64,
+    /// Kept between the inflated obstacles and the drone's centre on top of the radius: covers
+    /// the looseness of `Ellipsoid::inflated` and `clearance_lower_bound`, and solver tolerance.
+    pub obstacle_margin: f64,
+    /// Minimum centre-to-centre distance between two drones (in the downwash-scaled metric,
+    /// which is never more than the Euclidean one).
+    pub safety_distance: f64,
+    /// Added to each drone's half of the safety distance.
+    pub separation_margin: f64,
+    /// Required vertical separation / required horizontal separation (≥ 1).
+    pub downwash_factor: f64,
+    /// Neighbours closer than this are planned against (see [`neighbours_in_range`]).
+    pub neighbour_range: f64,
+    /// Extra margin per second of a neighbour path's age, metres per second.
+    pub stale_margin_rate: f64,
+    /// L1 penalty per metre of violated obstacle, neighbour or workspace constraint.
+    pub slack_weight: f64,
+    /// Rotation (radians, counter-clockwise about z) of separating half-spaces: both drones of a
+    /// head-on pair veer to their right.
+    pub right_hand_angle: f64,
+    /// Clearance beyond the inflated obstacle that detour waypoints aim for.
+    pub detour_margin: f64,
+    pub weights: CostWeights,
+}
+
+impl PlannerConfig {
+    /// The default tuning for a scenario's limits and world.
+    pub fn from_scenario(limits: &FlightLimits, world: &World) -> Self {
+        let horizon_steps = 20;
+        let dt = 0.1;
+        let horizon = horizon_steps as f64 * dt;
+        PlannerConfig {
+            horizon_steps,
+            dt,
+            max_speed: limits.max_speed,
+            max_accel: limits.max_accel,
+            workspace: world.bounds,
+            obstacles: world.obstacles.clone(),
+            drone_radius: limits.drone_radius,
+            obstacle_margin: 0.3,
+            safety_distance: limits.safety_distance,
+            separation_margin: 0.15,
+            downwash_factor: 2.0,
+            // Two drones closing at full speed over one horizon, plus the safety distance,
+            // plus room for stale paths.
+            neighbour_range: 2.0 * limits.max_speed * horizon + 2.0 * limits.safety_distance,
+            stale_margin_rate: 1.0,
+            slack_weight: 2e4,
+            right_hand_angle: 0.25,
+            detour_margin: 2.0,
+            weights: CostWeights {
+                position: 1.0,
+                terminal_position: 10.0,
+                velocity: 0.1,
+                terminal_velocity: 1.0,
+                acceleration: 0.05,
+                jerk: 0.5,
+            },
+        }
+    }
+
+    fn validate(&self) -> Result<(), PlannerError> {
+        let positive = [
+            ("dt", self.dt),
+            ("max_speed", self.max_speed),
+            ("max_accel", self.max_accel),
+            ("slack_weight", self.slack_weight),
+            ("downwash_factor", self.downwash_factor),
+        ];
+        for (name, v) in positive {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(PlannerError::InvalidConfig(format!(
+                    "{name} must be finite and positive"
+                )));
+            }
+        }
+        let non_negative = [
+            ("drone_radius", self.drone_radius),
+            ("obstacle_margin", self.obstacle_margin),
+            ("safety_distance", self.safety_distance),
+            ("separation_margin", self.separation_margin),
+            ("neighbour_range", self.neighbour_range),
+            ("stale_margin_rate", self.stale_margin_rate),
+            ("detour_margin", self.detour_margin),
+            ("weights.position", self.weights.position),
+            ("weights.terminal_position", self.weights.terminal_position),
+            ("weights.velocity", self.weights.velocity),
+            ("weights.terminal_velocity", self.weights.terminal_velocity),
+            ("weights.acceleration", self.weights.acceleration),
+            ("weights.jerk", self.weights.jerk),
+        ];
+        for (name, v) in non_negative {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(PlannerError::InvalidConfig(format!(
+                    "{name} must be finite and not negative"
+                )));
+            }
+        }
+        if !self.right_hand_angle.is_finite() {
+            return Err(PlannerError::InvalidConfig(
+                "right_hand_angle must be finite".into(),
+            ));
+        }
+        if self.horizon_steps == 0 || self.horizon_steps > 1000 {
+            return Err(PlannerError::InvalidConfig(
+                "horizon_steps must be between 1 and 1000".into(),
+            ));
+        }
+        let r = self.drone_radius;
+        if !(0..3).all(|i| self.workspace.min[i] + r < self.workspace.max[i] - r) {
+            return Err(PlannerError::InvalidConfig(
+                "the workspace shrunk by the drone radius is empty".into(),
+            ));
+        }
+        Ok(())
+    }
+
+    pub fn horizon(&self) -> f64 {
+        self.horizon_steps as f64 * self.dt
+    }
+
+    /// The workspace every control point must stay in: the bounds shrunk by the drone radius.
+    pub fn shrunk_workspace(&self) -> Bounds {
+        let r = Vec3::repeat(self.drone_radius);
+        Bounds {
+            min: self.workspace.min + r,
+            max: self.workspace.max - r,
+        }
+    }
+
+    /// The obstacles as the planner keeps them out: inflated by radius + margin.
+    pub fn keep_out(&self) -> Vec<Ellipsoid> {
+        self.obstacles
+            .iter()
+            .map(|o| o.inflated(self.drone_radius + self.obstacle_margin))
+            .collect()
+    }
+}
+
+/// Where to go. `velocity` is the goal's own velocity (zero for a fixed point); the planner
+/// predicts a moving goal at constant velocity over the horizon.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Goal {
+    pub position: Vec3,
+    pub velocity: Vec3,
+}
+
+impl Goal {
+    pub fn fixed(position: Vec3) -> Goal {
+        Goal {
+            position,
+            velocity: Vec3::zeros(),
+        }
+    }
+}
+
+/// Another drone's predicted path: positions `dt` apart starting at its stamp, which was
+/// `age_s` seconds ago. (`dt` travels with the path, as in `PathMessage`.)
+#[derive(Debug, Clone, PartialEq)]
+pub struct NeighbourPath {
+    pub id: DroneId,
+    pub positions: Vec<Vec3>,
+    pub dt: f64,
+    pub age_s: f64,
+}
+
+impl NeighbourPath {
+    /// From a received message; `now` is the receiver's wall clock (seconds since the Unix
+    /// epoch, like the stamp). Negative ages (clock skew) count as zero.
+    pub fn from_message(message: &PathMessage, now: f64) -> NeighbourPath {
+        NeighbourPath {
+            id: message.drone.clone(),
+            positions: message.positions.clone(),
+            dt: message.dt,
+            age_s: (now - message.stamp).max(0.0),
+        }
+    }
+
+    /// True when the path can be used: points, finite values, a positive step.
+    pub fn is_valid(&self) -> bool {
+        !self.positions.is_empty()
+            && self.positions.iter().all(is_finite)
+            && self.dt.is_finite()
+            && self.dt > 0.0
+            && self.age_s.is_finite()
+    }
+
+    /// Where the neighbour is predicted `t` seconds from now (its age accounted for).
+    pub fn position_at(&self, t: f64) -> Option<Vec3> {
+        path_point(&self.positions, self.dt, self.age_s.max(0.0) + t)
+    }
+}
+
+/// The neighbours whose predicted position now is within `range` of `me`. Range-based, so the
+/// relation is symmetric: if I see you, you see me (up to the paths' ages). Invalid paths are
+/// left out (see [`NeighbourPath::is_valid`]).
+pub fn neighbours_in_range(
+    me: Vec3,
+    others: impl Iterator<Item = NeighbourPath>,
+    range: f64,
+) -> Vec<NeighbourPath> {
+    others
+        .filter(|n| n.is_valid())
+        .filter(|n| n.position_at(0.0).is_some_and(|p| (p - me).norm() <= range))
+        .collect()
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PlannerError {
+    #[error("planner configuration: {0}")]
+    InvalidConfig(String),
+    #[error("the drone's position or velocity is not finite")]
+    NonFiniteState,
+}
+
+/// Why the planner fell back to braking.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum BrakeReason {
+    #[error("goal is not finite")]
+    BadGoal,
+    #[error(transparent)]
+    Solver(#[from] QpError),
+    #[error("the solved plan is not finite")]
+    NonFinitePlan,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub enum PlanStatus {
+    /// Every constraint holds (slacks below a millimetre).
+    Solved,
+    /// Solved, but some obstacle, neighbour or workspace constraint is violated by up to
+    /// `max_slack` metres (an infeasible start, or a neighbour that did not keep its side).
+    Relaxed { max_slack: f64 },
+    /// The solver failed: the plan brakes at max acceleration along the current velocity,
+    /// then holds.
+    Braking(BrakeReason),
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct PlanResult {
+    pub plan: Plan,
+    pub status: PlanStatus,
+    /// Interior-point iterations (0 when braking).
+    pub iterations: u32,
+    /// Neighbour paths left out as invalid.
+    pub ignored_neighbours: usize,
+}
+
+/// Slack (metres) below which a constraint counts as satisfied.
+const SLACK_TOLERANCE: f64 = 1e-3;
+/// The previous plan is used to linearise around only while the drone is this close to it.
+const PREVIOUS_PLAN_DRIFT: f64 = 2.0;
+
+/// One drone's planner. Keeps the previous plan (to linearise around) and its buffers.
+#[derive(Debug)]
+pub struct Planner {
+    cfg: PlannerConfig,
+    keep_out: Vec<Ellipsoid>,
+    detour_zone: Vec<Ellipsoid>,
+    metric: Downwash,
+    previous: Option<Plan>,
+    constraints: Vec<SegmentConstraint>,
+    detour_sides: Vec<i8>,
+    reference: Vec<Vec3>,
+    qp: QpWorkspace,
+}
+
+impl Planner {
+    pub fn new(cfg: PlannerConfig) -> Result<Planner, PlannerError> {
+        cfg.validate()?;
+        let keep_out = cfg.keep_out();
+        let detour_zone = cfg
+            .obstacles
+            .iter()
+            .map(|o| o.inflated(cfg.drone_radius + cfg.obstacle_margin + cfg.detour_margin))
+            .collect();
+        Ok(Planner {
+            metric: Downwash::new(cfg.downwash_factor),
+            detour_sides: vec![0; cfg.obstacles.len()],
+            keep_out,
+            detour_zone,
+            previous: None,
+            constraints: Vec::new(),
+            reference: Vec::new(),
+            qp: QpWorkspace::default(),
+            cfg,
+        })
+    }
+
+    pub fn config(&self) -> &PlannerConfig {
+        &self.cfg
+    }
+
+    /// The last plan returned (solved or braking).
+    pub fn previous(&self) -> Option<&Plan> {
+        self.previous.as_ref()
+    }
+
+    /// Forgets the previous plan (the next solve linearises around the current position).
+    pub fn reset(&mut self) {
+        self.previous = None;
+        self.detour_sides.iter_mut().for_each(|s| *s = 0);
+    }
+
+    /// The half-spaces of the last solve (after dropping the redundant ones), for checks.
+    pub fn last_constraints(&self) -> &[SegmentConstraint] {
+        &self.constraints
+    }
+
+    /// Plans from the drone's state at time `now` (seconds, any clock shared with the plans'
+    /// `start`) towards `goal`, apart from `neighbours` (already range-filtered, see
+    /// [`neighbours_in_range`]). Only a non-finite state is an error; everything else yields a
+    /// plan (solved, relaxed or braking).
+    pub fn plan(
+        &mut self,
+        now: f64,
+        position: Vec3,
+        velocity: Vec3,
+        goal: &Goal,
+        neighbours: &[NeighbourPath],
+    ) -> Result<PlanResult, PlannerError> {
+        if !(now.is_finite() && is_finite(&position) && is_finite(&velocity)) {
+            return Err(PlannerError::NonFiniteState);
+        }
+        let cfg = &self.cfg;
+        let k = cfg.horizon_steps;
+        let dt = cfg.dt;
+        self.constraints.clear();
+
+        // The previous plan, if it is current and the drone is on it.
+        let previous = self.previous.as_ref().filter(|p| {
+            now >= p.start - 1e-9
+                && now <= p.end_time()
+                && (p.sample(now).position - position).norm() <= PREVIOUS_PLAN_DRIFT
+        });
+        let a_prev = previous.map_or(Vec3::zeros(), |p| p.sample(now).acceleration);
+        let lin = |t: f64| -> Vec3 {
+            previous
+                .and_then(|p| path_point(&p.positions, p.dt, now - p.start + t))
+                .unwrap_or(position)
+        };
+
+        if !(is_finite(&goal.position) && is_finite(&goal.velocity)) {
+            return Ok(self.brake(now, position, velocity, BrakeReason::BadGoal, 0));
+        }
+
+        // Where segment k's control points can be: within `reach[k]` of the current position
+        // (speed bound), and within `drift[k]` of the coasting point p₀ + v₀ t_mid
+        // (acceleration bound). A half-space containing either ball cannot be active.
+        let fastest = cfg.max_speed.max(velocity.norm());
+        let reach: Vec<f64> = (0..k)
+            .map(|seg| fastest * (seg + 1) as f64 * dt + 1e-6)
+            .collect();
+        let coast: Vec<(Vec3, f64)> = (0..k)
+            .map(|seg| {
+                let t_end = (seg + 1) as f64 * dt;
+                let centre = position + velocity * ((seg as f64 + 0.5) * dt);
+                let radius = velocity.norm() * dt / 2.0 + 0.5 * cfg.max_accel * t_end * t_end;
+                (centre, radius + 1e-6)
+            })
+            .collect();
+        let redundant = |half: &HalfSpace, seg: usize| {
+            half.contains_ball(&position, reach[seg])
+                || half.contains_ball(&coast[seg].0, coast[seg].1)
+        };
+        let speed_bounds: Vec<f64> = (1..=k)
+            .map(|step| {
+                cfg.max_speed
+                    .max(velocity.norm() - cfg.max_accel * step as f64 * dt)
+            })
+            .collect();
+
+        // Reference: the goal predicted to the end of the horizon, reached around the first
+        // blocking obstacle, clipped to one horizon's travel along that route.
+        let horizon = cfg.horizon();
+        let goal_end = goal.position + goal.velocity * horizon;
+        let route = route::plan_route(
+            &position,
+            &goal_end,
+            &self.keep_out,
+            &self.detour_zone,
+            &mut self.detour_sides,
+        );
+        let (carrot, clipped) =
+            route::carrot(&position, &route, &goal_end, cfg.max_speed * horizon);
+        self.reference.clear();
+        // Far away (or detouring): every step aims at the carrot, cruising towards it. Close to
+        // the goal: the goal's predicted positions and its velocity.
+        let velocity_reference = if clipped || route.waypoint.is_some() {
+            self.reference.extend(std::iter::repeat_n(carrot, k));
+            let dir = carrot - position;
+            if dir.norm() > 1e-9 {
+                dir / dir.norm() * cfg.max_speed
+            } else {
+                Vec3::zeros()
+            }
+        } else {
+            self.reference
+                .extend((1..=k).map(|step| goal.position + goal.velocity * (step as f64 * dt)));
+            goal.velocity
+        };
+
+        // Obstacles: tangent half-spaces at the previous plan, per segment.
+        for (oi, obstacle) in self.keep_out.iter().enumerate() {
+            let away = position - obstacle.center;
+            for seg in 0..k {
+                let q = lin((seg as f64 + 0.5) * dt);
+                let half = tangent_half_space(obstacle, &q, &away);
+                if redundant(&half, seg) {
+                    continue;
+                }
+                self.constraints.push(SegmentConstraint {
+                    segment: seg,
+                    half,
+                    kind: ConstraintKind::Obstacle(oi),
+                });
+            }
+        }
+
+        // Neighbours: separating half-spaces, per segment, from the same pair of points the
+        // neighbour uses (my published path and theirs, read at the same instants).
+        let mut ignored = 0;
+        for (ni, n) in neighbours.iter().enumerate() {
+            if !n.is_valid() {
+                ignored += 1;
+                continue;
+            }
+            let keep = cfg.safety_distance / 2.0
+                + cfg.separation_margin
+                + cfg.stale_margin_rate * n.age_s.max(0.0);
+            let fallback = n.position_at(0.0).unwrap_or(position) - position;
+            for seg in 0..k {
+                let t = (seg as f64 + 0.5) * dt;
+                let mine = lin(t);
+                let Some(theirs) = n.position_at(t) else {
+                    continue;
+                };
+                let half = separating_half_space(
+                    &mine,
+                    &theirs,
+                    keep,
+                    &self.metric,
+                    cfg.right_hand_angle,
+                    &fallback,
+                );
+                if redundant(&half, seg) {
+                    continue;
+                }
+                self.constraints.push(SegmentConstraint {
+                    segment: seg,
+                    half,
+                    kind: ConstraintKind::Neighbour(ni),
+                });
+            }
+        }
+
+        let shrunk = cfg.shrunk_workspace();
+        let input = QpInput {
+            dt,
+            p0: position,
+            v0: velocity,
+            a_prev,
+            reference: &self.reference,
+            velocity_reference,
+            speed_bounds: &speed_bounds,
+            max_accel: cfg.max_accel,
+            box_lo: shrunk.min,
+            box_hi: shrunk.max,
+            reach: &reach,
+            constraints: &self.constraints,
+            weights: cfg.weights,
+            slack_weight: cfg.slack_weight,
+        };
+        let out = match self.qp.solve(&input) {
+            Ok(out) => out,
+            Err(e) => return Ok(self.brake(now, position, velocity, e.into(), ignored)),
+        };
+        let plan = Plan::integrate(now, dt, position, velocity, out.accelerations);
+        if !plan.is_finite() {
+            return Ok(self.brake(now, position, velocity, BrakeReason::NonFinitePlan, ignored));
+        }
+        let max_slack = out
+            .slacks
+            .iter()
+            .copied()
+            .fold(out.workspace_slack, f64::max);
+        let status = if max_slack <= SLACK_TOLERANCE {
+            PlanStatus::Solved
+        } else {
+            PlanStatus::Relaxed { max_slack }
+        };
+        self.previous = Some(plan.clone());
+        Ok(PlanResult {
+            plan,
+            status,
+            iterations: out.iterations,
+            ignored_neighbours: ignored,
+        })
+    }
+
+    fn brake(
+        &mut self,
+        now: f64,
+        position: Vec3,
+        velocity: Vec3,
+        reason: BrakeReason,
+        ignored: usize,
+    ) -> PlanResult {
+        let plan = Plan::braking(
+            now,
+            self.cfg.dt,
+            self.cfg.horizon_steps,
+            position,
+            velocity,
+            self.cfg.max_accel,
+        );
+        self.previous = Some(plan.clone());
+        PlanResult {
+            plan,
+            status: PlanStatus::Braking(reason),
+            iterations: 0,
+            ignored_neighbours: ignored,
+        }
+    }
+}

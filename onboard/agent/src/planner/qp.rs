@@ -1,0 +1,454 @@
+//! The planner's quadratic programme in clarabel's form
+//! `min ½ xᵀPx + qᵀx  s.t.  Ax + s = b, s ∈ K`, built as sparse CSC matrices.
+//!
+//! Variables, for K steps and G slack groups:
+//! `[p_1..p_K | v_1..v_K | a_0..a_{K-1} | σ_1..σ_G | σ_ws]` (3K + 3K + 3K + G + 1).
+//! `p_0`, `v_0` are the current state (constants). Rows:
+//! - zero cone: the double-integrator dynamics (6K rows);
+//! - non-negative cone: σ ≥ 0, the half-spaces (each group: every non-constant control point of
+//!   its segment, relaxed by its own σ), the shrunk workspace box (relaxed by one σ_ws);
+//! - second-order cones: `‖v_k‖ ≤ v̄_k` (k = 1..K) and `‖a_k‖ ≤ ā` (k = 0..K-1). The norm
+//!   bounds are exact (clarabel takes second-order cones natively), not polyhedral.
+//!
+//! Speed is bounded at the knots only; with piecewise-constant acceleration the velocity is
+//! linear in between, so its norm (convex) is bounded by the larger of the two ends.
+
+use super::constraints::HalfSpace;
+use clarabel::algebra::CscMatrix;
+use clarabel::solver::{DefaultSettings, DefaultSolver, IPSolver, SolverStatus, SupportedConeT};
+use tacos_shared::Vec3;
+
+/// Weights of the cost (all per step, squared norms).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CostWeights {
+    /// Position error to the reference at every step.
+    pub position: f64,
+    /// Extra position weight at the last step.
+    pub terminal_position: f64,
+    /// Velocity error to the reference velocity at every step.
+    pub velocity: f64,
+    /// Extra velocity weight at the last step.
+    pub terminal_velocity: f64,
+    /// ‖a_k‖².
+    pub acceleration: f64,
+    /// ‖a_k − a_{k−1}‖² (a_{−1}: the previous plan's acceleration now).
+    pub jerk: f64,
+}
+
+/// One linear constraint on one segment: all of the segment's control points inside `half`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SegmentConstraint {
+    pub segment: usize,
+    pub half: HalfSpace,
+    pub kind: ConstraintKind,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ConstraintKind {
+    /// Index into the planner's obstacle list.
+    Obstacle(usize),
+    /// Index into the neighbour slice given to `plan`.
+    Neighbour(usize),
+}
+
+pub(crate) struct QpInput<'a> {
+    pub dt: f64,
+    pub p0: Vec3,
+    pub v0: Vec3,
+    pub a_prev: Vec3,
+    /// Reference positions for p_1..p_K.
+    pub reference: &'a [Vec3],
+    /// Reference velocity for v_1..v_K.
+    pub velocity_reference: Vec3,
+    /// Speed bounds for v_1..v_K.
+    pub speed_bounds: &'a [f64],
+    pub max_accel: f64,
+    /// Workspace box for every non-constant control point.
+    pub box_lo: Vec3,
+    pub box_hi: Vec3,
+    /// Radius around p_0 that segment k's control points cannot leave (for dropping workspace
+    /// rows that cannot be active).
+    pub reach: &'a [f64],
+    pub constraints: &'a [SegmentConstraint],
+    pub weights: CostWeights,
+    pub slack_weight: f64,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct QpOutput {
+    pub accelerations: Vec<Vec3>,
+    /// One per constraint, metres.
+    pub slacks: Vec<f64>,
+    pub workspace_slack: f64,
+    pub iterations: u32,
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum QpError {
+    #[error("the solver rejected the problem: {0}")]
+    Setup(String),
+    #[error("the solver stopped with status {0}")]
+    Status(String),
+    #[error("the solver returned non-finite values")]
+    NonFinite,
+}
+
+/// An affine expression of a 3-vector: `constant + Σ coeff × x[block..block+3]`.
+#[derive(Debug, Clone, Copy)]
+struct Affine {
+    terms: [(usize, f64); 2],
+    len: usize,
+    constant: Vec3,
+}
+
+impl Affine {
+    fn constant(c: Vec3) -> Affine {
+        Affine {
+            terms: [(0, 0.0); 2],
+            len: 0,
+            constant: c,
+        }
+    }
+    fn with(mut self, block: usize, coeff: f64) -> Affine {
+        if self.len < 2 {
+            self.terms[self.len] = (block, coeff);
+            self.len += 1;
+        }
+        self
+    }
+    fn terms(&self) -> &[(usize, f64)] {
+        &self.terms[..self.len]
+    }
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Layout {
+    k: usize,
+    groups: usize,
+}
+
+impl Layout {
+    /// Block of p_k, k ≥ 1.
+    fn p(&self, k: usize) -> usize {
+        3 * (k - 1)
+    }
+    /// Block of v_k, k ≥ 1.
+    fn v(&self, k: usize) -> usize {
+        3 * self.k + 3 * (k - 1)
+    }
+    fn a(&self, k: usize) -> usize {
+        6 * self.k + 3 * k
+    }
+    fn slack(&self, g: usize) -> usize {
+        9 * self.k + g
+    }
+    fn workspace_slack(&self) -> usize {
+        9 * self.k + self.groups
+    }
+    fn n(&self) -> usize {
+        9 * self.k + self.groups + 1
+    }
+
+    /// The control points of segment k as affine expressions (see `Plan::control_points`).
+    fn control_points(&self, seg: usize, p0: &Vec3, v0: &Vec3, dt: f64) -> Vec<Affine> {
+        if seg == 0 {
+            let h = dt / 2.0;
+            vec![
+                Affine::constant(*p0),
+                Affine::constant(p0 + v0 * (h / 2.0)),
+                Affine::constant(p0 + v0 * h).with(self.a(0), 0.5 * h * h),
+                Affine::constant(p0 + v0 * (1.5 * h)).with(self.a(0), h * h),
+                Affine::constant(Vec3::zeros()).with(self.p(1), 1.0),
+            ]
+        } else {
+            vec![
+                Affine::constant(Vec3::zeros()).with(self.p(seg), 1.0),
+                Affine::constant(Vec3::zeros())
+                    .with(self.p(seg), 1.0)
+                    .with(self.v(seg), dt / 2.0),
+                Affine::constant(Vec3::zeros()).with(self.p(seg + 1), 1.0),
+            ]
+        }
+    }
+}
+
+/// Triplet buffers kept between solves (the matrices change shape with the constraint set, so
+/// clarabel itself is set up anew each time).
+#[derive(Debug, Default)]
+pub(crate) struct QpWorkspace {
+    p_i: Vec<usize>,
+    p_j: Vec<usize>,
+    p_v: Vec<f64>,
+    q: Vec<f64>,
+    a_i: Vec<usize>,
+    a_j: Vec<usize>,
+    a_v: Vec<f64>,
+    b: Vec<f64>,
+    settings: Option<DefaultSettings<f64>>,
+}
+
+impl QpWorkspace {
+    fn settings(&mut self) -> DefaultSettings<f64> {
+        self.settings
+            .get_or_insert_with(|| DefaultSettings {
+                verbose: false,
+                max_iter: 60,
+                presolve_enable: false,
+                tol_gap_abs: 1e-6,
+                tol_gap_rel: 1e-6,
+                tol_feas: 1e-7,
+                // The KKT systems are small and well regularised: a few refinement steps to a
+                // looser tolerance than the default (1e-13, 10 steps) are plenty.
+                iterative_refinement_reltol: 1e-10,
+                iterative_refinement_abstol: 1e-10,
+                iterative_refinement_max_iter: 3,
+                ..DefaultSettings::default()
+            })
+            .clone()
+    }
+
+    fn cost(&mut self, i: usize, j: usize, v: f64) {
+        // Upper triangle only.
+        let (i, j) = if i <= j { (i, j) } else { (j, i) };
+        self.p_i.push(i);
+        self.p_j.push(j);
+        self.p_v.push(v);
+    }
+
+    fn entry(&mut self, row: usize, col: usize, v: f64) {
+        self.a_i.push(row);
+        self.a_j.push(col);
+        self.a_v.push(v);
+    }
+
+    /// Adds the row `normal·point ≤ bound` (plus `extra` terms) as a non-negative-cone row.
+    fn le_row(
+        &mut self,
+        row: &mut usize,
+        normal: &Vec3,
+        point: &Affine,
+        bound: f64,
+        extra: &[(usize, f64)],
+    ) {
+        for &(block, coeff) in point.terms() {
+            for axis in 0..3 {
+                let c = normal[axis] * coeff;
+                if c != 0.0 {
+                    self.entry(*row, block + axis, c);
+                }
+            }
+        }
+        for &(col, c) in extra {
+            self.entry(*row, col, c);
+        }
+        self.b.push(bound - normal.dot(&point.constant));
+        *row += 1;
+    }
+
+    pub(crate) fn solve(&mut self, input: &QpInput<'_>) -> Result<QpOutput, QpError> {
+        let k = input.reference.len();
+        let dt = input.dt;
+        let layout = Layout {
+            k,
+            groups: input.constraints.len(),
+        };
+        let n = layout.n();
+        for buf in [&mut self.p_i, &mut self.p_j, &mut self.a_i, &mut self.a_j] {
+            buf.clear();
+        }
+        for buf in [&mut self.p_v, &mut self.a_v, &mut self.b] {
+            buf.clear();
+        }
+        self.q.clear();
+        self.q.resize(n, 0.0);
+
+        // ---- cost ----
+        let w = input.weights;
+        for step in 1..=k {
+            let last = step == k;
+            let wp = w.position + if last { w.terminal_position } else { 0.0 };
+            let wv = w.velocity + if last { w.terminal_velocity } else { 0.0 };
+            let g = input.reference[step - 1];
+            for axis in 0..3 {
+                let (ip, iv) = (layout.p(step) + axis, layout.v(step) + axis);
+                self.cost(ip, ip, 2.0 * wp);
+                self.q[ip] -= 2.0 * wp * g[axis];
+                self.cost(iv, iv, 2.0 * wv);
+                self.q[iv] -= 2.0 * wv * input.velocity_reference[axis];
+            }
+        }
+        for step in 0..k {
+            for axis in 0..3 {
+                let ia = layout.a(step) + axis;
+                self.cost(ia, ia, 2.0 * (w.acceleration + w.jerk));
+                if step == 0 {
+                    self.q[ia] -= 2.0 * w.jerk * input.a_prev[axis];
+                } else {
+                    let prev = layout.a(step - 1) + axis;
+                    self.cost(prev, prev, 2.0 * w.jerk);
+                    self.cost(prev, ia, -2.0 * w.jerk);
+                }
+            }
+        }
+        for g in 0..layout.groups {
+            self.q[layout.slack(g)] = input.slack_weight;
+        }
+        self.q[layout.workspace_slack()] = input.slack_weight;
+
+        // ---- zero cone: dynamics ----
+        let mut row = 0;
+        for step in 0..k {
+            for axis in 0..3 {
+                // p_{k+1} − p_k − dt v_k − dt²/2 a_k = 0
+                self.entry(row, layout.p(step + 1) + axis, 1.0);
+                self.entry(row, layout.a(step) + axis, -0.5 * dt * dt);
+                if step == 0 {
+                    self.b.push(input.p0[axis] + dt * input.v0[axis]);
+                } else {
+                    self.entry(row, layout.p(step) + axis, -1.0);
+                    self.entry(row, layout.v(step) + axis, -dt);
+                    self.b.push(0.0);
+                }
+                row += 1;
+                // v_{k+1} − v_k − dt a_k = 0
+                self.entry(row, layout.v(step + 1) + axis, 1.0);
+                self.entry(row, layout.a(step) + axis, -dt);
+                if step == 0 {
+                    self.b.push(input.v0[axis]);
+                } else {
+                    self.entry(row, layout.v(step) + axis, -1.0);
+                    self.b.push(0.0);
+                }
+                row += 1;
+            }
+        }
+        let zero_rows = row;
+
+        // ---- non-negative cone ----
+        for g in 0..=layout.groups {
+            // σ ≥ 0  ⇔  −σ ≤ 0
+            self.entry(row, layout.slack(g), -1.0);
+            self.b.push(0.0);
+            row += 1;
+        }
+        for (g, c) in input.constraints.iter().enumerate() {
+            // normal·x + σ ≥ offset  ⇔  (−normal)·x − σ ≤ −offset
+            let neg = -c.half.normal;
+            for point in layout.control_points(c.segment, &input.p0, &input.v0, dt) {
+                if point.len == 0 {
+                    continue; // fixed by the current state
+                }
+                self.le_row(
+                    &mut row,
+                    &neg,
+                    &point,
+                    -c.half.offset,
+                    &[(layout.slack(g), -1.0)],
+                );
+            }
+        }
+        let ws = layout.workspace_slack();
+        for seg in 0..k {
+            let reach = input.reach.get(seg).copied().unwrap_or(f64::INFINITY);
+            let points = layout.control_points(seg, &input.p0, &input.v0, dt);
+            // Skip the first point of segments ≥ 1: it is the last of the previous one.
+            let skip = if seg == 0 { 0 } else { 1 };
+            for point in points.iter().skip(skip) {
+                if point.len == 0 {
+                    continue;
+                }
+                for axis in 0..3 {
+                    let e = Vec3::ith(axis, 1.0);
+                    if input.p0[axis] + reach > input.box_hi[axis] {
+                        self.le_row(&mut row, &e, point, input.box_hi[axis], &[(ws, -1.0)]);
+                    }
+                    if input.p0[axis] - reach < input.box_lo[axis] {
+                        self.le_row(&mut row, &(-e), point, -input.box_lo[axis], &[(ws, -1.0)]);
+                    }
+                }
+            }
+        }
+        let nonneg_rows = row - zero_rows;
+
+        // ---- second-order cones ----
+        let mut cones = vec![
+            SupportedConeT::ZeroConeT(zero_rows),
+            SupportedConeT::NonnegativeConeT(nonneg_rows),
+        ];
+        for step in 1..=k {
+            let bound = input.speed_bounds.get(step - 1).copied().unwrap_or(0.0);
+            self.b.push(bound);
+            row += 1;
+            for axis in 0..3 {
+                self.entry(row, layout.v(step) + axis, -1.0);
+                self.b.push(0.0);
+                row += 1;
+            }
+            cones.push(SupportedConeT::SecondOrderConeT(4));
+        }
+        for step in 0..k {
+            self.b.push(input.max_accel);
+            row += 1;
+            for axis in 0..3 {
+                self.entry(row, layout.a(step) + axis, -1.0);
+                self.b.push(0.0);
+                row += 1;
+            }
+            cones.push(SupportedConeT::SecondOrderConeT(4));
+        }
+        let m = row;
+
+        if self
+            .b
+            .iter()
+            .chain(&self.q)
+            .chain(&self.a_v)
+            .chain(&self.p_v)
+            .any(|v| !v.is_finite())
+        {
+            return Err(QpError::Setup("non-finite problem data".into()));
+        }
+        let p = CscMatrix::new_from_triplets(
+            n,
+            n,
+            self.p_i.clone(),
+            self.p_j.clone(),
+            self.p_v.clone(),
+        );
+        let a = CscMatrix::new_from_triplets(
+            m,
+            n,
+            self.a_i.clone(),
+            self.a_j.clone(),
+            self.a_v.clone(),
+        );
+        let settings = self.settings();
+        let mut solver = DefaultSolver::new(&p, &self.q, &a, &self.b, &cones, settings)
+            .map_err(|e| QpError::Setup(e.to_string()))?;
+        solver.solve();
+        let sol = &solver.solution;
+        match sol.status {
+            SolverStatus::Solved | SolverStatus::AlmostSolved => {}
+            other => return Err(QpError::Status(format!("{other:?}"))),
+        }
+        let x = &sol.x;
+        if x.len() != n || x.iter().any(|v| !v.is_finite()) {
+            return Err(QpError::NonFinite);
+        }
+        let accelerations = (0..k)
+            .map(|step| {
+                let i = layout.a(step);
+                Vec3::new(x[i], x[i + 1], x[i + 2])
+            })
+            .collect();
+        let slacks = (0..layout.groups)
+            .map(|g| x[layout.slack(g)].max(0.0))
+            .collect();
+        Ok(QpOutput {
+            accelerations,
+            slacks,
+            workspace_slack: x[ws].max(0.0),
+            iterations: sol.iterations,
+        })
+    }
+}
