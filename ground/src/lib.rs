@@ -14,3 +14,4 @@ pub mod plot;
 pub mod safety;
 pub mod swarm;
 pub mod table;
+pub mod tui;

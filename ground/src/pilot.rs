@@ -92,6 +92,9 @@ pub async fn run_session(
     opts: SessionOptions,
 ) -> Result<SessionReport, SessionError> {
     let log = Arc::new(MissionLog::create(&opts.log_path)?);
+    let link_for_terminal = link.clone();
+    let scenario = gate.scenario().clone();
+    let description = backend.describe();
     let (updates_tx, mut updates) = mpsc::unbounded_channel();
     let mission = Mission::new(
         opts.mission.clone(),
@@ -149,7 +152,25 @@ pub async fn run_session(
         }
     }
 
-    if result.is_ok() && opts.interactive {
+    if result.is_ok() && opts.interactive && std::io::IsTerminal::is_terminal(&std::io::stdout()) {
+        // The pilot's full-screen terminal: map, swarm, chat, events, status.
+        let targets = link_for_terminal.watch_targets().await?;
+        if let Err(e) = crate::tui::run_terminal(
+            link_for_terminal.clone(),
+            scenario,
+            description,
+            updates,
+            lines_tx.clone(),
+            targets,
+        )
+        .await
+        {
+            result = Err(SessionError::Line {
+                line: "(terminal)".into(),
+                reason: e.to_string(),
+            });
+        }
+    } else if result.is_ok() && opts.interactive {
         let mut stdin = tokio::io::BufReader::new(tokio::io::stdin()).lines();
         println!(
             "type an instruction for the swarm (\"land all\", \"alfa, take off\", …); Ctrl-D to end"

@@ -62,6 +62,15 @@ pub fn build(output: Output, drones: &[String], targets: &[String]) -> Value {
         Output::Monolithic => MONOLITHIC,
     });
     fill(&mut schema, drones, targets, &call);
+    // Bound the lists by the swarm: a small model left unbounded can list calls until it runs out
+    // of tokens. A plan gets up to three calls per drone, a cycle one per drone.
+    let n = drones.len().max(1);
+    if let Some(plan) = schema.pointer_mut("/properties/plan") {
+        plan["maxItems"] = Value::from((3 * n).clamp(3, 40));
+    }
+    if let Some(actions) = schema.pointer_mut("/properties/actions") {
+        actions["maxItems"] = Value::from(n.min(20));
+    }
     schema
 }
 
@@ -93,7 +102,9 @@ mod tests {
             serde_json::json!(["none", "car_1"])
         );
         assert!(!s.to_string().contains('$'), "a placeholder was left: {s}");
+        assert_eq!(s["properties"]["plan"]["maxItems"], 6);
         let s = build(Output::Supervisor, &["alfa".into()], &[]);
+        assert_eq!(s["properties"]["actions"]["maxItems"], 1);
         assert_eq!(
             s["properties"]["actions"]["items"]["properties"]["drone"]["enum"],
             serde_json::json!(["alfa"])

@@ -74,8 +74,8 @@ impl Default for MissionConfig {
             max_repairs: 2,
             cycle_timeout: Duration::from_secs(10),
             max_cycles_per_plan: 30,
-            coordinator_max_tokens: 900,
-            supervisor_max_tokens: 700,
+            coordinator_max_tokens: 600,
+            supervisor_max_tokens: 400,
             temperature: 0.0,
             seed: Some(7),
         }
@@ -641,9 +641,21 @@ impl Mission {
         )
     }
 
+    /// The drones of this swarm: those the ground has heard from, in scenario order.
+    fn swarm_ids(&self) -> Vec<String> {
+        let view = self.link.view();
+        self.gate
+            .scenario()
+            .drones
+            .iter()
+            .filter(|d| view.get(&d.id).is_some())
+            .map(|d| d.id.to_string())
+            .collect()
+    }
+
     fn enums(&self) -> (Vec<String>, Vec<String>) {
         let s = self.gate.scenario();
-        let drones = s.drones.iter().map(|d| d.id.to_string()).collect();
+        let drones = self.swarm_ids();
         let places = s
             .world
             .landmarks

@@ -1,0 +1,224 @@
+//! The pilot's terminal: a full-screen view of the swarm (map, table), the chat with the
+//! models, the event log and a status bar, with an input line for instructions and direct
+//! commands.
+//!
+//! `state` is what is shown (pure, testable), `panes` draws it, and [`run_terminal`] runs the
+//! screen: it only exchanges messages with the mission, which runs in its own task, so the
+//! screen stays live while a model thinks.
+
+pub mod panes;
+pub mod state;
+
+#[cfg(test)]
+mod tests;
+
+pub use state::{Command, TerminalState};
+
+use crate::link::GroundLink;
+use crate::mission::MissionUpdate;
+use crossterm::event::{Event, EventStream, KeyEventKind};
+use crossterm::{cursor, execute, terminal};
+use futures_util::StreamExt;
+use ratatui::Terminal;
+use ratatui::backend::CrosstermBackend;
+use std::collections::VecDeque;
+use std::io::Stdout;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use tacos_shared::messages::TargetObservation;
+use tacos_shared::scenario::Scenario;
+use tokio::sync::{mpsc, watch};
+
+/// Redraw period when nothing happens (the thinking timer and link ages move).
+const FRAME: Duration = Duration::from_millis(100);
+
+#[derive(Debug, thiserror::Error)]
+pub enum TuiError {
+    #[error("terminal: {0}")]
+    Io(#[from] std::io::Error),
+    #[error("a panic restored the terminal; the screen was closed")]
+    Panicked,
+}
+
+/// True while the terminal is in raw mode on the alternate screen (restore only once).
+static ACTIVE: AtomicBool = AtomicBool::new(false);
+/// Set by the panic hook when it restored the terminal.
+static PANICKED: AtomicBool = AtomicBool::new(false);
+
+type PanicHook = Box<dyn Fn(&std::panic::PanicHookInfo<'_>) + Sync + Send + 'static>;
+
+/// Leaves the alternate screen and raw mode; safe to call more than once.
+fn restore_terminal() {
+    if ACTIVE.swap(false, Ordering::SeqCst) {
+        let _ = terminal::disable_raw_mode();
+        let _ = execute!(
+            std::io::stdout(),
+            terminal::LeaveAlternateScreen,
+            cursor::Show
+        );
+    }
+}
+
+/// Raw mode + alternate screen for its lifetime, and a panic hook that restores the terminal
+/// before the panic message is printed. Dropping it (on every exit path) restores both.
+struct TerminalGuard {
+    previous_hook: Option<Arc<Mutex<Option<PanicHook>>>>,
+}
+
+impl TerminalGuard {
+    fn enter() -> Result<TerminalGuard, TuiError> {
+        let previous: Arc<Mutex<Option<PanicHook>>> =
+            Arc::new(Mutex::new(Some(std::panic::take_hook())));
+        let chained = previous.clone();
+        std::panic::set_hook(Box::new(move |info| {
+            if ACTIVE.load(Ordering::SeqCst) {
+                PANICKED.store(true, Ordering::SeqCst);
+            }
+            restore_terminal();
+            if let Ok(hook) = chained.lock()
+                && let Some(hook) = hook.as_ref()
+            {
+                hook(info);
+            }
+        }));
+        let guard = TerminalGuard {
+            previous_hook: Some(previous),
+        };
+        PANICKED.store(false, Ordering::SeqCst);
+        ACTIVE.store(true, Ordering::SeqCst);
+        terminal::enable_raw_mode()?;
+        execute!(std::io::stdout(), terminal::EnterAlternateScreen)?;
+        Ok(guard)
+    }
+}
+
+impl Drop for TerminalGuard {
+    fn drop(&mut self) {
+        restore_terminal();
+        // Put the previous panic hook back (ours holds it; take it out first).
+        if let Some(previous) = self.previous_hook.take() {
+            let ours = std::panic::take_hook();
+            let hook = previous.lock().ok().and_then(|mut h| h.take());
+            match hook {
+                Some(hook) => std::panic::set_hook(hook),
+                None => std::panic::set_hook(ours),
+            }
+        }
+    }
+}
+
+/// Runs the pilot's terminal until the pilot quits (Ctrl-C, Esc, `:q`) or the terminal fails.
+///
+/// The mission runs elsewhere: `updates` brings what it does, submitted lines leave on `lines`
+/// (queued here, never blocking the screen), and `targets` brings the observed targets. The
+/// swarm is read from `link` at every frame.
+pub async fn run_terminal(
+    link: Arc<GroundLink>,
+    scenario: Scenario,
+    backend_description: String,
+    mut updates: mpsc::UnboundedReceiver<MissionUpdate>,
+    lines: mpsc::Sender<String>,
+    mut targets: watch::Receiver<Vec<TargetObservation>>,
+) -> Result<(), TuiError> {
+    let guard = TerminalGuard::enter()?;
+    let result = async {
+        let mut terminal = Terminal::new(CrosstermBackend::new(std::io::stdout()))?;
+        terminal.clear()?;
+        event_loop(
+            &mut terminal,
+            &link,
+            &scenario,
+            backend_description,
+            &mut updates,
+            &lines,
+            &mut targets,
+        )
+        .await
+    }
+    .await;
+    drop(guard);
+    result
+}
+
+async fn event_loop(
+    terminal: &mut Terminal<CrosstermBackend<Stdout>>,
+    link: &GroundLink,
+    scenario: &Scenario,
+    backend_description: String,
+    updates: &mut mpsc::UnboundedReceiver<MissionUpdate>,
+    lines: &mpsc::Sender<String>,
+    targets: &mut watch::Receiver<Vec<TargetObservation>>,
+) -> Result<(), TuiError> {
+    let mut state = TerminalState::new(scenario, backend_description, Instant::now());
+    let mut keys = EventStream::new();
+    let mut frame = tokio::time::interval(FRAME);
+    frame.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut outbox: VecDeque<String> = VecDeque::new();
+    let (mut updates_open, mut targets_open, mut lines_open) = (true, true, true);
+    loop {
+        tokio::select! {
+            _ = frame.tick() => {}
+            update = updates.recv(), if updates_open => match update {
+                Some(update) => {
+                    let now = Instant::now();
+                    state.apply_update(&update, now);
+                    // Take a burst in one frame.
+                    while let Ok(update) = updates.try_recv() {
+                        state.apply_update(&update, now);
+                    }
+                }
+                None => {
+                    updates_open = false;
+                    state.log(state::EventKind::Error, "the mission stopped; nothing typed here reaches the swarm");
+                }
+            },
+            changed = targets.changed(), if targets_open => {
+                if changed.is_err() {
+                    targets_open = false;
+                }
+            }
+            permit = lines.reserve(), if lines_open && !outbox.is_empty() => match permit {
+                Ok(permit) => {
+                    if let Some(line) = outbox.pop_front() {
+                        permit.send(line);
+                    }
+                }
+                Err(_) => {
+                    lines_open = false;
+                    outbox.clear();
+                    state.log(state::EventKind::Error, "the mission no longer takes lines");
+                }
+            },
+            event = keys.next() => match event {
+                Some(Ok(Event::Key(key))) if key.kind != KeyEventKind::Release => {
+                    match state.key(key) {
+                        Some(Command::Quit) => return Ok(()),
+                        Some(Command::Submit(line)) => {
+                            if lines_open {
+                                outbox.push_back(line);
+                            } else {
+                                state.log(state::EventKind::Error, format!("not sent (the mission stopped): {line}"));
+                            }
+                        }
+                        None => {}
+                    }
+                }
+                Some(Ok(_)) => {}
+                Some(Err(e)) => return Err(TuiError::Io(e)),
+                None => return Ok(()),
+            },
+        }
+        if PANICKED.load(Ordering::SeqCst) {
+            return Err(TuiError::Panicked);
+        }
+        let now = Instant::now();
+        {
+            let view = link.view();
+            state.refresh_swarm(&view, now);
+        }
+        let observed = targets.borrow_and_update().clone();
+        state.set_targets(&observed);
+        terminal.draw(|f| panes::draw(f, &state))?;
+    }
+}
