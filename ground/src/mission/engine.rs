@@ -228,12 +228,15 @@ impl Mission {
         updates: mpsc::UnboundedSender<MissionUpdate>,
     ) -> Result<Mission, crate::link::LinkError> {
         let targets = link.watch_targets().await?;
-        let drones = gate
-            .scenario()
-            .drones
-            .iter()
-            .map(|d| d.id.to_string())
-            .collect();
+        let drones = {
+            let view = link.view();
+            gate.scenario()
+                .drones
+                .iter()
+                .filter(|d| view.get(&d.id).is_some())
+                .map(|d| d.id.to_string())
+                .collect()
+        };
         log.note(Record::MissionStart {
             mode: cfg.mode.as_str().into(),
             backend: backend.describe(),
@@ -362,13 +365,7 @@ impl Mission {
         if text.is_empty() {
             return Ok(());
         }
-        let drones: Vec<String> = self
-            .gate
-            .scenario()
-            .drones
-            .iter()
-            .map(|d| d.id.to_string())
-            .collect();
+        let drones = self.swarm_ids();
         if let Some(directive) = directives::parse(text, &drones) {
             self.direct(text, directive).await;
             return Ok(());
@@ -696,15 +693,7 @@ impl Mission {
             &render::history(&self.history),
             instruction,
         );
-        let mut messages = vec![ChatMessage::system(texts::COORDINATOR)];
-        for example in texts::coordinator_examples().unwrap_or_default() {
-            messages.push(ChatMessage::user(format!(
-                "## Context\n{}\n## Instruction\n{}",
-                example.context, example.instruction
-            )));
-            messages.push(ChatMessage::assistant(example.reply.to_string()));
-        }
-        messages.push(ChatMessage::user(user));
+        let messages = coordinator_messages(user);
         let (drones, places) = self.enums();
         let schema = schema::build(Output::Coordinator, &drones, &places);
         self.tell(MissionUpdate::Thinking {
@@ -835,10 +824,7 @@ impl Mission {
             &self.world_text(),
             &plan.memory,
         );
-        let messages = vec![
-            ChatMessage::system(texts::SUPERVISOR),
-            ChatMessage::user(user),
-        ];
+        let messages = supervisor_messages(user);
         let (drones, places) = self.enums();
         let schema = schema::build(Output::Supervisor, &drones, &places);
         self.tell(MissionUpdate::Thinking {
@@ -1143,6 +1129,32 @@ impl Caller {
             completion_tokens: reply.usage.completion_tokens,
         });
     }
+}
+
+/// The Coordinator's messages: its configuration prompt, the few-shot examples as turns, then
+/// the request.
+pub fn coordinator_messages(user: String) -> Vec<ChatMessage> {
+    let mut messages = vec![ChatMessage::system(texts::COORDINATOR)];
+    for example in texts::coordinator_examples().unwrap_or_default() {
+        messages.push(ChatMessage::user(format!(
+            "## Context\n{}\n## Instruction\n{}",
+            example.context, example.instruction
+        )));
+        messages.push(ChatMessage::assistant(example.reply.to_string()));
+    }
+    messages.push(ChatMessage::user(user));
+    messages
+}
+
+/// The Supervisor's messages: its configuration prompt, the few-shot cycles, then the request.
+pub fn supervisor_messages(user: String) -> Vec<ChatMessage> {
+    let mut messages = vec![ChatMessage::system(texts::SUPERVISOR)];
+    for example in texts::supervisor_examples().unwrap_or_default() {
+        messages.push(ChatMessage::user(example.context));
+        messages.push(ChatMessage::assistant(example.reply.to_string()));
+    }
+    messages.push(ChatMessage::user(user));
+    messages
 }
 
 /// Checks a planned call that does not depend on the live state: the drone exists, the call

@@ -11,4 +11,6 @@ pub mod engine;
 pub mod log;
 pub mod resolve;
 
-pub use engine::{Mission, MissionConfig, MissionError, MissionStats, MissionUpdate, Mode};
+pub use engine::{
+    Mission, MissionConfig, MissionError, MissionStats, MissionUpdate, Mode, coordinator_messages,
+};
