@@ -13,7 +13,9 @@ use std::time::{Duration, Instant};
 use tacos_llm::{ChatMessage, ChatReply, ChatRequest, LlmBackend, LlmError, ResponseSchema};
 use tacos_prompts::render::{self, DroneLine, HistoryEntry, TaskStatus};
 use tacos_prompts::schema::{self, Output};
-use tacos_prompts::{Call, CoordinatorReply, MonolithicReply, ReplyError, SupervisorReply, texts};
+use tacos_prompts::{
+    ActionName, Call, CoordinatorReply, MonolithicReply, ReplyError, SupervisorReply, texts,
+};
 use tacos_shared::action::Action;
 use tacos_shared::messages::{ActionState, TargetObservation, WorldEvent};
 use tacos_shared::{DroneId, DroneMode};
@@ -497,6 +499,7 @@ impl Mission {
     /// Looks for finished actions; true when any task changed state.
     fn poll_outcomes(&mut self) -> bool {
         let mut finished: Vec<(String, String, String)> = Vec::new();
+        self.mark_satisfied_tasks(&mut finished);
         {
             let view = self.link.view();
             let tasks = self
@@ -564,6 +567,54 @@ impl Mission {
         }
         self.mnl.running.retain(|t| t.status == TaskStatus::Running);
         !finished.is_empty()
+    }
+
+    /// A task whose effect already holds is done without flying it: a take-off for a drone that
+    /// is airborne and idle in the air, a landing or hold for a drone resting on the ground.
+    /// Plans from models repeat such calls; sending them would only be refused by the drone.
+    fn mark_satisfied_tasks(&mut self, finished: &mut Vec<(String, String, String)>) {
+        let Some(plan) = self.plan.as_mut() else {
+            return;
+        };
+        let view = self.link.view();
+        let now = Instant::now();
+        // Only a task whose earlier tasks for the same drone are all done: "take off, then land"
+        // must not count the landing as done before the take-off.
+        let mut open_before: std::collections::HashSet<String> = std::collections::HashSet::new();
+        for task in plan.tasks.iter_mut() {
+            let blocked = open_before.contains(&task.call.drone);
+            if task.status != TaskStatus::Done {
+                open_before.insert(task.call.drone.clone());
+            }
+            if blocked || task.status != TaskStatus::NotStarted {
+                continue;
+            }
+            let Some(entry) = DroneId::new(&task.call.drone)
+                .ok()
+                .and_then(|id| view.get(&id))
+            else {
+                continue;
+            };
+            let busy = entry
+                .status
+                .as_ref()
+                .and_then(|s| s.action.as_ref())
+                .is_some_and(|p| !p.state.is_finished());
+            let mode = entry.effective_mode(now);
+            let holds = match task.call.action {
+                ActionName::ArmTakeoff => mode.is_airborne(),
+                ActionName::Land | ActionName::Hold => mode == DroneMode::Idle,
+                _ => false,
+            };
+            if holds && !busy {
+                task.status = TaskStatus::Done;
+                let what = format!("already {mode}: nothing to do");
+                self.log.note(Record::Event {
+                    text: format!("{}: {what}", task.call),
+                });
+                finished.push((task.call.drone.clone(), task.call.to_string(), what));
+            }
+        }
     }
 
     fn finish_plan(&mut self, plan: ActivePlan, how: &str) {
