@@ -569,6 +569,56 @@ impl Mission {
         !finished.is_empty()
     }
 
+    /// The plan's calls that could start now: tasks not started, on their own drone; failed
+    /// tasks, on any available drone; each only if its drone is idle-ready (not busy), the call
+    /// resolves, and the safety gate would let it through.
+    fn startable_calls(&self) -> Vec<Call> {
+        let Some(plan) = self.plan.as_ref() else {
+            return Vec::new();
+        };
+        // Before the view is locked: `swarm_ids` locks it too, and the lock is not reentrant.
+        let swarm = self.swarm_ids();
+        let view = self.link.view();
+        let now = Instant::now();
+        let visible = self.targets.borrow().clone();
+        let ready = |drone: &str| {
+            DroneId::new(drone)
+                .ok()
+                .and_then(|id| view.get(&id))
+                .is_some_and(|e| {
+                    e.effective_mode(now) != DroneMode::Unavailable
+                        && e
+                            .status
+                            .as_ref()
+                            .and_then(|s| s.action.as_ref())
+                            .is_none_or(|p| p.state.is_finished())
+                })
+        };
+        let mut out = Vec::new();
+        // No order is imposed here: the plan's temporal dependencies are the Supervisor's to
+        // infer (the paper's division of labour); the drone's mode rules what is possible.
+        for task in &plan.tasks {
+            let drones: Vec<String> = match &task.status {
+                TaskStatus::NotStarted => vec![task.call.drone.clone()],
+                TaskStatus::Failed(_) => swarm.clone(),
+                _ => continue,
+            };
+            for drone in drones.into_iter().filter(|d| ready(d)) {
+                let call = Call {
+                    drone: drone.clone(),
+                    ..task.call.clone()
+                };
+                let Ok(action) = resolve(&call, self.gate.scenario(), &visible) else {
+                    continue;
+                };
+                if self.gate.check(&view, &drone, &action, now).is_ok() {
+                    out.push(call);
+                }
+            }
+        }
+        out
+    }
+
     /// A task whose effect already holds is done without flying it: a take-off for a drone that
     /// is airborne and idle in the air, a landing or hold for a drone resting on the ground.
     /// Plans from models repeat such calls; sending them would only be refused by the drone.
@@ -867,6 +917,12 @@ impl Mission {
             }
             return Ok(());
         }
+        // What could start now. When nothing can, the Supervisor has no decision to make: wait
+        // for the swarm (an outcome, a membership change or the cycle timeout wakes us again).
+        let startable = self.startable_calls();
+        if startable.is_empty() {
+            return Ok(());
+        }
         let reasoning = (self.cfg.mode == Mode::Tacos).then(|| plan.reasoning.clone());
         let user = render::supervisor_request(
             reasoning.as_deref(),
@@ -876,8 +932,7 @@ impl Mission {
             &plan.memory,
         );
         let messages = supervisor_messages(user);
-        let (drones, places) = self.enums();
-        let schema = schema::build(Output::Supervisor, &drones, &places);
+        let schema = startable_schema(&startable);
         self.tell(MissionUpdate::Thinking {
             layer: "supervisor",
         });
@@ -896,8 +951,10 @@ impl Mission {
                     self.cfg.supervisor_max_tokens,
                     SupervisorReply::parse,
                     |reply: &SupervisorReply| {
-                        let (accepted, rejections) =
-                            check_live(&reply.actions, gate, link, &visible, &plan_tasks);
+                        let (calls, mut rejections) = match_startable(&reply.actions, &startable);
+                        let (accepted, live) =
+                            check_live(&calls, gate, link, &visible, &plan_tasks);
+                        rejections.extend(live);
                         Checked {
                             accepted: (reply.reasoning.clone(), reply.plan_complete, accepted),
                             rejections,
@@ -1195,6 +1252,61 @@ pub fn coordinator_messages(user: String) -> Vec<ChatMessage> {
     }
     messages.push(ChatMessage::user(user));
     messages
+}
+
+/// The Supervisor's output schema for this cycle: its calls can only name tasks, drones,
+/// actions and targets of the calls that could start now, so a constrained model cannot pick
+/// anything else (it still chooses which, and may choose none).
+fn startable_schema(startable: &[Call]) -> serde_json::Value {
+    let uniq = |f: &dyn Fn(&Call) -> String| {
+        let mut v: Vec<String> = startable.iter().map(f).collect();
+        v.sort();
+        v.dedup();
+        v
+    };
+    let drones = uniq(&|c| c.drone.clone());
+    let places: Vec<String> = uniq(&|c| c.target.clone())
+        .into_iter()
+        .filter(|t| t != schema::NO_TARGET)
+        .collect();
+    let mut schema = schema::build(Output::Supervisor, &drones, &places);
+    if let Some(props) = schema.pointer_mut("/properties/actions/items/properties") {
+        props["task"] = serde_json::json!({ "type": "string", "enum": uniq(&|c| c.task.clone()) });
+        let actions = uniq(&|c| {
+            serde_json::to_value(c.action)
+                .ok()
+                .and_then(|v| v.as_str().map(str::to_owned))
+                .unwrap_or_default()
+        });
+        props["action"] = serde_json::json!({ "type": "string", "enum": actions });
+    }
+    schema
+}
+
+/// Keeps the proposed calls that are one of the startable calls (task, drone, action and target
+/// as the plan has them; the point of a goto comes from the plan), and says why the others are not.
+fn match_startable(proposed: &[Call], startable: &[Call]) -> (Vec<Call>, Vec<String>) {
+    let mut calls = Vec::new();
+    let mut rejections = Vec::new();
+    for call in proposed {
+        let found = startable.iter().find(|c| {
+            c.task == call.task
+                && c.drone == call.drone
+                && c.action == call.action
+                && c.target_name() == call.target_name()
+        });
+        match found {
+            Some(c) => calls.push(c.clone()),
+            None => {
+                let options: Vec<String> = startable.iter().map(|c| c.to_string()).collect();
+                rejections.push(format!(
+                    "{call}: not a task that can start now (startable: {})",
+                    options.join("; ")
+                ));
+            }
+        }
+    }
+    (calls, rejections)
 }
 
 /// The Supervisor's messages: its configuration prompt, the few-shot cycles, then the request.
