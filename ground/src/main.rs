@@ -54,8 +54,8 @@ enum Cmd {
     },
     /// Start a simulated swarm on this machine and fly it.
     Demo {
-        /// Number of drones.
-        #[arg(long, default_value_t = 3)]
+        /// Number of drones (up to the map's slots: 20 in the city, 3 in the lab).
+        #[arg(long, default_value_t = 6)]
         drones: usize,
         /// Built-in map (city, lab) or a scenario file.
         #[arg(long = "map", alias = "scenario", default_value = "city")]
