@@ -101,7 +101,9 @@ mod tests {
             call["properties"]["target"]["enum"],
             serde_json::json!(["none", "car_1"])
         );
-        assert!(!s.to_string().contains('$'), "a placeholder was left: {s}");
+        for placeholder in ["$DRONES", "$TARGETS", "$CALL"] {
+            assert!(!s.to_string().contains(placeholder), "{placeholder} was left: {s}");
+        }
         assert_eq!(s["properties"]["plan"]["maxItems"], 6);
         let s = build(Output::Supervisor, &["alfa".into()], &[]);
         assert_eq!(s["properties"]["actions"]["maxItems"], 1);
