@@ -587,8 +587,7 @@ impl Mission {
                 .and_then(|id| view.get(&id))
                 .is_some_and(|e| {
                     e.effective_mode(now) != DroneMode::Unavailable
-                        && e
-                            .status
+                        && e.status
                             .as_ref()
                             .and_then(|s| s.action.as_ref())
                             .is_none_or(|p| p.state.is_finished())
@@ -1258,27 +1257,39 @@ pub fn coordinator_messages(user: String) -> Vec<ChatMessage> {
 /// actions and targets of the calls that could start now, so a constrained model cannot pick
 /// anything else (it still chooses which, and may choose none).
 fn startable_schema(startable: &[Call]) -> serde_json::Value {
-    let uniq = |f: &dyn Fn(&Call) -> String| {
-        let mut v: Vec<String> = startable.iter().map(f).collect();
-        v.sort();
-        v.dedup();
-        v
-    };
-    let drones = uniq(&|c| c.drone.clone());
-    let places: Vec<String> = uniq(&|c| c.target.clone())
-        .into_iter()
-        .filter(|t| t != schema::NO_TARGET)
+    let mut drones: Vec<String> = startable.iter().map(|c| c.drone.clone()).collect();
+    drones.sort();
+    drones.dedup();
+    let places: Vec<String> = startable
+        .iter()
+        .filter_map(|c| c.target_name().map(str::to_owned))
         .collect();
     let mut schema = schema::build(Output::Supervisor, &drones, &places);
-    if let Some(props) = schema.pointer_mut("/properties/actions/items/properties") {
-        props["task"] = serde_json::json!({ "type": "string", "enum": uniq(&|c| c.task.clone()) });
-        let actions = uniq(&|c| {
-            serde_json::to_value(c.action)
-                .ok()
-                .and_then(|v| v.as_str().map(str::to_owned))
-                .unwrap_or_default()
-        });
-        props["action"] = serde_json::json!({ "type": "string", "enum": actions });
+    // Each call is exactly one of the startable calls: task, drone, action and target come as a
+    // unit, so a constrained model cannot give one task's id to another drone.
+    let alternatives: Vec<serde_json::Value> = startable
+        .iter()
+        .map(|c| {
+            let action = serde_json::to_value(c.action).unwrap_or_default();
+            serde_json::json!({
+                "type": "object",
+                "properties": {
+                    "task": { "type": "string", "enum": [c.task] },
+                    "drone": { "type": "string", "enum": [c.drone] },
+                    "action": { "type": "string", "enum": [action] },
+                    "target": { "type": "string", "enum": [c.target] },
+                    "xyz": { "type": "null" }
+                },
+                "required": ["task", "drone", "action", "target", "xyz"],
+                "additionalProperties": false
+            })
+        })
+        .collect();
+    if let Some(items) = schema.pointer_mut("/properties/actions/items") {
+        *items = serde_json::json!({ "anyOf": alternatives });
+    }
+    if let Some(actions) = schema.pointer_mut("/properties/actions") {
+        actions["maxItems"] = serde_json::Value::from(drones.len().max(1));
     }
     schema
 }
