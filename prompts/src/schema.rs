@@ -102,7 +102,10 @@ mod tests {
             serde_json::json!(["none", "car_1"])
         );
         for placeholder in ["$DRONES", "$TARGETS", "$CALL"] {
-            assert!(!s.to_string().contains(placeholder), "{placeholder} was left: {s}");
+            assert!(
+                !s.to_string().contains(placeholder),
+                "{placeholder} was left: {s}"
+            );
         }
         assert_eq!(s["properties"]["plan"]["maxItems"], 6);
         let s = build(Output::Supervisor, &["alfa".into()], &[]);
