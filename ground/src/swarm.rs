@@ -28,6 +28,14 @@ impl DroneEntry {
             .map(|t| now.saturating_duration_since(t).as_secs_f64())
     }
 
+    /// True while the drone reports an action that has not finished.
+    pub fn busy(&self) -> bool {
+        self.status
+            .as_ref()
+            .and_then(|s| s.action.as_ref())
+            .is_some_and(|p| !p.state.is_finished())
+    }
+
     /// The mode the ground should assume: unavailable when gone or stale.
     pub fn effective_mode(&self, now: Instant) -> DroneMode {
         match (&self.status, self.link_age(now)) {

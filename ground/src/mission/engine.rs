@@ -585,13 +585,7 @@ impl Mission {
             DroneId::new(drone)
                 .ok()
                 .and_then(|id| view.get(&id))
-                .is_some_and(|e| {
-                    e.effective_mode(now) != DroneMode::Unavailable
-                        && e.status
-                            .as_ref()
-                            .and_then(|s| s.action.as_ref())
-                            .is_none_or(|p| p.state.is_finished())
-                })
+                .is_some_and(|e| e.effective_mode(now) != DroneMode::Unavailable && !e.busy())
         };
         let mut out = Vec::new();
         // No order is imposed here: the plan's temporal dependencies are the Supervisor's to
@@ -644,11 +638,7 @@ impl Mission {
             else {
                 continue;
             };
-            let busy = entry
-                .status
-                .as_ref()
-                .and_then(|s| s.action.as_ref())
-                .is_some_and(|p| !p.state.is_finished());
+            let busy = entry.busy();
             let mode = entry.effective_mode(now);
             let holds = match task.call.action {
                 ActionName::ArmTakeoff => mode.is_airborne(),
@@ -851,42 +841,21 @@ impl Mission {
             .into_iter()
             .flat_map(|p| p.tasks)
             .filter(|t| t.status == TaskStatus::Running)
-            .map(|t| {
-                (
-                    (
-                        t.call.drone.clone(),
-                        t.call
-                            .to_string()
-                            .split_once(' ')
-                            .map(|x| x.1.to_owned())
-                            .unwrap_or_default(),
-                    ),
-                    t,
-                )
-            })
+            .map(|t| (same_work(&t.call), t))
             .collect();
         let tasks = calls
             .into_iter()
-            .map(|call| {
-                let key = (
-                    call.drone.clone(),
-                    call.to_string()
-                        .split_once(' ')
-                        .map(|x| x.1.to_owned())
-                        .unwrap_or_default(),
-                );
-                match running.get(&key) {
-                    Some(t) => PlanTask {
-                        call,
-                        status: TaskStatus::Running,
-                        sent: t.sent.clone(),
-                    },
-                    None => PlanTask {
-                        call,
-                        status: TaskStatus::NotStarted,
-                        sent: None,
-                    },
-                }
+            .map(|call| match running.get(&same_work(&call)) {
+                Some(t) => PlanTask {
+                    call,
+                    status: TaskStatus::Running,
+                    sent: t.sent.clone(),
+                },
+                None => PlanTask {
+                    call,
+                    status: TaskStatus::NotStarted,
+                    sent: None,
+                },
             })
             .collect();
         self.plan = Some(ActivePlan {
@@ -1253,6 +1222,17 @@ pub fn coordinator_messages(user: String) -> Vec<ChatMessage> {
     messages
 }
 
+/// What a call asks of which drone, whatever its task id: a replan that repeats a running call
+/// keeps it running instead of starting it again.
+fn same_work(call: &Call) -> (String, String) {
+    let text = call.to_string();
+    let without_task = text
+        .split_once(' ')
+        .map(|x| x.1.to_owned())
+        .unwrap_or_default();
+    (call.drone.clone(), without_task)
+}
+
 /// The Supervisor's output schema for this cycle: its calls can only name tasks, drones,
 /// actions and targets of the calls that could start now, so a constrained model cannot pick
 /// anything else (it still chooses which, and may choose none).
@@ -1386,13 +1366,7 @@ fn check_live(
         let busy = DroneId::new(&call.drone)
             .ok()
             .and_then(|id| view.get(&id).cloned())
-            .is_some_and(|e| {
-                e.status
-                    .as_ref()
-                    .and_then(|s| s.action.as_ref())
-                    .is_some_and(|p| !p.state.is_finished())
-                    && e.effective_mode(now) != DroneMode::Unavailable
-            });
+            .is_some_and(|e| e.busy() && e.effective_mode(now) != DroneMode::Unavailable);
         if busy {
             rejections.push(format!(
                 "{call}: {} is still busy with its current action",
