@@ -178,6 +178,10 @@ pub struct PathMessage {
     pub positions: Vec<Vec3>,
     /// The target this drone is tracking, so trackers of one target spread around it.
     pub tracking: Option<String>,
+    /// True while the publisher's planner flies it, so it keeps its own half of every
+    /// separation. False while the autopilot flies it (take-off, landing) or it stands on the
+    /// ground: it cannot give way, and neighbours keep the whole distance from it.
+    pub avoids: bool,
 }
 
 /// A run-time fault injection request to the simulator (`sim/faults`).

@@ -82,6 +82,7 @@ fn run(n: usize, scenario: &Scenario) -> Result<Outcome, String> {
                 positions: published[j].1.clone(),
                 dt: cfg.dt,
                 age_s: now - published[j].0,
+                avoids: true,
             });
             let near = neighbours_in_range(state[i].0, others, cfg.neighbour_range);
             let goal = Goal::fixed(goals[i]);

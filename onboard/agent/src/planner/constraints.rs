@@ -102,10 +102,15 @@ impl Downwash {
 /// any two points on their sides are at least `d` apart in the scaled metric, hence at least
 /// `d` apart in Euclidean distance. `fallback` is the direction to use (from me to them) when
 /// the two points coincide.
+///
+/// `their_share` places the plane between us: ½ for a neighbour that keeps its own side (the
+/// midpoint), 1 for one that cannot give way (through its point, so `keep` must then be the
+/// whole distance).
 pub fn separating_half_space(
     mine: &Vec3,
     theirs: &Vec3,
     keep: f64,
+    their_share: f64,
     metric: &Downwash,
     right_hand: f64,
     fallback: &Vec3,
@@ -125,7 +130,7 @@ pub fn separating_half_space(
     };
     let (s, c) = right_hand.sin_cos();
     let m = Vec3::new(dir.x * c - dir.y * s, dir.x * s + dir.y * c, dir.z);
-    let mid = (ya + yb) * 0.5;
+    let mid = ya + (yb - ya) * their_share;
     // m·(S x) ≤ m·mid − keep  ⇔  (−S m)·x ≥ keep − m·mid   (S is diagonal).
     let normal = -metric.scale(&m);
     let offset = keep - m.dot(&mid);
@@ -257,8 +262,8 @@ mod tests {
             );
             let b = a + rng.direction() * rng.range(0.0, 12.0);
             let angle = if case % 2 == 0 { 0.0 } else { 0.3 };
-            let mine = separating_half_space(&a, &b, d / 2.0, &metric, angle, &(b - a));
-            let theirs = separating_half_space(&b, &a, d / 2.0, &metric, angle, &(a - b));
+            let mine = separating_half_space(&a, &b, d / 2.0, 0.5, &metric, angle, &(b - a));
+            let theirs = separating_half_space(&b, &a, d / 2.0, 0.5, &metric, angle, &(a - b));
             // The two normals are opposite: the half-spaces are parallel.
             assert!(
                 (mine.normal + theirs.normal).norm() < 1e-9,
@@ -284,12 +289,24 @@ mod tests {
         // Vertical neighbours need downwash-factor times the distance.
         let a = Vec3::new(0.0, 0.0, 10.0);
         let b = Vec3::new(0.0, 0.0, 20.0);
-        let mine = separating_half_space(&a, &b, d / 2.0, &metric, 0.0, &(b - a));
+        let mine = separating_half_space(&a, &b, d / 2.0, 0.5, &metric, 0.0, &(b - a));
         let boundary = mine.offset / mine.normal.z;
         assert!(
             (boundary - (15.0 - 2.5 * d / 2.0)).abs() < 1e-9,
             "{boundary}"
         );
+    }
+
+    #[test]
+    fn a_plane_against_a_neighbour_that_cannot_give_way_passes_through_its_point() {
+        let metric = Downwash::new(2.0);
+        let a = Vec3::new(0.0, 0.0, 10.0);
+        let b = Vec3::new(4.0, 0.0, 10.0);
+        let mine = separating_half_space(&a, &b, 3.0, 1.0, &metric, 0.0, &(b - a));
+        // My side ends 3 m short of the neighbour itself, not of the midpoint.
+        assert!((mine.signed_distance(&Vec3::new(1.0, 0.0, 10.0))).abs() < 1e-9);
+        assert!(mine.contains(&a, 0.0));
+        assert!(!mine.contains(&Vec3::new(1.5, 0.0, 10.0), 0.0));
     }
 
     #[test]

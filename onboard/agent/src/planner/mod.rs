@@ -222,6 +222,9 @@ pub struct NeighbourPath {
     pub positions: Vec<Vec3>,
     pub dt: f64,
     pub age_s: f64,
+    /// The neighbour plans around me too (see `PathMessage::avoids`); when false, I keep the
+    /// whole safety distance from it instead of half.
+    pub avoids: bool,
 }
 
 impl NeighbourPath {
@@ -233,6 +236,7 @@ impl NeighbourPath {
             positions: message.positions.clone(),
             dt: message.dt,
             age_s: (now - message.stamp).max(0.0),
+            avoids: message.avoids,
         }
     }
 
@@ -485,7 +489,10 @@ impl Planner {
                 ignored += 1;
                 continue;
             }
-            let keep = cfg.safety_distance / 2.0
+            // A neighbour that gives way keeps half the distance; from one that cannot, I keep
+            // all of it, measured from its own path rather than from the midpoint.
+            let share = if n.avoids { 0.5 } else { 1.0 };
+            let keep = cfg.safety_distance * share
                 + cfg.separation_margin
                 + cfg.stale_margin_rate * n.age_s.max(0.0);
             let fallback = n.position_at(0.0).unwrap_or(position) - position;
@@ -499,6 +506,7 @@ impl Planner {
                     &mine,
                     &theirs,
                     keep,
+                    share,
                     &self.metric,
                     cfg.right_hand_angle,
                     &fallback,

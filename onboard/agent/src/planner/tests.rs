@@ -112,6 +112,7 @@ fn solved_plans_respect_their_half_spaces_and_limits() {
             .collect(),
         dt: 0.1,
         age_s: 0.05,
+        avoids: true,
     };
     let goal = Goal::fixed(Vec3::new(-18.0, 5.0, 15.0));
     let mut now = 0.0;
@@ -219,6 +220,7 @@ fn fly(cfg: &PlannerConfig, starts: &[Vec3], goals: &[Vec3], seconds: f64) -> Fl
                 positions: published[j].1.clone(),
                 dt: cfg.dt,
                 age_s: now - published[j].0,
+                avoids: true,
             });
             let near = neighbours_in_range(state[i].0, others, cfg.neighbour_range);
             let r = solve(
@@ -336,6 +338,7 @@ fn an_infeasible_start_neither_panics_nor_stays() {
         positions: vec![Vec3::new(60.0, 60.0, 15.0); 21],
         dt: 0.1,
         age_s: 0.0,
+        avoids: true,
     };
     let r = solve(
         &mut planner(&cfg),
@@ -375,6 +378,7 @@ fn bad_inputs_are_reported_not_panicked_on() {
         positions: vec![nan],
         dt: 0.1,
         age_s: 0.0,
+        avoids: true,
     };
     let r = solve(
         &mut p,
@@ -408,6 +412,7 @@ fn neighbour_sets_are_range_based_and_symmetric() {
         positions: vec![Vec3::new(x, 0.0, 10.0); 21],
         dt: 0.1,
         age_s: 0.0,
+        avoids: true,
     };
     let all = [
         path(0.0, "a"),
@@ -473,4 +478,48 @@ fn catches_up_with_a_moving_goal() {
         goal.position
     );
     assert!((vel - goal_velocity).norm() < 0.2, "{vel:?}");
+}
+
+/// A neighbour the autopilot flies (it cannot give way) is kept at the whole safety distance:
+/// one flies straight through the point where this drone holds, and this drone steps aside.
+fn closest_to_a_neighbour_crossing_my_hold_point(avoids: bool) -> f64 {
+    let cfg = city_config();
+    let mut p = planner(&cfg);
+    let hold = Vec3::new(60.0, 60.0, 15.0);
+    let goal = Goal::fixed(hold);
+    let (mut pos, mut vel) = (hold, Vec3::zeros());
+    // It flies north at 3 m/s along x = 60.3, passing my point at t = 5 s.
+    let theirs = |t: f64| Vec3::new(60.3, 45.0 + 3.0 * t, 15.0);
+    let mut now = 0.0;
+    let mut closest = f64::INFINITY;
+    for _ in 0..200 {
+        let other = NeighbourPath {
+            id: id("crossing"),
+            positions: (0..=cfg.horizon_steps)
+                .map(|k| theirs(now + k as f64 * cfg.dt))
+                .collect(),
+            dt: cfg.dt,
+            age_s: 0.0,
+            avoids,
+        };
+        let r = solve(&mut p, now, pos, vel, &goal, std::slice::from_ref(&other));
+        for i in 1..=DENSE {
+            let t = now + REPLAN * i as f64 / DENSE as f64;
+            closest = closest.min((r.plan.sample(t).position - theirs(t)).norm());
+        }
+        let s = r.plan.sample(now + REPLAN);
+        (pos, vel) = (s.position, s.velocity);
+        now += REPLAN;
+    }
+    closest
+}
+
+#[test]
+fn a_neighbour_that_cannot_give_way_is_kept_at_the_whole_distance() {
+    let closest = closest_to_a_neighbour_crossing_my_hold_point(false);
+    let d = city_config().safety_distance;
+    assert!(
+        closest >= d,
+        "came within {closest:.2} m of a drone that cannot give way (safety {d} m)"
+    );
 }
