@@ -1,10 +1,14 @@
 //! The action executor: one drone's mode machine (unavailable → idle → flying ⇄ tracking),
-//! one action at a time, turned into autopilot commands and a setpoint reference.
+//! one action at a time, turned into autopilot commands and a steering request: a still point
+//! while the autopilot flies (take-off, landing), or a goal for the planner (goto, hold,
+//! tracking).
 //!
-//! Pure: it is fed actions, vehicle state, command results and the time, and returns what to
-//! send. The task shell (`runtime`) does the I/O.
+//! Pure: it is fed actions, vehicle state, command results, tracking stations and the time, and
+//! returns what to send. The task shell (`runtime`) does the I/O; `motion` turns the steering
+//! into setpoints.
 
-use crate::profile::{ReferenceState, StraightLine};
+use crate::motion::{Station, Steering};
+use crate::planner::Goal;
 use tacos_shared::action::{Action, ActionCommand, mode_forbids};
 use tacos_shared::ipc::{
     CommandKind, CommandOutcome, CommandResultSample, CommandSample, VehicleStateSample,
@@ -60,9 +64,23 @@ enum Task {
         ground_z: f64,
         deadline: f64,
     },
+    /// The planner flies to `target` (around obstacles, apart from neighbours).
     Goto {
-        line: StraightLine,
+        target: Vec3,
+        /// Distance to the target when the goto started, for progress.
+        initial_distance: f64,
         deadline: f64,
+    },
+    /// The planner follows `target`'s station (see `motion::Station`) at `altitude`.
+    Track {
+        target: String,
+        altitude: f64,
+        started: f64,
+        /// The latest station, once the target has been seen.
+        station: Option<Goal>,
+        /// The station was reached once: the action is done, the following goes on.
+        acquired: bool,
+        initial_distance: Option<f64>,
     },
     /// Airborne at `hold_point` under offboard control.
     Hold,
@@ -75,8 +93,8 @@ enum Task {
 /// What one tick asks the shell to send.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct TickOutput {
-    /// The reference to stream (world ENU), or `None` while the vehicle is unknown.
-    pub reference: Option<ReferenceState>,
+    /// How to fly (world ENU), or `None` while the vehicle is unknown.
+    pub steering: Option<Steering>,
     pub commands: Vec<CommandSample>,
 }
 
@@ -86,6 +104,12 @@ pub struct ExecutorConfig {
     pub world: World,
     /// A goto is done when the vehicle is this close to its goal (and slow).
     pub arrive_tolerance: f64,
+    /// start_tracking is done once the vehicle is this close to its station.
+    pub acquire_tolerance: f64,
+    /// start_tracking fails if the target has not been seen this long after it started.
+    pub unseen_timeout_s: f64,
+    /// start_tracking fails if the station has not been reached this long after it started.
+    pub acquire_timeout_s: f64,
 }
 
 impl ExecutorConfig {
@@ -95,6 +119,9 @@ impl ExecutorConfig {
             limits,
             world,
             arrive_tolerance,
+            acquire_tolerance: 2.5,
+            unseen_timeout_s: 3.0,
+            acquire_timeout_s: 120.0,
         }
     }
 }
@@ -146,7 +173,67 @@ impl Executor {
             None => DroneMode::Unavailable,
             Some(v) if !v.link_ok => DroneMode::Unavailable,
             Some(v) if !v.armed => DroneMode::Idle,
+            Some(_) if matches!(self.task, Task::Track { .. }) => DroneMode::Tracking,
             Some(_) => DroneMode::Flying,
+        }
+    }
+
+    /// The target followed now and the altitude to follow it at, for `motion::Motion::station`.
+    pub fn following(&self) -> Option<(&str, f64)> {
+        match &self.task {
+            Task::Track {
+                target, altitude, ..
+            } => Some((target.as_str(), *altitude)),
+            _ => None,
+        }
+    }
+
+    /// Where the followed target's tracker says this drone should be now.
+    pub fn on_station(&mut self, station: Station, now: f64) {
+        let Some(vehicle) = self.vehicle else { return };
+        let Task::Track {
+            target,
+            started,
+            station: held,
+            acquired,
+            initial_distance,
+            ..
+        } = &mut self.task
+        else {
+            return;
+        };
+        let (target, started, was_acquired) = (target.clone(), *started, *acquired);
+        let goal = match station {
+            Station::At(goal) => goal,
+            Station::Unseen if now - started <= self.cfg.unseen_timeout_s => return,
+            Station::Unseen | Station::Lost => {
+                self.hold_point = Some(vehicle.position);
+                let reason = FailureReason::TargetLost(target);
+                if was_acquired {
+                    // The action finished when the station was reached; it is reported failed
+                    // now, so whoever reads the status learns why the drone stopped following.
+                    if let Some(p) = self.progress.as_mut() {
+                        p.state = ActionState::Failed(reason.clone());
+                    }
+                }
+                return self.fail(reason);
+            }
+        };
+        *held = Some(goal);
+        if was_acquired {
+            return;
+        }
+        let distance = (vehicle.position - goal.position).norm();
+        let initial = *initial_distance.get_or_insert(distance);
+        if distance <= self.cfg.acquire_tolerance {
+            *acquired = true;
+            self.finish(ActionState::Done);
+        } else if now - started > self.cfg.acquire_timeout_s {
+            self.hold_point = Some(vehicle.position);
+            self.fail(FailureReason::TimedOut);
+        } else {
+            let progress = 1.0 - distance / initial.max(1e-6);
+            self.set_running(progress.clamp(0.0, 0.99) as f32);
         }
     }
 
@@ -232,26 +319,21 @@ impl Executor {
                 self.request(CommandKind::Arm, 0.0);
             }
             Action::Goto { target } => {
+                // Only the point itself can make a goto impossible: the planner flies round
+                // whatever stands between.
                 let radius = self.cfg.limits.drone_radius;
                 if let Err(why) = self.cfg.world.check_point(target, radius) {
                     self.fail(FailureReason::Unreachable(why.to_string()));
                     return true;
                 }
-                let from = self.hold_point.unwrap_or(vehicle.position);
-                if let Some(obstacle) = self.cfg.world.segment_blocked_by(&from, target, radius) {
-                    let why = format!("the straight path crosses {}", obstacle.name);
-                    self.fail(FailureReason::Unreachable(why));
-                    return true;
-                }
-                let line = StraightLine::new(
-                    from,
-                    *target,
-                    now,
-                    limits.max_speed * 0.8,
-                    limits.max_accel * 0.8,
-                );
-                let deadline = now + line.duration() * 1.5 + 15.0;
-                self.task = Task::Goto { line, deadline };
+                let initial_distance = (target - vehicle.position).norm();
+                // Room for detours and for giving way, at 40% of the top speed on average.
+                let deadline = now + initial_distance / (0.4 * limits.max_speed) + 30.0;
+                self.task = Task::Goto {
+                    target: *target,
+                    initial_distance,
+                    deadline,
+                };
                 self.ensure_offboard();
             }
             Action::Hold => {
@@ -274,15 +356,26 @@ impl Executor {
                 self.request(CommandKind::Land, 0.0);
             }
             Action::StopTracking => {
-                // Not tracking (the mode gate let it through as flying): holding is the result.
+                // Whether it was tracking or just flying, holding where it is is the result.
                 self.hold_point = Some(vehicle.position);
                 self.task = Task::Hold;
                 self.finish(ActionState::Done);
             }
             Action::StartTracking { target } => {
-                self.fail(FailureReason::Unreachable(format!(
-                    "no tracker runs on this drone, so {target} cannot be followed"
-                )));
+                let altitude = self
+                    .hold_point
+                    .map_or(vehicle.position.z, |p| p.z)
+                    .max(limits.takeoff_altitude);
+                self.hold_point = Some(vehicle.position);
+                self.task = Task::Track {
+                    target: target.clone(),
+                    altitude,
+                    started: now,
+                    station: None,
+                    acquired: false,
+                    initial_distance: None,
+                };
+                self.ensure_offboard();
             }
         }
         true
@@ -394,17 +487,22 @@ impl Executor {
             self.task = Task::Idle;
         }
         self.advance(vehicle, now);
-        let reference = match &self.task {
-            Task::Goto { line, .. } => line.sample(now),
-            Task::Hold
-            | Task::Takeoff {
+        let hold_point = self.hold_point.unwrap_or(vehicle.position);
+        let steering = match &self.task {
+            Task::Goto { target, .. } => Steering::Toward(Goal::fixed(*target)),
+            // Until the target is seen, wait where the tracking started.
+            Task::Track { station, .. } => {
+                Steering::Toward(station.unwrap_or(Goal::fixed(hold_point)))
+            }
+            Task::Hold => Steering::Toward(Goal::fixed(hold_point)),
+            Task::Takeoff {
                 step: TakeoffStep::Offboarding,
                 ..
-            } => still(self.hold_point.unwrap_or(vehicle.position)),
-            _ => still(vehicle.position),
+            } => Steering::Still(hold_point),
+            _ => Steering::Still(vehicle.position),
         };
         TickOutput {
-            reference: Some(reference),
+            steering: Some(steering),
             commands: std::mem::take(&mut self.outbox),
         }
     }
@@ -453,8 +551,11 @@ impl Executor {
                     self.request(CommandKind::Offboard, 0.0);
                 }
             }
-            Task::Goto { line, deadline } => {
-                let target = line.target();
+            Task::Goto {
+                target,
+                initial_distance,
+                deadline,
+            } => {
                 if self.left_offboard(&vehicle, now) {
                     self.hold_point = Some(vehicle.position);
                     return self.fail(FailureReason::Rejected(format!(
@@ -462,9 +563,10 @@ impl Executor {
                         vehicle.px4
                     )));
                 }
-                let close = (vehicle.position - target).norm() <= self.cfg.arrive_tolerance;
+                let distance = (vehicle.position - target).norm();
+                let close = distance <= self.cfg.arrive_tolerance;
                 let slow = vehicle.velocity.norm() <= (0.1 * limits.max_speed).max(0.2);
-                if line.is_finished(now) && close && slow {
+                if close && slow {
                     self.hold_point = Some(target);
                     self.task = Task::Hold;
                     self.finish(ActionState::Done);
@@ -472,7 +574,20 @@ impl Executor {
                     self.hold_point = Some(vehicle.position);
                     self.fail(FailureReason::TimedOut);
                 } else {
-                    self.set_running(line.progress(now).min(0.99));
+                    let progress = 1.0 - distance / initial_distance.max(1e-6);
+                    self.set_running(progress.clamp(0.0, 0.99) as f32);
+                }
+            }
+            Task::Track { .. } => {
+                if self.left_offboard(&vehicle, now) {
+                    self.hold_point = Some(vehicle.position);
+                    return self.fail(FailureReason::Rejected(format!(
+                        "the autopilot left offboard for {:?}",
+                        vehicle.px4
+                    )));
+                }
+                if !vehicle.armed {
+                    self.task = Task::Idle;
                 }
             }
             Task::Hold => {
@@ -497,14 +612,6 @@ impl Executor {
                 }
             }
         }
-    }
-}
-
-fn still(position: Vec3) -> ReferenceState {
-    ReferenceState {
-        position,
-        velocity: Vec3::zeros(),
-        acceleration: Vec3::zeros(),
     }
 }
 
@@ -580,7 +687,11 @@ mod tests {
         ));
         let out = ex.tick(3.0);
         assert_eq!(out.commands[0].kind(), Some(CommandKind::Offboard));
-        assert_eq!(out.reference.map(|r| r.position.z), Some(10.0));
+        assert!(
+            matches!(out.steering, Some(Steering::Still(p)) if p.z == 10.0),
+            "{:?}",
+            out.steering
+        );
         accept(&mut ex, &out.commands[0], 3.1);
         assert_eq!(state_of(&ex), ActionState::Done);
         assert_eq!(ex.mode(), DroneMode::Flying);
@@ -607,7 +718,7 @@ mod tests {
     }
 
     #[test]
-    fn goto_into_or_through_a_skyscraper_is_unreachable() {
+    fn goto_into_a_skyscraper_or_out_of_bounds_is_unreachable_but_through_one_is_flown() {
         let mut ex = lab();
         ex.on_vehicle(&state(
             Vec3::new(-40.0, -40.0, 10.0),
@@ -629,21 +740,6 @@ mod tests {
         ));
         ex.on_command(
             &cmd(
-                2,
-                Action::Goto {
-                    target: Vec3::new(40.0, 40.0, 10.0),
-                },
-            ),
-            0.0,
-        );
-        match state_of(&ex) {
-            ActionState::Failed(FailureReason::Unreachable(why)) => {
-                assert!(why.contains("skyscraper"), "{why}")
-            }
-            other => panic!("{other:?}"),
-        }
-        ex.on_command(
-            &cmd(
                 3,
                 Action::Goto {
                     target: Vec3::new(-40.0, 400.0, 10.0),
@@ -655,23 +751,145 @@ mod tests {
             state_of(&ex),
             ActionState::Failed(FailureReason::Unreachable(_))
         ));
+        // The straight line crosses skyscraper_1 and skyscraper_4: the planner goes round.
+        let far = Vec3::new(40.0, 40.0, 10.0);
+        ex.on_command(&cmd(4, Action::Goto { target: far }), 1.0);
+        assert!(matches!(state_of(&ex), ActionState::Running { .. }));
+        assert_eq!(
+            ex.tick(1.0).steering,
+            Some(Steering::Toward(Goal::fixed(far)))
+        );
     }
 
     #[test]
-    fn goto_streams_a_limited_reference_and_completes_on_arrival() {
+    fn goto_steers_the_planner_and_completes_on_arrival() {
         let mut ex = lab();
         let start = Vec3::new(-40.0, -100.0, 10.0);
         let goal = Vec3::new(-40.0, -80.0, 10.0);
         ex.on_vehicle(&state(start, true, Px4Mode::Offboard));
         ex.on_command(&cmd(5, Action::Goto { target: goal }), 0.0);
-        assert!(ex.tick(0.0).commands.is_empty(), "already in offboard");
-        let mid = ex.tick(2.0).reference.expect("reference");
-        assert!(mid.position.y > start.y && mid.position.y < goal.y);
-        assert!(mid.velocity.norm() <= 8.0);
+        let out = ex.tick(0.0);
+        assert!(out.commands.is_empty(), "already in offboard");
+        assert_eq!(out.steering, Some(Steering::Toward(Goal::fixed(goal))));
+        ex.on_vehicle(&state(
+            Vec3::new(-40.0, -90.0, 10.0),
+            true,
+            Px4Mode::Offboard,
+        ));
+        ex.tick(2.0);
+        match state_of(&ex) {
+            ActionState::Running { progress } => assert!((progress - 0.5).abs() < 0.01),
+            other => panic!("{other:?}"),
+        }
         ex.on_vehicle(&state(goal, true, Px4Mode::Offboard));
-        ex.tick(100.0);
+        ex.tick(4.0);
         assert_eq!(state_of(&ex), ActionState::Done);
-        assert_eq!(ex.tick(101.0).reference.map(|r| r.position), Some(goal));
+        // Then it holds the goal, still through the planner (so it keeps giving way).
+        assert_eq!(
+            ex.tick(5.0).steering,
+            Some(Steering::Toward(Goal::fixed(goal)))
+        );
+    }
+
+    #[test]
+    fn a_goto_that_never_arrives_times_out() {
+        let mut ex = lab();
+        let start = Vec3::new(-40.0, -100.0, 10.0);
+        ex.on_vehicle(&state(start, true, Px4Mode::Offboard));
+        let goal = Vec3::new(-40.0, -80.0, 10.0);
+        ex.on_command(&cmd(5, Action::Goto { target: goal }), 0.0);
+        ex.tick(30.0);
+        assert!(matches!(state_of(&ex), ActionState::Running { .. }));
+        ex.tick(40.0);
+        assert_eq!(state_of(&ex), ActionState::Failed(FailureReason::TimedOut));
+        assert_eq!(
+            ex.tick(41.0).steering,
+            Some(Steering::Toward(Goal::fixed(start)))
+        );
+    }
+
+    fn station(p: Vec3) -> Station {
+        Station::At(Goal {
+            position: p,
+            velocity: Vec3::new(1.0, 0.0, 0.0),
+        })
+    }
+
+    #[test]
+    fn tracking_follows_the_station_is_done_on_reaching_it_and_reports_a_lost_target() {
+        let mut ex = lab();
+        let p = Vec3::new(-40.0, -100.0, 12.0);
+        ex.on_vehicle(&state(p, true, Px4Mode::Offboard));
+        ex.on_command(
+            &cmd(
+                1,
+                Action::StartTracking {
+                    target: "van".into(),
+                },
+            ),
+            0.0,
+        );
+        assert_eq!(ex.mode(), DroneMode::Tracking);
+        assert_eq!(ex.following(), Some(("van", 12.0)));
+        // Not seen yet: it waits where it is.
+        ex.on_station(Station::Unseen, 1.0);
+        assert_eq!(
+            ex.tick(1.0).steering,
+            Some(Steering::Toward(Goal::fixed(p)))
+        );
+        let far = p + Vec3::new(20.0, 0.0, 0.0);
+        ex.on_station(station(far), 1.5);
+        assert!(matches!(state_of(&ex), ActionState::Running { .. }));
+        match ex.tick(1.5).steering {
+            Some(Steering::Toward(goal)) => {
+                assert_eq!(goal.position, far);
+                assert_eq!(goal.velocity, Vec3::new(1.0, 0.0, 0.0));
+            }
+            other => panic!("{other:?}"),
+        }
+        ex.on_vehicle(&state(
+            far + Vec3::new(1.0, 0.0, 0.0),
+            true,
+            Px4Mode::Offboard,
+        ));
+        ex.on_station(station(far + Vec3::new(2.0, 0.0, 0.0)), 10.0);
+        assert_eq!(state_of(&ex), ActionState::Done);
+        assert_eq!(ex.mode(), DroneMode::Tracking, "still following");
+        // Observations stop: the done action is reported failed with the reason, and it holds.
+        ex.on_station(Station::Lost, 20.0);
+        assert_eq!(
+            state_of(&ex),
+            ActionState::Failed(FailureReason::TargetLost("van".into()))
+        );
+        assert_eq!(ex.mode(), DroneMode::Flying);
+        assert!(ex.following().is_none());
+    }
+
+    #[test]
+    fn a_target_never_seen_fails_the_tracking_and_stop_tracking_holds() {
+        let mut ex = lab();
+        let p = Vec3::new(-40.0, -100.0, 12.0);
+        ex.on_vehicle(&state(p, true, Px4Mode::Offboard));
+        let track = Action::StartTracking {
+            target: "ghost".into(),
+        };
+        ex.on_command(&cmd(1, track.clone()), 0.0);
+        ex.on_station(Station::Unseen, 2.0);
+        assert!(matches!(state_of(&ex), ActionState::Running { .. }));
+        ex.on_station(Station::Unseen, 3.5);
+        assert_eq!(
+            state_of(&ex),
+            ActionState::Failed(FailureReason::TargetLost("ghost".into()))
+        );
+        ex.on_command(&cmd(2, track), 4.0);
+        ex.on_station(station(p + Vec3::new(5.0, 0.0, 0.0)), 4.1);
+        ex.on_command(&cmd(3, Action::StopTracking), 5.0);
+        assert_eq!(state_of(&ex), ActionState::Done);
+        assert_eq!(ex.mode(), DroneMode::Flying);
+        assert_eq!(
+            ex.tick(5.0).steering,
+            Some(Steering::Toward(Goal::fixed(p)))
+        );
     }
 
     #[test]
@@ -769,7 +987,10 @@ mod tests {
             state_of(&ex),
             ActionState::Failed(FailureReason::Failsafe(_))
         ));
-        assert_eq!(ex.tick(1.1).reference.map(|r| r.position), Some(p));
+        assert_eq!(
+            ex.tick(1.1).steering,
+            Some(Steering::Toward(Goal::fixed(p)))
+        );
         ex.set_failsafe(Some(FailsafeStage::Landing), 5.0);
         let out = ex.tick(5.0);
         assert_eq!(

@@ -6,8 +6,8 @@
 
 pub mod executor;
 pub mod failsafe;
+pub mod motion;
 pub mod planner;
-pub mod profile;
 pub mod runtime;
 pub mod tracker;
 

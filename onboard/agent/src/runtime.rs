@@ -1,7 +1,10 @@
-//! The task shell around the executor: zenoh in and out, iceoryx2 to the writer, the clock.
+//! The task shell around the executor and the planner: zenoh in and out (actions, heartbeats,
+//! neighbours' paths, targets; status, this drone's path), iceoryx2 to the writer, the clocks.
 
 use crate::executor::{Executor, ExecutorConfig};
 use crate::failsafe::FailsafeTimer;
+use crate::motion::{Motion, MotionConfig};
+use crate::planner::{PlannerConfig, PlannerError};
 use std::future::Future;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tacos_bus::{BusArgs, BusError};
@@ -9,7 +12,7 @@ use tacos_ipc::{IpcError, IpcNode};
 use tacos_shared::ActionCommand;
 use tacos_shared::DroneId;
 use tacos_shared::ipc::SetpointSample;
-use tacos_shared::messages::{DroneStatus, GroundHeartbeat};
+use tacos_shared::messages::{DroneStatus, GroundHeartbeat, PathMessage, TargetsMessage};
 use tacos_shared::scenario::Scenario;
 use tokio::time::MissedTickBehavior;
 use tracing::{Instrument, info, info_span, warn};
@@ -29,6 +32,8 @@ pub struct OnboardConfig {
     pub failsafe_land_s: f64,
     /// No vehicle state from the writer for this long → autopilot link treated as lost.
     pub writer_timeout_s: f64,
+    /// The planner's rate, the neighbours' paths, the tracker.
+    pub motion: MotionConfig,
 }
 
 impl OnboardConfig {
@@ -42,6 +47,7 @@ impl OnboardConfig {
             failsafe_hold_s: 3.0,
             failsafe_land_s: 30.0,
             writer_timeout_s: 1.0,
+            motion: MotionConfig::default(),
         }
     }
 }
@@ -54,12 +60,40 @@ pub enum OnboardError {
     Ipc(#[from] IpcError),
     #[error("the zenoh subscriber for {0} closed")]
     SubscriberClosed(String),
+    #[error(transparent)]
+    Planner(#[from] PlannerError),
 }
 
 fn unix_nanos() -> u64 {
     SystemTime::now()
         .duration_since(UNIX_EPOCH)
         .map_or(0, |d| d.as_nanos() as u64)
+}
+
+/// The wall clock in seconds since the Unix epoch: the clock of path stamps.
+fn wall_seconds() -> f64 {
+    unix_nanos() as f64 * 1e-9
+}
+
+/// Counts malformed payloads of one kind, warning on the 1st, 2nd, 4th, 8th… so a flood does not
+/// flood the log.
+#[derive(Debug, Default)]
+struct Malformed {
+    what: &'static str,
+    count: u64,
+}
+
+impl Malformed {
+    fn new(what: &'static str) -> Self {
+        Malformed { what, count: 0 }
+    }
+
+    fn note(&mut self, error: &dyn std::fmt::Display) {
+        self.count += 1;
+        if self.count.is_power_of_two() {
+            warn!(error = %error, count = self.count, "malformed {} ignored", self.what);
+        }
+    }
 }
 
 /// Runs the drone until `shutdown` completes.
@@ -80,6 +114,8 @@ async fn run_inner(
     let session = cfg.bus.open().await?;
     let actions = tacos_bus::subscribe(&session, &keys.action(&drone)).await?;
     let heartbeats = tacos_bus::subscribe(&session, &keys.ground_heartbeat()).await?;
+    let paths = tacos_bus::subscribe(&session, &keys.all_paths()).await?;
+    let targets = tacos_bus::subscribe(&session, &keys.targets()).await?;
     let ipc = IpcNode::new(&cfg.bus.swarm, &drone)?;
     let ports = ipc.onboard_ports()?;
     // Declared last: the ground sees the drone only once it can take actions.
@@ -92,6 +128,15 @@ async fn run_inner(
         cfg.scenario.limits,
         cfg.scenario.world.clone(),
     ));
+    let mut motion = Motion::new(
+        drone.clone(),
+        PlannerConfig::from_scenario(&cfg.scenario.limits, &cfg.scenario.world),
+        cfg.motion.clone(),
+    )?;
+    let path_key = keys.path(&drone);
+    let mut malformed_paths = Malformed::new("neighbour path");
+    let mut malformed_targets = Malformed::new("targets message");
+    let mut stats_logged_at = now();
     let mut failsafe = FailsafeTimer::new(cfg.failsafe_hold_s, cfg.failsafe_land_s, now());
     let mut control = tokio::time::interval(Duration::from_secs_f64(1.0 / cfg.control_rate_hz));
     control.set_missed_tick_behavior(MissedTickBehavior::Skip);
@@ -101,7 +146,7 @@ async fn run_inner(
     let mut ticks: u64 = 0;
     let mut status_counter: u64 = 0;
     let mut malformed_actions: u64 = 0;
-    let mut malformed_heartbeats: u64 = 0;
+    let mut malformed_heartbeats = Malformed::new("ground heartbeat");
     let mut setpoint_seq: u64 = 0;
     let mut last_state_at: Option<f64> = None;
     let mut ipc_errors: u64 = 0;
@@ -131,16 +176,27 @@ async fn run_inner(
                 let sample = sample.map_err(|_| OnboardError::SubscriberClosed(keys.ground_heartbeat()))?;
                 match tacos_bus::decode::<GroundHeartbeat>(&sample) {
                     Ok(_) => failsafe.heard(now()),
-                    Err(e) => {
-                        malformed_heartbeats += 1;
-                        if malformed_heartbeats.is_power_of_two() {
-                            warn!(error = %e, count = malformed_heartbeats, "malformed ground heartbeat ignored");
-                        }
-                    }
+                    Err(e) => malformed_heartbeats.note(&e),
+                }
+            }
+            sample = paths.recv_async() => {
+                let sample = sample.map_err(|_| OnboardError::SubscriberClosed(keys.all_paths()))?;
+                match tacos_bus::decode::<PathMessage>(&sample) {
+                    Ok(path) => motion.on_path(path),
+                    Err(e) => malformed_paths.note(&e),
+                }
+            }
+            sample = targets.recv_async() => {
+                let sample = sample.map_err(|_| OnboardError::SubscriberClosed(keys.targets()))?;
+                match tacos_bus::decode::<TargetsMessage>(&sample) {
+                    Ok(message) => motion.on_targets(&message, wall_seconds()),
+                    Err(e) => malformed_targets.note(&e),
                 }
             }
             _ = control.tick() => {
                 let t = now();
+                let wall = wall_seconds();
+                let mut path_out = None;
                 let step = (|| -> Result<(), IpcError> {
                     for result in ports.results.drain()? {
                         executor.on_result(&result, t);
@@ -157,11 +213,19 @@ async fn run_inner(
                     if executor.failsafe() != before {
                         warn!(stage = ?executor.failsafe(), silence_s = failsafe.silence(t), "failsafe changed");
                     }
+                    if let Some((target, altitude)) = executor.following() {
+                        let station = motion.station(target, altitude, wall);
+                        executor.on_station(station, t);
+                    }
                     let out = executor.tick(t);
                     for command in out.commands {
                         ports.send_command(command)?;
                     }
-                    if let Some(reference) = out.reference {
+                    if let (Some(steering), Some(vehicle)) = (out.steering, executor.vehicle()) {
+                        let tracking = executor.following().map(|(target, _)| target);
+                        let step = motion.step(wall, vehicle.position, vehicle.velocity, steering, tracking);
+                        path_out = step.path;
+                        let reference = step.reference;
                         setpoint_seq += 1;
                         ports.send_setpoint(SetpointSample {
                             seq: setpoint_seq,
@@ -174,6 +238,16 @@ async fn run_inner(
                     }
                     Ok(())
                 })();
+                if let Some(path) = path_out
+                    && let Err(e) = tacos_bus::put(&session, &path_key, &path, false).await
+                {
+                    warn!(error = %e, "path not published");
+                }
+                if t - stats_logged_at >= 10.0 {
+                    stats_logged_at = t;
+                    let s = motion.stats();
+                    info!(solves = s.solves, relaxed = s.relaxed, braking = s.braking, slowest_ms = s.slowest_s * 1e3, "planner");
+                }
                 if let Err(e) = step {
                     ipc_errors += 1;
                     if ipc_errors.is_power_of_two() {

@@ -38,7 +38,7 @@ mod route;
 mod tests;
 
 pub use constraints::{Downwash, HalfSpace, path_point, separating_half_space, tangent_half_space};
-pub use plan::Plan;
+pub use plan::{Plan, ReferenceState};
 pub use qp::{ConstraintKind, CostWeights, QpError, SegmentConstraint};
 
 use qp::{QpInput, QpWorkspace};

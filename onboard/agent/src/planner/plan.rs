@@ -2,8 +2,27 @@
 //! `dt`. Sampling between the knots is exact (quadratic in time), so the 50 Hz setpoints follow
 //! the same curve the constraints were written for.
 
-use crate::profile::ReferenceState;
 use tacos_shared::Vec3;
+
+/// Position, velocity and acceleration of the reference at one instant (world ENU): what is
+/// streamed to the writer as a setpoint.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ReferenceState {
+    pub position: Vec3,
+    pub velocity: Vec3,
+    pub acceleration: Vec3,
+}
+
+impl ReferenceState {
+    /// Stand still at `position`.
+    pub fn still(position: Vec3) -> Self {
+        ReferenceState {
+            position,
+            velocity: Vec3::zeros(),
+            acceleration: Vec3::zeros(),
+        }
+    }
+}
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct Plan {

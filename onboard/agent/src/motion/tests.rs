@@ -1,0 +1,208 @@
+use super::*;
+use tacos_shared::messages::TargetObservation;
+use tacos_shared::scenario::Scenario;
+
+fn id(name: &str) -> DroneId {
+    match DroneId::new(name) {
+        Ok(id) => id,
+        Err(e) => panic!("{name}: {e}"),
+    }
+}
+
+fn motion(me: &str) -> Motion {
+    let city = match Scenario::builtin("city") {
+        Ok(s) => s,
+        Err(e) => panic!("built-in city: {e}"),
+    };
+    let planner = PlannerConfig::from_scenario(&city.limits, &city.world);
+    match Motion::new(id(me), planner, MotionConfig::default()) {
+        Ok(m) => m,
+        Err(e) => panic!("valid planner config: {e}"),
+    }
+}
+
+fn path(drone: &str, stamp: f64, at: Vec3, tracking: Option<&str>) -> PathMessage {
+    PathMessage {
+        drone: id(drone),
+        stamp,
+        dt: 0.1,
+        positions: vec![at; 21],
+        tracking: tracking.map(str::to_owned),
+        avoids: true,
+    }
+}
+
+fn targets(name: &str, position: Vec3, velocity: Vec3) -> TargetsMessage {
+    TargetsMessage {
+        stamp: 0.0,
+        targets: vec![TargetObservation {
+            name: name.into(),
+            position,
+            velocity,
+        }],
+    }
+}
+
+#[test]
+fn keeps_the_newest_path_per_neighbour_ignores_its_own_and_forgets_the_silent() {
+    let mut m = motion("alfa");
+    let p = Vec3::new(10.0, 0.0, 10.0);
+    m.on_path(path("alfa", 100.0, p, None));
+    m.on_path(path("bravo", 100.0, p, None));
+    m.on_path(path("bravo", 99.0, Vec3::new(50.0, 0.0, 10.0), None));
+    m.on_path(path("charlie", f64::NAN, p, None));
+    let seen: Vec<NeighbourPath> = m.neighbours(100.5).collect();
+    assert_eq!(seen.len(), 1, "{seen:?}");
+    assert_eq!(seen[0].id, id("bravo"));
+    assert_eq!(
+        seen[0].positions[0], p,
+        "the older path did not replace the newer"
+    );
+    assert!((seen[0].age_s - 0.5).abs() < 1e-9);
+    assert_eq!(m.neighbours(111.0).count(), 0, "silent for 11 s: forgotten");
+}
+
+#[test]
+fn stations_are_unseen_then_ahead_of_the_target_then_lost() {
+    let mut m = motion("alfa");
+    assert_eq!(m.station("van", 12.0, 0.0), Station::Unseen);
+    let v = Vec3::new(2.0, 0.0, 0.0);
+    m.on_targets(&targets("van", Vec3::new(0.0, 0.0, 0.0), v), 0.0);
+    match m.station("van", 12.0, 1.0) {
+        Station::At(goal) => {
+            // Alone: on the circle of the configured radius, at the altitude, moving with it.
+            let centre = Vec3::new(2.0, 0.0, 12.0);
+            assert!(
+                ((goal.position - centre).norm() - 6.0).abs() < 0.2,
+                "{goal:?}"
+            );
+            assert!((goal.velocity - v).norm() < 1e-6);
+        }
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(m.station("van", 12.0, 3.5), Station::Lost);
+}
+
+#[test]
+fn trackers_of_one_target_take_places_the_safety_distance_apart() {
+    let names = ["alfa", "bravo", "charlie", "delta", "echo", "foxtrot"];
+    let now = 50.0;
+    let target = Vec3::new(10.0, 10.0, 0.0);
+    let places: Vec<Vec3> = names
+        .iter()
+        .map(|me| {
+            let mut m = motion(me);
+            m.on_targets(&targets("van", target, Vec3::zeros()), now);
+            for other in names.iter().filter(|o| *o != me) {
+                m.on_path(path(other, now - 0.1, target, Some("van")));
+            }
+            // A drone tracking something else does not take a place.
+            m.on_path(path("golf", now - 0.1, target, Some("suspect")));
+            match m.station("van", 15.0, now) {
+                Station::At(goal) => goal.position,
+                other => panic!("{other:?}"),
+            }
+        })
+        .collect();
+    let safety = m_safety();
+    for (i, a) in places.iter().enumerate() {
+        for b in &places[i + 1..] {
+            assert!((a - b).norm() >= safety, "{a:?} and {b:?}");
+        }
+    }
+}
+
+fn m_safety() -> f64 {
+    motion("alfa").planner_config().safety_distance
+}
+
+#[test]
+fn standing_drones_publish_that_they_cannot_give_way_flying_ones_their_plan() {
+    let mut m = motion("alfa");
+    let p = Vec3::new(-50.0, -132.5, 0.0);
+    let climbing = Vec3::new(0.0, 0.0, 1.0);
+    let out = m.step(100.0, p, climbing, Steering::Still(p), None);
+    assert_eq!(out.reference, ReferenceState::still(p));
+    let path = out.path.expect("a path on the first tick");
+    assert!(!path.avoids);
+    assert!((path.positions[20] - (p + climbing * 2.0)).norm() < 1e-9);
+    // Not due again within the period.
+    assert!(
+        m.step(100.01, p, climbing, Steering::Still(p), None)
+            .path
+            .is_none()
+    );
+
+    let air = Vec3::new(-50.0, -100.0, 10.0);
+    let goal = Goal::fixed(Vec3::new(-50.0, -80.0, 10.0));
+    let out = m.step(
+        101.0,
+        air,
+        Vec3::zeros(),
+        Steering::Toward(goal),
+        Some("van"),
+    );
+    let path = out.path.expect("a fresh plan is published");
+    assert!(path.avoids);
+    assert_eq!(path.tracking.as_deref(), Some("van"));
+    assert_eq!(path.positions.len(), 21);
+    assert!(path.positions[20].y > air.y, "heads for the goal");
+    // Between solves the same plan is sampled: the reference moves on along it.
+    let later = m.step(
+        101.02,
+        air,
+        Vec3::zeros(),
+        Steering::Toward(goal),
+        Some("van"),
+    );
+    assert!(later.path.is_none());
+    assert!(later.reference.position.y >= out.reference.position.y);
+    assert!(
+        m.step(101.05, air, Vec3::zeros(), Steering::Toward(goal), None)
+            .path
+            .is_some()
+    );
+    assert!(m.stats().solves >= 2);
+}
+
+/// The whole chain without processes: noisy observations of a target at constant velocity, the
+/// tracker, the station, the planner, and a drone that follows its reference exactly. The
+/// distance to the station settles below a bound.
+#[test]
+fn a_target_at_constant_velocity_is_followed_with_a_settling_error() {
+    let mut m = motion("alfa");
+    let velocity = Vec3::new(2.5, 1.0, 0.0);
+    let truth = |t: f64| Vec3::new(-60.0, -80.0, 0.0) + velocity * t;
+    let noise = |k: usize| ((k as f64 * 12.9898).sin() * 43758.5453).rem_euclid(1.0) - 0.5;
+    let (mut pos, mut vel) = (Vec3::new(-70.0, -100.0, 12.0), Vec3::zeros());
+    let dt = 0.02;
+    let mut errors = Vec::new();
+    for k in 0..2000 {
+        let t = k as f64 * dt;
+        if k % 5 == 0 {
+            let observed = truth(t) + Vec3::new(noise(k), noise(k + 1), 0.0) * 0.6;
+            m.on_targets(&targets("van", observed, velocity), t);
+        }
+        let Station::At(goal) = m.station("van", 12.0, t) else {
+            panic!("observed at 10 Hz, never lost")
+        };
+        m.step(t, pos, vel, Steering::Toward(goal), Some("van"));
+        // The drone flies its plan exactly until the next tick.
+        let Some(next) = m.plan.as_ref().map(|p| p.sample(t + dt)) else {
+            panic!("a plan while steering toward a goal")
+        };
+        (pos, vel) = (next.position, next.velocity);
+        // Where it should be: the true target plus the same offset.
+        let (estimate, _) = match m.tracks.get("van") {
+            Some(track) => track.predict(t),
+            None => panic!("tracked"),
+        };
+        let offset = goal.position - Vec3::new(estimate.x, estimate.y, 12.0);
+        let wanted = truth(t) + offset + Vec3::new(0.0, 0.0, 12.0);
+        errors.push((pos - wanted).norm());
+    }
+    let early = errors[0];
+    let late = errors[1500..].iter().cloned().fold(0.0, f64::max);
+    assert!(early > 10.0, "starts far off: {early}");
+    assert!(late < 1.0, "settled error {late:.2} m");
+}
