@@ -9,6 +9,7 @@ pub mod direct;
 pub mod launch;
 pub mod link;
 pub mod mission;
+pub mod patterns;
 pub mod pilot;
 pub mod plot;
 pub mod safety;

@@ -63,7 +63,9 @@ enum Cmd {
         /// Fly the fixed pattern without any language model.
         #[arg(long)]
         no_llm: bool,
-        /// The pattern flown with --no-llm.
+        /// The pattern flown with --no-llm: `fixed` (take off, fly to points, land) or `swap`
+        /// (take off, circle the business district, swap to the antipodal points through the
+        /// skyscrapers, land; fails on any separation or obstacle breach).
         #[arg(long, default_value = "fixed")]
         pattern: String,
         /// No interactive pilot input: carry out the --say lines and exit.
@@ -317,11 +319,19 @@ async fn demo(args: DemoArgs) -> anyhow::Result<()> {
         let _ = tokio::signal::ctrl_c().await;
     };
     if args.no_llm {
-        if args.pattern != "fixed" {
-            bail!("unknown pattern {:?} (available: fixed)", args.pattern);
-        }
-        run_demo(opts, DemoPlan::Fixed, interrupt).await?;
-        println!("demo finished: all drones took off, reached their points and landed");
+        let (plan, what) = match args.pattern.as_str() {
+            "fixed" => (
+                DemoPlan::Fixed,
+                "all drones took off, reached their points and landed",
+            ),
+            "swap" => (
+                DemoPlan::Swap,
+                "all drones swapped to their antipodal points through the skyscrapers and landed, with no breach",
+            ),
+            other => bail!("unknown pattern {other:?} (available: fixed, swap)"),
+        };
+        run_demo(opts, plan, interrupt).await?;
+        println!("demo finished: {what}");
         return Ok(());
     }
     let backend = args.llm.backend()?;

@@ -1,0 +1,291 @@
+//! Flight patterns flown without a language model, through the same safety gate and link a
+//! pilot uses, each phase checked against the simulator's ground truth:
+//!
+//! - `points`: all take off, each flies to a point north of its pad, all land.
+//! - `swap`: all take off, form a circle round the business district, swap to the antipodal
+//!   points through the skyscrapers (the distributed planner's test), all land.
+//!
+//! Both end with the simulator's breach counters: any separation or obstacle breach fails them.
+
+use crate::demo::DemoError;
+use crate::direct::run_actions;
+use crate::link::GroundLink;
+use crate::safety::SafetyGate;
+use std::time::{Duration, Instant};
+use tacos_shared::action::Action;
+use tacos_shared::messages::SimTruth;
+use tacos_shared::{DroneId, DroneMode, Vec3};
+use tokio::sync::watch;
+
+struct Say {
+    start: Instant,
+    verbose: bool,
+}
+
+impl Say {
+    fn line(&self, text: impl AsRef<str>) {
+        if self.verbose {
+            println!(
+                "[{:>6.1}s] {}",
+                self.start.elapsed().as_secs_f64(),
+                text.as_ref()
+            );
+        }
+    }
+}
+
+/// All take off, each flies to a point north of its pad, all land.
+pub async fn fly_points(
+    link: &GroundLink,
+    gate: &SafetyGate,
+    ids: &[DroneId],
+    mut truth: watch::Receiver<Option<SimTruth>>,
+    verbose: bool,
+) -> Result<(), DemoError> {
+    let say = Say {
+        start: Instant::now(),
+        verbose,
+    };
+    let scenario = gate.scenario();
+    let limits = scenario.limits;
+    say.line(format!("waiting for {} drones to come up", ids.len()));
+    link.wait_for_drones(ids, Duration::from_secs(60), |s| {
+        s.autopilot_link && s.mode == DroneMode::Idle
+    })
+    .await?;
+    say.line("all drones alive, autopilot links up, on the ground");
+
+    let homes: Vec<Vec3> = ids
+        .iter()
+        .map(|id| scenario.drone(id).map_or(Vec3::zeros(), |s| s.home))
+        .collect();
+
+    phase(
+        link,
+        gate,
+        &say,
+        "take off",
+        ids.iter()
+            .map(|id| (id.clone(), Action::ArmTakeoff))
+            .collect(),
+        60,
+    )
+    .await?;
+    check_truth(
+        &mut truth,
+        &say,
+        "every vehicle is at take-off altitude",
+        |t| {
+            ids.iter().zip(&homes).all(|(id, home)| {
+                t.vehicles.iter().any(|v| {
+                    &v.drone == id
+                        && v.armed
+                        && v.position.z >= home.z + 0.8 * limits.takeoff_altitude
+                })
+            })
+        },
+    )
+    .await?;
+
+    let span = scenario.world.bounds.max.y - scenario.world.bounds.min.y;
+    let goals: Vec<Vec3> = homes
+        .iter()
+        .map(|h| Vec3::new(h.x, h.y + 0.1 * span, h.z + limits.takeoff_altitude))
+        .collect();
+    let gotos = ids
+        .iter()
+        .zip(&goals)
+        .map(|(id, g)| (id.clone(), Action::Goto { target: *g }))
+        .collect();
+    phase(link, gate, &say, "fly to points", gotos, 60).await?;
+    let tolerance = arrival_tolerance(gate);
+    check_truth(&mut truth, &say, "every vehicle is at its point", |t| {
+        at_points(t, ids, &goals, tolerance)
+    })
+    .await?;
+    land_all(link, gate, &say, ids, &mut truth).await?;
+    no_breach(&truth, &say)
+}
+
+/// Within this distance of its point, a vehicle counts as there in the truth checks.
+fn arrival_tolerance(gate: &SafetyGate) -> f64 {
+    1.5 * (2.0 * gate.scenario().limits.drone_radius).max(0.2)
+}
+
+fn at_points(t: &SimTruth, ids: &[DroneId], points: &[Vec3], tolerance: f64) -> bool {
+    ids.iter().zip(points).all(|(id, p)| {
+        t.vehicles
+            .iter()
+            .any(|v| &v.drone == id && (v.position - p).norm() <= tolerance)
+    })
+}
+
+/// Lands every drone and waits for the truth to show them all down and disarmed.
+async fn land_all(
+    link: &GroundLink,
+    gate: &SafetyGate,
+    say: &Say,
+    ids: &[DroneId],
+    truth: &mut watch::Receiver<Option<SimTruth>>,
+) -> Result<(), DemoError> {
+    phase(
+        link,
+        gate,
+        &say,
+        "land",
+        ids.iter().map(|id| (id.clone(), Action::Land)).collect(),
+        90,
+    )
+    .await?;
+    check_truth(truth, say, "every vehicle has landed and disarmed", |t| {
+        ids.iter().all(|id| {
+            t.vehicles
+                .iter()
+                .any(|v| &v.drone == id && v.landed && !v.armed)
+        })
+    })
+    .await
+}
+
+/// The simulator's breach counters since it started: any breach fails the pattern.
+fn no_breach(truth: &watch::Receiver<Option<SimTruth>>, say: &Say) -> Result<(), DemoError> {
+    let Some(t) = truth.borrow().clone() else {
+        return Err(DemoError::Step(
+            "no ground truth from the simulator to check for breaches".into(),
+        ));
+    };
+    say.line(format!(
+        "done: min pair distance {:.2} m, min obstacle clearance {:.2} m, separation breaches {}, obstacle breaches {}",
+        t.min_pair_distance, t.min_obstacle_clearance, t.separation_breaches, t.obstacle_breaches
+    ));
+    if t.separation_breaches > 0 || t.obstacle_breaches > 0 {
+        return Err(DemoError::Step(format!(
+            "the simulator recorded {} separation and {} obstacle breaches",
+            t.separation_breaches, t.obstacle_breaches
+        )));
+    }
+    Ok(())
+}
+
+/// Radius of the swap circle round the business district (the skyscrapers stand within 26 m of
+/// its centre).
+const SWAP_RADIUS: f64 = 60.0;
+
+/// Slot `i` of `n` on the swap circle: evenly spread angles, altitudes spread over 10–20 m so
+/// that neighbours on the circle differ in height.
+pub fn swap_slot(i: usize, n: usize) -> Vec3 {
+    let n = n.max(1);
+    let angle = std::f64::consts::TAU * i as f64 / n as f64;
+    let altitude = 10.0 + 10.0 * ((i * 7) % n) as f64 / n as f64;
+    Vec3::new(
+        SWAP_RADIUS * angle.cos(),
+        SWAP_RADIUS * angle.sin(),
+        altitude,
+    )
+}
+
+/// All take off, form the circle, swap to the antipodal points through the skyscrapers, land.
+pub async fn fly_swap(
+    link: &GroundLink,
+    gate: &SafetyGate,
+    ids: &[DroneId],
+    mut truth: watch::Receiver<Option<SimTruth>>,
+    verbose: bool,
+) -> Result<(), DemoError> {
+    let say = Say {
+        start: Instant::now(),
+        verbose,
+    };
+    say.line(format!("waiting for {} drones to come up", ids.len()));
+    link.wait_for_drones(ids, Duration::from_secs(60), |s| {
+        s.autopilot_link && s.mode == DroneMode::Idle
+    })
+    .await?;
+    let all = |action: Action| ids.iter().map(|id| (id.clone(), action.clone())).collect();
+    phase(link, gate, &say, "take off", all(Action::ArmTakeoff), 60).await?;
+
+    let n = ids.len();
+    let slots: Vec<Vec3> = (0..n).map(|i| swap_slot(i, n)).collect();
+    let tolerance = arrival_tolerance(gate);
+    let at = |goals: &[Vec3]| {
+        let goals = goals.to_vec();
+        move |t: &SimTruth| at_points(t, ids, &goals, tolerance)
+    };
+    let to = |goals: &[Vec3]| {
+        ids.iter()
+            .zip(goals)
+            .map(|(id, g)| (id.clone(), Action::Goto { target: *g }))
+            .collect()
+    };
+    phase(link, gate, &say, "form the circle", to(&slots), 180).await?;
+    check_truth(&mut truth, &say, "every vehicle is on its slot", at(&slots)).await?;
+
+    let opposite: Vec<Vec3> = slots.iter().map(|p| Vec3::new(-p.x, -p.y, p.z)).collect();
+    phase(
+        link,
+        gate,
+        &say,
+        "swap through the skyscrapers",
+        to(&opposite),
+        180,
+    )
+    .await?;
+    check_truth(
+        &mut truth,
+        &say,
+        "every vehicle is at its antipodal point",
+        at(&opposite),
+    )
+    .await?;
+
+    land_all(link, gate, &say, ids, &mut truth).await?;
+    no_breach(&truth, &say)
+}
+
+/// Runs one phase of the pattern: an action per drone, all at once, all to completion.
+async fn phase(
+    link: &GroundLink,
+    gate: &SafetyGate,
+    say: &Say,
+    name: &str,
+    actions: Vec<(DroneId, Action)>,
+    timeout_s: u64,
+) -> Result<(), DemoError> {
+    say.line(format!("{name}: sending {} actions", actions.len()));
+    let task = name.replace(' ', "_");
+    run_actions(
+        link,
+        gate,
+        &actions,
+        Some(&task),
+        Duration::from_secs(timeout_s),
+    )
+    .await
+    .map_err(|e| DemoError::Step(format!("{name}: {e}")))?;
+    say.line(format!("{name}: all done"));
+    Ok(())
+}
+
+/// Waits (bounded) until the simulator's truth satisfies `ok`.
+async fn check_truth(
+    truth: &mut watch::Receiver<Option<SimTruth>>,
+    say: &Say,
+    what: &str,
+    ok: impl Fn(&SimTruth) -> bool,
+) -> Result<(), DemoError> {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    loop {
+        if truth.borrow().as_ref().is_some_and(&ok) {
+            say.line(format!("simulator truth: {what}"));
+            return Ok(());
+        }
+        match tokio::time::timeout_at(deadline, truth.changed()).await {
+            Ok(Ok(())) => {}
+            _ => {
+                return Err(DemoError::Step(format!(
+                    "simulator truth does not show that {what}"
+                )));
+            }
+        }
+    }
+}
