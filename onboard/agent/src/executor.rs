@@ -19,6 +19,14 @@ use tacos_shared::scenario::FlightLimits;
 use tacos_shared::world::World;
 use tacos_shared::{DroneMode, Vec3};
 
+/// MAV_RESULT_TEMPORARILY_REJECTED: the autopilot may accept the same command a little later
+/// (PX4 says so for an offboard switch before its setpoint stream has settled, which a loaded
+/// companion computer can delay).
+const MAV_RESULT_TEMPORARILY_REJECTED: u32 = 1;
+/// How often, and how far apart, a temporarily rejected command is asked again.
+const RETRIES_AFTER_TEMPORARY_REJECTION: u32 = 4;
+const RETRY_AFTER_S: f64 = 0.5;
+
 /// After an offboard switch is accepted, PX4's heartbeat (1 Hz) may still show the old mode for
 /// this long; only after it do we believe a non-offboard mode means PX4 left offboard.
 const MODE_REPORT_GRACE_S: f64 = 1.6;
@@ -133,6 +141,9 @@ pub struct Executor {
     hold_point: Option<Vec3>,
     progress: Option<ActionProgress>,
     awaiting: Option<CommandSample>,
+    /// A temporarily rejected command to ask again at a time, and the retries already made.
+    retry: Option<(CommandSample, f64)>,
+    retries: u32,
     outbox: Vec<CommandSample>,
     next_command_seq: u64,
     offboard_since: Option<f64>,
@@ -148,6 +159,8 @@ impl Executor {
             hold_point: None,
             progress: None,
             awaiting: None,
+            retry: None,
+            retries: 0,
             outbox: Vec::new(),
             next_command_seq: 1,
             offboard_since: None,
@@ -243,8 +256,14 @@ impl Executor {
     }
 
     fn request(&mut self, kind: CommandKind, param: f64) {
+        self.retries = 0;
+        self.send_request(kind, param);
+    }
+
+    fn send_request(&mut self, kind: CommandKind, param: f64) {
         let command = CommandSample::new(self.next_command_seq, kind, param);
         self.next_command_seq += 1;
+        self.retry = None;
         self.awaiting = Some(command);
         self.outbox.push(command);
     }
@@ -258,6 +277,7 @@ impl Executor {
     fn fail(&mut self, reason: FailureReason) {
         self.finish(ActionState::Failed(reason));
         self.awaiting = None;
+        self.retry = None;
         self.task = if self.airborne() {
             Task::Hold
         } else {
@@ -282,6 +302,7 @@ impl Executor {
     fn ensure_offboard(&mut self) {
         let pending = self
             .awaiting
+            .or(self.retry.map(|(c, _)| c))
             .is_some_and(|c| c.kind() == Some(CommandKind::Offboard));
         if !self.in_offboard() && !pending {
             self.request(CommandKind::Offboard, 0.0);
@@ -297,6 +318,7 @@ impl Executor {
         // Whatever ran before is replaced; the ground sees the newer seq in the status.
         self.progress = Some(ActionProgress::started(command));
         self.awaiting = None;
+        self.retry = None;
         if let Some(why) = mode_forbids(&command.action, self.mode()) {
             self.finish(ActionState::Failed(FailureReason::InvalidForMode(
                 why.to_owned(),
@@ -402,6 +424,14 @@ impl Executor {
         let kind = awaiting.kind();
         match result.outcome() {
             Some(CommandOutcome::Accepted) => {}
+            Some(CommandOutcome::Rejected)
+                if result.mav_result == MAV_RESULT_TEMPORARILY_REJECTED
+                    && self.retries < RETRIES_AFTER_TEMPORARY_REJECTION =>
+            {
+                self.retries += 1;
+                self.retry = Some((awaiting, now + RETRY_AFTER_S));
+                return;
+            }
             Some(CommandOutcome::Rejected) => {
                 let why = format!("{kind:?} refused (MAV_RESULT {})", result.mav_result);
                 return self.fail(FailureReason::Rejected(why));
@@ -486,6 +516,12 @@ impl Executor {
             }
             self.task = Task::Idle;
         }
+        if let Some((command, at)) = self.retry
+            && now >= at
+            && let Some(kind) = command.kind()
+        {
+            self.send_request(kind, command.param);
+        }
         self.advance(vehicle, now);
         let hold_point = self.hold_point.unwrap_or(vehicle.position);
         let steering = match &self.task {
@@ -513,6 +549,7 @@ impl Executor {
             .is_some_and(|t| now - t > MODE_REPORT_GRACE_S);
         let pending = self
             .awaiting
+            .or(self.retry.map(|(c, _)| c))
             .is_some_and(|c| c.kind() == Some(CommandKind::Offboard));
         settled && !pending && vehicle.px4 != Px4Mode::Offboard
     }
@@ -903,7 +940,7 @@ mod tests {
                 seq: arm.seq,
                 kind: arm.kind,
                 outcome: CommandOutcome::Rejected as u32,
-                mav_result: 1,
+                mav_result: 2, // MAV_RESULT_DENIED
                 _reserved: 0,
             },
             0.5,
@@ -956,6 +993,53 @@ mod tests {
         ex.on_vehicle(&lost);
         ex.tick(4.0);
         assert_eq!(ex.mode(), DroneMode::Unavailable);
+    }
+
+    fn reject_temporarily(ex: &mut Executor, cmd: &CommandSample, now: f64) {
+        ex.on_result(
+            &CommandResultSample {
+                seq: cmd.seq,
+                kind: cmd.kind,
+                outcome: CommandOutcome::Rejected as u32,
+                mav_result: MAV_RESULT_TEMPORARILY_REJECTED,
+                _reserved: 0,
+            },
+            now,
+        );
+    }
+
+    #[test]
+    fn a_temporarily_rejected_offboard_switch_is_asked_again_a_few_times() {
+        let mut ex = lab();
+        let p = Vec3::new(-40.0, -100.0, 10.0);
+        ex.on_vehicle(&state(p, true, Px4Mode::Hold));
+        ex.on_command(&cmd(1, Action::Hold), 0.0);
+        let first = ex.tick(0.0).commands[0];
+        assert_eq!(first.kind(), Some(CommandKind::Offboard));
+        reject_temporarily(&mut ex, &first, 0.1);
+        assert!(matches!(state_of(&ex), ActionState::Running { .. }));
+        assert!(ex.tick(0.3).commands.is_empty(), "not before the pause");
+        let second = ex.tick(0.7).commands[0];
+        assert_eq!(second.kind(), Some(CommandKind::Offboard));
+        assert_ne!(second.seq, first.seq);
+        accept(&mut ex, &second, 0.8);
+        assert_eq!(state_of(&ex), ActionState::Done);
+
+        // Refused again and again: after the retries, the action fails with the refusal.
+        ex.on_vehicle(&state(p, true, Px4Mode::Hold));
+        ex.on_command(&cmd(2, Action::Hold), 10.0);
+        let mut command = ex.tick(10.0).commands[0];
+        let mut now = 10.0;
+        for _ in 0..RETRIES_AFTER_TEMPORARY_REJECTION {
+            reject_temporarily(&mut ex, &command, now);
+            now += 1.0;
+            command = ex.tick(now).commands[0];
+        }
+        reject_temporarily(&mut ex, &command, now);
+        assert!(matches!(
+            state_of(&ex),
+            ActionState::Failed(FailureReason::Rejected(_))
+        ));
     }
 
     #[test]
