@@ -275,8 +275,11 @@ async fn check_truth(
 ) -> Result<(), DemoError> {
     let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
     loop {
-        if truth.borrow().as_ref().is_some_and(&ok) {
-            say.line(format!("simulator truth: {what}"));
+        if let Some(t) = truth.borrow().as_ref().filter(|t| ok(t)) {
+            say.line(format!(
+                "simulator truth: {what} (so far: min pair {:.2} m, {} separation / {} obstacle breaches)",
+                t.min_pair_distance, t.separation_breaches, t.obstacle_breaches
+            ));
             return Ok(());
         }
         match tokio::time::timeout_at(deadline, truth.changed()).await {

@@ -30,7 +30,7 @@ pub struct MotionConfig {
 impl Default for MotionConfig {
     fn default() -> Self {
         MotionConfig {
-            plan_period: 0.04,
+            plan_period: 0.05,
             forget_path_after: 10.0,
             tracker: TrackerConfig::default(),
             tracking_radius: 6.0,
@@ -76,15 +76,65 @@ pub struct MotionOutput {
     pub path: Option<PathMessage>,
 }
 
+/// One solve, taken out of `Motion` to run off the control loop (a blocking thread): the
+/// planner itself and everything it reads. `run` is pure computation.
+#[derive(Debug)]
+pub struct SolveJob {
+    planner: Planner,
+    now: f64,
+    position: Vec3,
+    velocity: Vec3,
+    goal: Goal,
+    neighbours: Vec<NeighbourPath>,
+    tracking: Option<String>,
+    generation: u64,
+}
+
+/// A finished solve, to hand back with [`Motion::solve_done`].
+#[derive(Debug)]
+pub struct SolveDone {
+    planner: Planner,
+    result: Result<crate::planner::PlanResult, PlannerError>,
+    took_s: f64,
+    now: f64,
+    tracking: Option<String>,
+    generation: u64,
+}
+
+impl SolveJob {
+    pub fn run(mut self) -> SolveDone {
+        let started = std::time::Instant::now();
+        let result = self.planner.plan(
+            self.now,
+            self.position,
+            self.velocity,
+            &self.goal,
+            &self.neighbours,
+        );
+        SolveDone {
+            took_s: started.elapsed().as_secs_f64(),
+            planner: self.planner,
+            result,
+            now: self.now,
+            tracking: self.tracking,
+            generation: self.generation,
+        }
+    }
+}
+
 #[derive(Debug)]
 pub struct Motion {
     me: DroneId,
     cfg: MotionConfig,
-    planner: Planner,
+    planner_cfg: PlannerConfig,
+    /// `None` while a solve is out (see [`SolveJob`]).
+    planner: Option<Planner>,
     paths: HashMap<DroneId, PathMessage>,
     tracks: HashMap<String, Track>,
     /// The plan being sampled, while the planner flies.
     plan: Option<Plan>,
+    /// Bumped whenever the planner stops flying, so a solve started before is not used after.
+    generation: u64,
     last_solve: Option<f64>,
     last_path: Option<f64>,
     stats: SolveStats,
@@ -98,11 +148,13 @@ impl Motion {
     ) -> Result<Self, PlannerError> {
         Ok(Motion {
             me,
-            planner: Planner::new(planner)?,
+            planner: Some(Planner::new(planner.clone())?),
+            planner_cfg: planner,
             cfg,
             paths: HashMap::new(),
             tracks: HashMap::new(),
             plan: None,
+            generation: 0,
             last_solve: None,
             last_path: None,
             stats: SolveStats::default(),
@@ -114,7 +166,7 @@ impl Motion {
     }
 
     pub fn planner_config(&self) -> &PlannerConfig {
-        self.planner.config()
+        &self.planner_cfg
     }
 
     /// A neighbour's path. My own (echoed back by zenoh) and older ones than the latest held
@@ -183,7 +235,7 @@ impl Motion {
         let trackers = self.trackers_of(target, now);
         // Neighbours on the circle must stand the safety distance apart (plus a margin).
         let n = trackers.len().max(1) as f64;
-        let chord = self.planner.config().safety_distance + 1.0;
+        let chord = self.planner_cfg.safety_distance + 1.0;
         let radius = if n >= 2.0 {
             self.cfg
                 .tracking_radius
@@ -201,26 +253,28 @@ impl Motion {
         })
     }
 
-    /// One control tick: the setpoint to stream now, and the path to publish when one is due.
-    /// `position` and `velocity` are the vehicle's, `tracking` the target followed (if any).
-    pub fn step(
+    /// One control tick: the setpoint to stream now (the current plan sampled, or the still
+    /// point), and for a drone the planner does not fly, its path when one is due. Solves are
+    /// separate: see [`Motion::solve_job`].
+    pub fn tick(
         &mut self,
         now: f64,
         position: Vec3,
         velocity: Vec3,
         steering: Steering,
-        tracking: Option<&str>,
     ) -> MotionOutput {
-        let period = self.cfg.plan_period;
-        let due = |last: Option<f64>| last.is_none_or(|t| now - t >= period - 1e-3);
         match steering {
             Steering::Still(point) => {
-                self.plan = None;
-                self.planner.reset();
-                let path = due(self.last_path).then(|| {
+                if self.plan.take().is_some() {
+                    self.generation += 1;
+                }
+                if let Some(planner) = self.planner.as_mut() {
+                    planner.reset();
+                }
+                let path = self.due(self.last_path, now).then(|| {
                     self.last_path = Some(now);
                     // Where it is heading on its own (climbing, descending, standing).
-                    let cfg = self.planner.config();
+                    let cfg = &self.planner_cfg;
                     let positions = (0..=cfg.horizon_steps)
                         .map(|k| position + velocity * (k as f64 * cfg.dt))
                         .collect();
@@ -231,53 +285,100 @@ impl Motion {
                     path,
                 }
             }
-            Steering::Toward(goal) => {
-                let mut path = None;
-                if self.plan.is_none() || due(self.last_solve) {
-                    self.solve(now, position, velocity, &goal);
-                    if let Some(plan) = &self.plan {
-                        self.last_path = Some(now);
-                        let positions = plan.positions.clone();
-                        path = Some(self.path_message(
-                            now,
-                            plan.dt,
-                            positions,
-                            true,
-                            tracking.map(str::to_owned),
-                        ));
-                    }
-                }
-                let reference = match &self.plan {
+            Steering::Toward(_) => MotionOutput {
+                // Until the first solve lands (a few milliseconds), stay where it is.
+                reference: match &self.plan {
                     Some(plan) => plan.sample(now),
                     None => ReferenceState::still(position),
-                };
-                MotionOutput { reference, path }
-            }
+                },
+                path: None,
+            },
         }
     }
 
-    fn solve(&mut self, now: f64, position: Vec3, velocity: Vec3, goal: &Goal) {
-        self.last_solve = Some(now);
-        let range = self.planner.config().neighbour_range;
+    fn due(&self, last: Option<f64>, now: f64) -> bool {
+        last.is_none_or(|t| now - t >= self.cfg.plan_period - 1e-3)
+    }
+
+    /// The solve to run now, if one is due and none is out: the planner is lent to the job
+    /// until [`Motion::solve_done`] returns it.
+    pub fn solve_job(
+        &mut self,
+        now: f64,
+        position: Vec3,
+        velocity: Vec3,
+        goal: Goal,
+        tracking: Option<&str>,
+    ) -> Option<SolveJob> {
+        if self.plan.is_some() && !self.due(self.last_solve, now) {
+            return None;
+        }
+        let range = self.planner_cfg.neighbour_range;
         let neighbours = neighbours_in_range(position, self.neighbours(now), range);
-        let started = std::time::Instant::now();
-        let result = self
-            .planner
-            .plan(now, position, velocity, goal, &neighbours);
-        let took = started.elapsed().as_secs_f64();
-        self.stats.slowest_s = self.stats.slowest_s.max(took);
-        match result {
-            Ok(r) => {
-                self.stats.solves += 1;
-                match r.status {
-                    PlanStatus::Solved => {}
-                    PlanStatus::Relaxed { .. } => self.stats.relaxed += 1,
-                    PlanStatus::Braking(_) => self.stats.braking += 1,
-                }
-                self.plan = Some(r.plan);
-            }
-            // A non-finite vehicle state: keep sampling the last plan (or hold, without one).
-            Err(_) => {}
+        let planner = self.planner.take()?;
+        self.last_solve = Some(now);
+        Some(SolveJob {
+            planner,
+            now,
+            position,
+            velocity,
+            goal,
+            neighbours,
+            tracking: tracking.map(str::to_owned),
+            generation: self.generation,
+        })
+    }
+
+    /// Takes a finished solve back: its plan is sampled from now on, and its path is returned
+    /// for publishing. A solve overtaken by a still reference (take-off, landing) is dropped.
+    pub fn solve_done(&mut self, done: SolveDone) -> Option<PathMessage> {
+        let mut planner = done.planner;
+        self.stats.slowest_s = self.stats.slowest_s.max(done.took_s);
+        if done.generation != self.generation {
+            planner.reset();
+            self.planner = Some(planner);
+            return None;
+        }
+        self.planner = Some(planner);
+        // A non-finite vehicle state is the only error: keep sampling the last plan.
+        let result = done.result.ok()?;
+        self.stats.solves += 1;
+        match result.status {
+            PlanStatus::Solved => {}
+            PlanStatus::Relaxed { .. } => self.stats.relaxed += 1,
+            PlanStatus::Braking(_) => self.stats.braking += 1,
+        }
+        self.last_path = Some(done.now);
+        let path = self.path_message(
+            done.now,
+            result.plan.dt,
+            result.plan.positions.clone(),
+            true,
+            done.tracking,
+        );
+        self.plan = Some(result.plan);
+        Some(path)
+    }
+
+    /// `tick` with any due solve run at once, on this thread: for tests and benchmarks.
+    pub fn step(
+        &mut self,
+        now: f64,
+        position: Vec3,
+        velocity: Vec3,
+        steering: Steering,
+        tracking: Option<&str>,
+    ) -> MotionOutput {
+        let mut path = None;
+        if let Steering::Toward(goal) = steering
+            && let Some(job) = self.solve_job(now, position, velocity, goal, tracking)
+        {
+            path = self.solve_done(job.run());
+        }
+        let out = self.tick(now, position, velocity, steering);
+        MotionOutput {
+            reference: out.reference,
+            path: path.or(out.path),
         }
     }
 

@@ -3,7 +3,7 @@
 
 use crate::executor::{Executor, ExecutorConfig};
 use crate::failsafe::FailsafeTimer;
-use crate::motion::{Motion, MotionConfig};
+use crate::motion::{Motion, MotionConfig, SolveDone, Steering};
 use crate::planner::{PlannerConfig, PlannerError};
 use std::future::Future;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
@@ -62,6 +62,8 @@ pub enum OnboardError {
     SubscriberClosed(String),
     #[error(transparent)]
     Planner(#[from] PlannerError),
+    #[error("the planner's solve did not return: {0}")]
+    PlannerLost(String),
 }
 
 fn unix_nanos() -> u64 {
@@ -114,8 +116,9 @@ async fn run_inner(
     let session = cfg.bus.open().await?;
     let actions = tacos_bus::subscribe(&session, &keys.action(&drone)).await?;
     let heartbeats = tacos_bus::subscribe(&session, &keys.ground_heartbeat()).await?;
-    let paths = tacos_bus::subscribe(&session, &keys.all_paths()).await?;
-    let targets = tacos_bus::subscribe(&session, &keys.targets()).await?;
+    // Enough room for a few rounds of every neighbour's path; older ones are superseded anyway.
+    let paths = tacos_bus::subscribe_latest(&session, &keys.all_paths(), 256).await?;
+    let targets = tacos_bus::subscribe_latest(&session, &keys.targets(), 8).await?;
     let ipc = IpcNode::new(&cfg.bus.swarm, &drone)?;
     let ports = ipc.onboard_ports()?;
     // Declared last: the ground sees the drone only once it can take actions.
@@ -137,6 +140,9 @@ async fn run_inner(
     let mut malformed_paths = Malformed::new("neighbour path");
     let mut malformed_targets = Malformed::new("targets message");
     let mut stats_logged_at = now();
+    // The solve in flight on a blocking thread: the control loop keeps streaming the current
+    // plan meanwhile, so a slow solve never stalls the setpoints.
+    let mut solving: Option<tokio::task::JoinHandle<SolveDone>> = None;
     let mut failsafe = FailsafeTimer::new(cfg.failsafe_hold_s, cfg.failsafe_land_s, now());
     let mut control = tokio::time::interval(Duration::from_secs_f64(1.0 / cfg.control_rate_hz));
     control.set_missed_tick_behavior(MissedTickBehavior::Skip);
@@ -186,6 +192,25 @@ async fn run_inner(
                     Err(e) => malformed_paths.note(&e),
                 }
             }
+            done = async {
+                match solving.as_mut() {
+                    Some(job) => job.await,
+                    None => std::future::pending().await,
+                }
+            } => {
+                solving = None;
+                match done {
+                    Ok(done) => {
+                        if let Some(path) = motion.solve_done(done)
+                            && let Err(e) = tacos_bus::put(&session, &path_key, &path, false).await
+                        {
+                            warn!(error = %e, "path not published");
+                        }
+                    }
+                    // Only a panic in the solver gets here; the planner went with it.
+                    Err(e) => return Err(OnboardError::PlannerLost(e.to_string())),
+                }
+            }
             sample = targets.recv_async() => {
                 let sample = sample.map_err(|_| OnboardError::SubscriberClosed(keys.targets()))?;
                 match tacos_bus::decode::<TargetsMessage>(&sample) {
@@ -222,8 +247,15 @@ async fn run_inner(
                         ports.send_command(command)?;
                     }
                     if let (Some(steering), Some(vehicle)) = (out.steering, executor.vehicle()) {
-                        let tracking = executor.following().map(|(target, _)| target);
-                        let step = motion.step(wall, vehicle.position, vehicle.velocity, steering, tracking);
+                        if let Steering::Toward(goal) = steering
+                            && solving.is_none()
+                        {
+                            let tracking = executor.following().map(|(target, _)| target);
+                            if let Some(job) = motion.solve_job(wall, vehicle.position, vehicle.velocity, goal, tracking) {
+                                solving = Some(tokio::task::spawn_blocking(move || job.run()));
+                            }
+                        }
+                        let step = motion.tick(wall, vehicle.position, vehicle.velocity, steering);
                         path_out = step.path;
                         let reference = step.reference;
                         setpoint_seq += 1;

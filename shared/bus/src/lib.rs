@@ -174,6 +174,26 @@ pub async fn subscribe(
         })
 }
 
+/// Declares a subscriber for a stream where only recent samples matter (neighbours' paths,
+/// targets): it keeps the last `capacity` samples and drops older ones. Unlike the FIFO of
+/// [`subscribe`], it never makes zenoh's receiving task wait for the reader, so a busy reader
+/// cannot stall the session (and with it this process's own puts).
+pub async fn subscribe_latest(
+    session: &Session,
+    key: &str,
+    capacity: usize,
+) -> Result<zenoh::pubsub::Subscriber<zenoh::handlers::RingChannelHandler<Sample>>, BusError> {
+    session
+        .declare_subscriber(key.to_owned())
+        .with(zenoh::handlers::RingChannel::new(capacity.max(1)))
+        .await
+        .map_err(|e| BusError::Declare {
+            what: "subscriber",
+            key: key.to_owned(),
+            reason: e.to_string(),
+        })
+}
+
 /// Declares this process's liveliness token on `key`; dropping it (or dying) withdraws it.
 pub async fn declare_alive(
     session: &Session,

@@ -99,7 +99,9 @@ impl PlannerConfig {
             drone_radius: limits.drone_radius,
             obstacle_margin: 0.3,
             safety_distance: limits.safety_distance,
-            separation_margin: 0.15,
+            // Covers how far the vehicle strays from its plan between solves (the autopilot's
+            // tracking error), for each of the two drones.
+            separation_margin: 0.5,
             downwash_factor: 2.0,
             // Two drones closing at full speed over one horizon, plus the safety distance,
             // plus room for stale paths.

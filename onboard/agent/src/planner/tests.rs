@@ -100,7 +100,12 @@ fn assert_within_limits(cfg: &PlannerConfig, plan: &Plan) {
 
 #[test]
 fn solved_plans_respect_their_half_spaces_and_limits() {
-    let cfg = city_config();
+    // The neighbour here does not react; with the default margin the start would already need
+    // relaxing. This test is about the construction, so it uses a slimmer margin.
+    let cfg = PlannerConfig {
+        separation_margin: 0.15,
+        ..city_config()
+    };
     let mut p = planner(&cfg);
     // Beside a tower, moving fast towards it, with a neighbour ahead.
     let pos = Vec3::new(-18.0, -40.0, 15.0);
