@@ -5,7 +5,10 @@ use std::time::Duration;
 use tacos_ground::launch::{Stack, StackConfig};
 use tacos_ground::link::GroundLink;
 use tacos_shared::SwarmId;
+use tacos_shared::messages::{SimTruth, VehicleTruth};
 use tacos_shared::scenario::Scenario;
+use tacos_shared::{DroneId, DroneMode};
+use tokio::sync::watch;
 
 /// A swarm id no other test (or run) uses.
 pub fn unique_swarm(tag: &str) -> SwarmId {
@@ -31,13 +34,14 @@ impl SimSwarm {
         Self::start_with(tag, scenario_name, n, |_| {}).await
     }
 
+    /// A built-in scenario (`city`, `lab`) or a scenario file, as the binaries take it.
     pub async fn start_with(
         tag: &str,
         scenario_name: &str,
         n: usize,
         adjust: impl FnOnce(&mut StackConfig),
     ) -> anyhow::Result<SimSwarm> {
-        let scenario = Scenario::builtin(scenario_name)?;
+        let scenario = tacos_bus::load_scenario(scenario_name)?;
         let mut config =
             StackConfig::on_loopback(unique_swarm(tag), scenario_name, scenario.clone(), n)?;
         adjust(&mut config);
@@ -58,6 +62,48 @@ impl SimSwarm {
     pub async fn stop(self) {
         self.stack.shutdown(Duration::from_secs(3)).await;
     }
+}
+
+/// A drone id from a literal.
+pub fn id(name: &str) -> DroneId {
+    DroneId::new(name).unwrap_or_else(|e| panic!("{e}"))
+}
+
+/// One vehicle in the simulator's truth.
+pub fn vehicle<'a>(truth: &'a SimTruth, drone: &DroneId) -> Option<&'a VehicleTruth> {
+    truth.vehicles.iter().find(|v| &v.drone == drone)
+}
+
+/// Waits until the truth satisfies `ok`, or fails naming `what`.
+pub async fn truth_until(
+    truth: &mut watch::Receiver<Option<SimTruth>>,
+    limit: Duration,
+    what: &str,
+    ok: impl Fn(&SimTruth) -> bool,
+) -> anyhow::Result<SimTruth> {
+    let deadline = tokio::time::Instant::now() + limit;
+    loop {
+        if let Some(t) = truth.borrow().as_ref().filter(|t| ok(t)) {
+            return Ok(t.clone());
+        }
+        match tokio::time::timeout_at(deadline, truth.changed()).await {
+            Ok(Ok(())) => {}
+            _ => anyhow::bail!(
+                "simulator truth never showed: {what} (last: {:?})",
+                truth.borrow().as_ref().map(|t| &t.vehicles)
+            ),
+        }
+    }
+}
+
+/// Waits until every drone is up, linked to its autopilot and on the ground.
+pub async fn all_ready(sim: &SimSwarm, ids: &[DroneId]) -> anyhow::Result<()> {
+    sim.link
+        .wait_for_drones(ids, Duration::from_secs(60), |s| {
+            s.autopilot_link && s.mode == DroneMode::Idle
+        })
+        .await?;
+    Ok(())
 }
 
 /// Runs `fut` with a deadline, naming what timed out.

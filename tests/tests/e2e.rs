@@ -9,52 +9,11 @@ use tacos_ground::link::GroundLink;
 use tacos_ground::safety::SafetyGate;
 use tacos_ground::swarm::SwarmChange;
 use tacos_shared::action::Action;
-use tacos_shared::messages::{SimTruth, VehicleTruth};
 use tacos_shared::px4_mode::Px4Mode;
 use tacos_shared::{DroneId, DroneMode, Vec3};
-use tacos_tests::{SimSwarm, within};
-use tokio::sync::watch;
+use tacos_tests::{SimSwarm, all_ready, id, truth_until, vehicle, within};
 
 const STEP: Duration = Duration::from_secs(60);
-
-fn id(name: &str) -> DroneId {
-    DroneId::new(name).unwrap_or_else(|e| panic!("{e}"))
-}
-
-fn vehicle<'a>(truth: &'a SimTruth, drone: &DroneId) -> Option<&'a VehicleTruth> {
-    truth.vehicles.iter().find(|v| &v.drone == drone)
-}
-
-/// Waits until the truth satisfies `ok`, or fails naming `what`.
-async fn truth_until(
-    truth: &mut watch::Receiver<Option<SimTruth>>,
-    limit: Duration,
-    what: &str,
-    ok: impl Fn(&SimTruth) -> bool,
-) -> anyhow::Result<SimTruth> {
-    let deadline = tokio::time::Instant::now() + limit;
-    loop {
-        if let Some(t) = truth.borrow().as_ref().filter(|t| ok(t)) {
-            return Ok(t.clone());
-        }
-        match tokio::time::timeout_at(deadline, truth.changed()).await {
-            Ok(Ok(())) => {}
-            _ => anyhow::bail!(
-                "simulator truth never showed: {what} (last: {:?})",
-                truth.borrow().as_ref().map(|t| &t.vehicles)
-            ),
-        }
-    }
-}
-
-async fn all_ready(sim: &SimSwarm, ids: &[DroneId]) -> anyhow::Result<()> {
-    sim.link
-        .wait_for_drones(ids, Duration::from_secs(60), |s| {
-            s.autopilot_link && s.mode == DroneMode::Idle
-        })
-        .await?;
-    Ok(())
-}
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn three_drones_take_off_fly_to_points_and_land() -> anyhow::Result<()> {
