@@ -268,6 +268,9 @@ async fn fly(
     let mut fault_at: Option<(tokio::time::Instant, DroneId)> = None;
     let mut fault_armed = plan.task.fault.is_some();
     let mut last_news = Instant::now();
+    // A model call is under way (from the request until the engine acts on the reply): a
+    // small model on a CPU may take minutes, which is not a stalled mission.
+    let mut thinking = false;
     let mut finished_at: Option<Instant> = None;
     let stalled_after = 3 * plan.cycle_timeout;
     let mut tick = tokio::time::interval(Duration::from_millis(500));
@@ -318,6 +321,11 @@ async fn fly(
             }
             update = updates.recv() => {
                 last_news = Instant::now();
+                match &update {
+                    Some(MissionUpdate::Thinking { .. }) => thinking = true,
+                    Some(MissionUpdate::Plan { .. } | MissionUpdate::Cycle { .. } | MissionUpdate::Error(_) | MissionUpdate::PlanComplete { .. }) => thinking = false,
+                    _ => {}
+                }
                 match update {
                     Some(MissionUpdate::Sent { drone, action, .. }) if fault_armed && action.starts_with("goto") => {
                         if let (Some(fault), Ok(drone)) = (&plan.task.fault, DroneId::new(&drone)) {
@@ -357,7 +365,7 @@ async fn fly(
                 // time while no drone has anything to do.
                 let idle = !link.view().drones().any(|e| e.alive && e.busy());
                 if finished_at.is_some_and(|t| t.elapsed() >= Duration::from_secs(2))
-                    || (idle && last_news.elapsed() >= stalled_after)
+                    || (idle && !thinking && last_news.elapsed() >= stalled_after)
                 {
                     break Ok(());
                 }
