@@ -159,7 +159,7 @@ async fn a_good_plan_finds_the_suspect_despite_the_failure() -> anyhow::Result<(
     let record = within("a good run", Duration::from_secs(330), run_once(plan, lock)).await?;
     assert_eq!(record.status, Status::Success, "{record:#?}");
     assert!(record.detected_by.is_some(), "{record:#?}");
-    assert!(record.fault.as_deref().is_some_and(|f| f.contains("vehicle dies")), "the failure was injected: {record:#?}");
+    assert!(record.fault.as_deref().is_some_and(|f| f.contains("power loss")), "the failure was injected: {record:#?}");
     assert!(record.cycles >= 2 && record.model_calls >= 3, "{record:#?}");
     assert_eq!((record.separation_breaches, record.obstacle_breaches), (0, 0));
     let lines = log::read(&log_path)?;

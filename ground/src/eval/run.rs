@@ -5,9 +5,9 @@
 
 use super::criteria::{self, Observed, Verdict};
 use super::results::{RunRecord, Status};
-use super::task::{FaultTrigger, TaskSpec};
+use super::task::{FaultKind, FaultTrigger, TaskSpec};
 use crate::direct::run_actions;
-use crate::launch::{Stack, StackConfig};
+use crate::launch::{Role, Stack, StackConfig};
 use crate::link::GroundLink;
 use crate::mission::log::{self, MissionLog};
 use crate::mission::{Mission, MissionConfig, MissionUpdate, Mode};
@@ -19,7 +19,7 @@ use tacos_bus::BusArgs;
 use tacos_llm::LlmBackend;
 use tacos_shared::action::Action;
 use tacos_shared::messages::{FaultRequest, SimTruth, WorldEvent};
-use tacos_shared::scenario::Scenario;
+use tacos_shared::scenario::{self, Scenario};
 use tacos_shared::{DroneId, DroneMode, SwarmId};
 use tokio::sync::{Mutex, mpsc};
 
@@ -267,6 +267,7 @@ async fn fly(
     let mut seen = Observed::default();
     let mut fault_at: Option<(tokio::time::Instant, DroneId)> = None;
     let mut fault_armed = plan.task.fault.is_some();
+    let mut failed: Option<DroneId> = None;
     let mut last_news = Instant::now();
     // A model call is under way (from the request until the engine acts on the reply): a
     // small model on a CPU may take minutes, which is not a stalled mission.
@@ -286,6 +287,10 @@ async fn fly(
         tokio::select! {
             _ = tokio::time::sleep_until(deadline) => break Ok(()),
             exit = stack.next_exit() => {
+                // The failed drone's processes may end with it; any other exit breaks the run.
+                if exit.as_ref().is_some_and(|e| e.drone.is_some() && e.drone == failed) {
+                    continue;
+                }
                 break Err(Infra(match exit {
                     Some(e) => format!("{} exited ({:?}); logs in {}", e.name, e.status, stack.config.log_dir.display()),
                     None => "the process supervisor stopped".into(),
@@ -299,7 +304,7 @@ async fn fly(
                     }
                 }
                 Some(WorldEvent::FaultInjected { drone, fault }) => {
-                    record.fault = Some(format!("{drone}: {fault} at {:.1} s", start.elapsed().as_secs_f64()));
+                    record.fault.get_or_insert(format!("{drone}: {fault} at {:.1} s", start.elapsed().as_secs_f64()));
                 }
                 None => break Err(Infra("the world event stream closed".into())),
             },
@@ -353,9 +358,17 @@ async fn fly(
             }
             _ = fault_due => {
                 if let (Some((_, drone)), Some(fault)) = (fault_at.take(), &plan.task.fault) {
-                    let request = FaultRequest { drone, fault: fault.kind };
+                    failed = Some(drone.clone());
+                    let request = FaultRequest { drone: drone.clone(), fault: scenario::FaultKind::VehicleDies };
                     if let Err(e) = tacos_bus::put(link.session(), &link.keys().sim_faults(), &request, true).await {
                         break Err(Infra(format!("injecting the fault: {e}")));
+                    }
+                    if fault.kind == FaultKind::PowerLoss {
+                        // The companion computer goes down with the vehicle; `crash` reaps the
+                        // two processes, so their exits are not taken for a broken run.
+                        stack.crash(Role::Onboard, Some(&drone)).await;
+                        stack.crash(Role::Writer, Some(&drone)).await;
+                        record.fault = Some(format!("{drone}: power loss at {:.1} s", start.elapsed().as_secs_f64()));
                     }
                 }
             }

@@ -4,7 +4,7 @@
 
 use serde::Deserialize;
 use std::path::Path;
-use tacos_shared::scenario::{FaultKind, Scenario};
+use tacos_shared::scenario::Scenario;
 
 const TAKE_OFF: &str = include_str!("../../eval/tasks/take-off.toml");
 const FIND_SUSPECT: &str = include_str!("../../eval/tasks/find-suspect.toml");
@@ -55,6 +55,18 @@ pub struct Setup {
 pub enum FaultTrigger {
     /// The first goto the models send in the task; the fault hits the drone that got it.
     FirstGoto,
+}
+
+/// What fails.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FaultKind {
+    /// The whole drone is lost, as on a power loss: the simulator stops its vehicle for good and
+    /// its companion processes (tacos-onboard, tacos-px4) are killed, so it leaves the swarm.
+    PowerLoss,
+    /// Only the autopilot stops answering (the simulator's `vehicle_dies`); the companion
+    /// computer stays up and reports the drone unavailable.
+    VehicleDies,
 }
 
 /// The failure injected during the task.
@@ -167,7 +179,7 @@ mod tests {
         assert!(t1.setup.take_off);
         assert_eq!(
             t1.fault.as_ref().map(|f| (f.trigger, f.kind)),
-            Some((FaultTrigger::FirstGoto, FaultKind::VehicleDies))
+            Some((FaultTrigger::FirstGoto, FaultKind::PowerLoss))
         );
         for n in [6, 12, 20] {
             assert_eq!(
