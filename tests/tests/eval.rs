@@ -6,9 +6,9 @@
 use serde_json::{Value, json};
 use std::sync::Arc;
 use std::time::Duration;
+use tacos_ground::eval::TaskSpec;
 use tacos_ground::eval::results::Status;
 use tacos_ground::eval::run::{RunPlan, run_once};
-use tacos_ground::eval::TaskSpec;
 use tacos_ground::mission::Mode;
 use tacos_ground::mission::log::{self, Record};
 use tacos_llm::{ChatRequest, LlmError, Role as ChatRole};
@@ -40,7 +40,13 @@ fn plan_lines(text: &str) -> Vec<(String, String, String, String, String)> {
             let mut words = call.splitn(3, ' ');
             let (task, drone, rest) = (words.next()?, words.next()?, words.next()?);
             let (action, target) = rest.split_once('(')?;
-            Some((task.into(), drone.into(), action.into(), target.into(), status.into()))
+            Some((
+                task.into(),
+                drone.into(),
+                action.into(),
+                target.into(),
+                status.into(),
+            ))
         })
         .collect()
 }
@@ -159,12 +165,23 @@ async fn a_good_plan_finds_the_suspect_despite_the_failure() -> anyhow::Result<(
     let record = within("a good run", Duration::from_secs(330), run_once(plan, lock)).await?;
     assert_eq!(record.status, Status::Success, "{record:#?}");
     assert!(record.detected_by.is_some(), "{record:#?}");
-    assert!(record.fault.as_deref().is_some_and(|f| f.contains("power loss")), "the failure was injected: {record:#?}");
+    assert!(
+        record
+            .fault
+            .as_deref()
+            .is_some_and(|f| f.contains("power loss")),
+        "the failure was injected: {record:#?}"
+    );
     assert!(record.cycles >= 2 && record.model_calls >= 3, "{record:#?}");
-    assert_eq!((record.separation_breaches, record.obstacle_breaches), (0, 0));
+    assert_eq!(
+        (record.separation_breaches, record.obstacle_breaches),
+        (0, 0)
+    );
     let lines = log::read(&log_path)?;
     assert!(
-        lines.iter().any(|l| matches!(&l.record, Record::Replan { .. })),
+        lines
+            .iter()
+            .any(|l| matches!(&l.record, Record::Replan { .. })),
         "the lost drone made the Coordinator replan"
     );
     // The run stopped at the detection, not at the time limit.
@@ -174,13 +191,19 @@ async fn a_good_plan_finds_the_suspect_despite_the_failure() -> anyhow::Result<(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_bad_plan_fails_as_soon_as_it_completes() -> anyhow::Result<()> {
-    let villas: Vec<String> = landmarks(LandmarkKind::Villa)?.into_iter().take(4).collect();
+    let villas: Vec<String> = landmarks(LandmarkKind::Villa)?
+        .into_iter()
+        .take(4)
+        .collect();
     let plan = plan(villas, "evalbad")?;
     let lock = Arc::new(tokio::sync::Mutex::new(()));
     let record = within("a bad run", Duration::from_secs(330), run_once(plan, lock)).await?;
     assert_eq!(record.status, Status::Failure, "{record:#?}");
     assert!(record.reason.contains("suspect not found"), "{record:#?}");
     assert!(record.detected_by.is_none());
-    assert!(record.elapsed_s < 240.0, "decided when the plan completed: {record:#?}");
+    assert!(
+        record.elapsed_s < 240.0,
+        "decided when the plan completed: {record:#?}"
+    );
     Ok(())
 }

@@ -61,9 +61,9 @@ pub fn judge(spec: &SuccessSpec, seen: &Observed, time_limit_s: f64) -> Verdict 
     }
     match seen.goal_at_s {
         Some(t) if goal_reached(spec, seen) && t <= time_limit_s => {}
-        Some(t) if goal_reached(spec, seen) => {
-            why.push(format!("goal reached after {t:.0} s, over the {time_limit_s:.0} s limit"))
-        }
+        Some(t) if goal_reached(spec, seen) => why.push(format!(
+            "goal reached after {t:.0} s, over the {time_limit_s:.0} s limit"
+        )),
         _ => why.push(match (&spec.detected, spec.all_airborne) {
             (Some(target), _) => format!("{target} not found"),
             (None, _) => "not every drone took off".to_owned(),
@@ -219,7 +219,9 @@ mod tests {
             ..found_at(80.0)
         };
         assert!(failed_for_good(&crash));
-        assert!(matches!(judge(&spec, &crash, 600.0), Verdict::Failure(w) if w.contains("collision")));
+        assert!(
+            matches!(judge(&spec, &crash, 600.0), Verdict::Failure(w) if w.contains("collision"))
+        );
         let obstacle = Observed {
             obstacle_breaches: 3,
             ..found_at(80.0)
@@ -259,17 +261,47 @@ mod tests {
     #[test]
     fn figures_count_cycles_calls_latency_and_tokens() {
         let lines = vec![
-            line(0.0, Record::LlmRequest { layer: "coordinator".into(), attempt: 1, messages: serde_json::json!([]) }),
+            line(
+                0.0,
+                Record::LlmRequest {
+                    layer: "coordinator".into(),
+                    attempt: 1,
+                    messages: serde_json::json!([]),
+                },
+            ),
             line(1.0, reply(1000)),
-            line(1.1, Record::LlmRequest { layer: "supervisor".into(), attempt: 1, messages: serde_json::json!([]) }),
+            line(
+                1.1,
+                Record::LlmRequest {
+                    layer: "supervisor".into(),
+                    attempt: 1,
+                    messages: serde_json::json!([]),
+                },
+            ),
             line(2.0, reply(3000)),
-            line(2.1, Record::ActionSent { drone: "alfa".into(), task: Some("T1".into()), seq: 1, action: "goto(1, 2, 3)".into() }),
+            line(
+                2.1,
+                Record::ActionSent {
+                    drone: "alfa".into(),
+                    task: Some("T1".into()),
+                    seq: 1,
+                    action: "goto(1, 2, 3)".into(),
+                },
+            ),
             line(2.2, cycle(&["T1 alfa goto(car_1)"])),
             line(5.0, cycle(&[])),
         ];
         let f = log_figures(&lines);
         assert_eq!(
-            (f.cycles, f.model_calls, f.replies, f.latency_ms_total, f.prompt_tokens, f.completion_tokens, f.actions_sent),
+            (
+                f.cycles,
+                f.model_calls,
+                f.replies,
+                f.latency_ms_total,
+                f.prompt_tokens,
+                f.completion_tokens,
+                f.actions_sent
+            ),
             (2, 2, 2, 4000, 200, 20, 1)
         );
         assert!(f.rejected_sent.is_empty());
@@ -280,14 +312,23 @@ mod tests {
         // Rejected in the last reply, then sent by the cycle: a breach of the invariant.
         let leaked = vec![
             line(1.0, reply(10)),
-            line(1.1, rejected("T4 alfa goto(car_11): alfa is idle: take off first")),
+            line(
+                1.1,
+                rejected("T4 alfa goto(car_11): alfa is idle: take off first"),
+            ),
             line(1.2, cycle(&["T4 alfa goto(car_11)"])),
         ];
-        assert_eq!(rejected_calls_sent(&leaked), vec!["T4 alfa goto(car_11)".to_owned()]);
+        assert_eq!(
+            rejected_calls_sent(&leaked),
+            vec!["T4 alfa goto(car_11)".to_owned()]
+        );
         // Rejected, repaired by the next attempt, then sent: fine.
         let repaired = vec![
             line(1.0, reply(10)),
-            line(1.1, rejected("T4 alfa goto(car_11): alfa is idle: take off first")),
+            line(
+                1.1,
+                rejected("T4 alfa goto(car_11): alfa is idle: take off first"),
+            ),
             line(2.0, reply(10)),
             line(2.2, cycle(&["T4 alfa goto(car_11)"])),
         ];
@@ -295,14 +336,20 @@ mod tests {
         // The same call twice in one reply: the twin refused for the double booking, one sent.
         let twin = vec![
             line(1.0, reply(10)),
-            line(1.1, rejected("T1 alfa arm_takeoff(): alfa already gets an action this cycle")),
+            line(
+                1.1,
+                rejected("T1 alfa arm_takeoff(): alfa already gets an action this cycle"),
+            ),
             line(1.2, cycle(&["T1 alfa arm_takeoff()"])),
         ];
         assert!(rejected_calls_sent(&twin).is_empty());
         // A rejection from an earlier cycle does not taint a later, checked send.
         let later = vec![
             line(1.0, reply(10)),
-            line(1.1, rejected("T4 alfa goto(car_11): alfa is idle: take off first")),
+            line(
+                1.1,
+                rejected("T4 alfa goto(car_11): alfa is idle: take off first"),
+            ),
             line(1.2, cycle(&[])),
             line(5.0, cycle(&["T4 alfa goto(car_11)"])),
         ];

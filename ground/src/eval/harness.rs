@@ -256,10 +256,11 @@ mod tests {
     fn seeds_are_stable_and_distinct() {
         let a = run_seed(1, Mode::Tacos, 6, 0);
         assert_eq!(a, run_seed(1, Mode::Tacos, 6, 0));
-        let all: std::collections::HashSet<u64> = schedule(&[Mode::Tacos, Mode::Wor, Mode::Mnl], &[6, 12, 20], 50)
-            .into_iter()
-            .map(|(m, n, r)| run_seed(1, m, n, r))
-            .collect();
+        let all: std::collections::HashSet<u64> =
+            schedule(&[Mode::Tacos, Mode::Wor, Mode::Mnl], &[6, 12, 20], 50)
+                .into_iter()
+                .map(|(m, n, r)| run_seed(1, m, n, r))
+                .collect();
         assert_eq!(all.len(), 450);
         assert_ne!(a, run_seed(2, Mode::Tacos, 6, 0));
     }
@@ -268,7 +269,15 @@ mod tests {
     fn the_schedule_covers_every_cell_run_by_run() {
         let s = schedule(&[Mode::Tacos, Mode::Mnl], &[6, 12], 2);
         assert_eq!(s.len(), 8);
-        assert_eq!(&s[..4], &[(Mode::Tacos, 6, 0), (Mode::Mnl, 6, 0), (Mode::Tacos, 12, 0), (Mode::Mnl, 12, 0)]);
+        assert_eq!(
+            &s[..4],
+            &[
+                (Mode::Tacos, 6, 0),
+                (Mode::Mnl, 6, 0),
+                (Mode::Tacos, 12, 0),
+                (Mode::Mnl, 12, 0)
+            ]
+        );
         assert!(s[4..].iter().all(|(_, _, r)| *r == 1));
     }
 }

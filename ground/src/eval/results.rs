@@ -244,7 +244,10 @@ pub struct Cell {
 pub fn cells(records: &[RunRecord], modes: &[String]) -> Vec<Cell> {
     let mut groups: BTreeMap<(usize, usize), Vec<&RunRecord>> = BTreeMap::new();
     for r in records {
-        let order = modes.iter().position(|m| *m == r.mode).unwrap_or(modes.len());
+        let order = modes
+            .iter()
+            .position(|m| *m == r.mode)
+            .unwrap_or(modes.len());
         groups.entry((order, r.drones)).or_default().push(r);
     }
     groups
@@ -302,7 +305,10 @@ pub fn markdown(task: &str, backend: &str, cells: &[Cell]) -> String {
         out,
         "| mode | drones | runs | success | success rate (95 % Wilson) | mean L (successes) | model calls / run | mean call latency (s) | tokens / run | errors |"
     );
-    let _ = writeln!(out, "| --- | ---: | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: |");
+    let _ = writeln!(
+        out,
+        "| --- | ---: | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: |"
+    );
     for c in cells {
         let _ = writeln!(
             out,
@@ -386,11 +392,17 @@ mod tests {
     fn wilson_matches_known_values() {
         // Reference values (Wilson 1927; e.g. Newcombe 1998, table I).
         let (lo, hi) = wilson_interval(81, 263);
-        assert!((lo - 0.2553).abs() < 5e-4 && (hi - 0.3662).abs() < 5e-4, "{lo} {hi}");
+        assert!(
+            (lo - 0.2553).abs() < 5e-4 && (hi - 0.3662).abs() < 5e-4,
+            "{lo} {hi}"
+        );
         let (lo, hi) = wilson_interval(0, 10);
         assert!(lo == 0.0 && (hi - 0.2775).abs() < 5e-4, "{lo} {hi}");
         let (lo, hi) = wilson_interval(10, 10);
-        assert!((lo - 0.7225).abs() < 5e-4 && (hi - 1.0).abs() < 1e-12, "{lo} {hi}");
+        assert!(
+            (lo - 0.7225).abs() < 5e-4 && (hi - 1.0).abs() < 1e-12,
+            "{lo} {hi}"
+        );
         assert_eq!(wilson_interval(0, 0), (0.0, 1.0));
     }
 
@@ -406,17 +418,31 @@ mod tests {
         let cells = cells(&records, &["tacos".into(), "mnl".into()]);
         assert_eq!(cells.len(), 2);
         let t = &cells[0];
-        assert_eq!((t.mode.as_str(), t.runs, t.successes, t.errors), ("tacos", 3, 2, 1));
+        assert_eq!(
+            (t.mode.as_str(), t.runs, t.successes, t.errors),
+            ("tacos", 3, 2, 1)
+        );
         assert_eq!(t.mean_cycles, Some(4.0));
         assert!((t.rate - 2.0 / 3.0).abs() < 1e-12);
         assert_eq!(t.mean_latency_s, Some(2.0));
         assert_eq!(t.mean_tokens, 1000.0);
         let m = &cells[1];
-        assert_eq!((m.mode.as_str(), m.successes, m.mean_cycles), ("mnl", 0, None));
+        assert_eq!(
+            (m.mode.as_str(), m.successes, m.mean_cycles),
+            ("mnl", 0, None)
+        );
         let md = markdown("find-suspect", "m", &cells);
-        assert!(md.contains("| tacos | 6 | 3 | 2 | 67 % [") && md.contains("| 4.00 |"), "{md}");
+        assert!(
+            md.contains("| tacos | 6 | 3 | 2 | 67 % [") && md.contains("| 4.00 |"),
+            "{md}"
+        );
         let csv = csv(&cells);
-        assert!(csv.lines().nth(2).is_some_and(|l| l.starts_with("mnl,6,1,0,0.0000,") && l.contains(",,")), "{csv}");
+        assert!(
+            csv.lines()
+                .nth(2)
+                .is_some_and(|l| l.starts_with("mnl,6,1,0,0.0000,") && l.contains(",,")),
+            "{csv}"
+        );
     }
 
     #[test]
@@ -426,8 +452,10 @@ mod tests {
         let path = dir.join("runs.jsonl");
         assert!(read_runs(&path).expect("no file yet").is_empty());
         let mut file = RunsFile::open(&path).expect("open");
-        file.append(&record("tacos", 6, 0, Status::Success, 3)).expect("append");
-        file.append(&record("tacos", 6, 1, Status::Error, 0)).expect("append");
+        file.append(&record("tacos", 6, 0, Status::Success, 3))
+            .expect("append");
+        file.append(&record("tacos", 6, 1, Status::Error, 0))
+            .expect("append");
         drop(file);
         // An interruption in the middle of the next record.
         let mut f = OpenOptions::new().append(true).open(&path).expect("open");
@@ -448,7 +476,8 @@ mod tests {
         ));
         // Resuming appends after the last whole record.
         let mut file = RunsFile::open(&path).expect("reopen");
-        file.append(&record("tacos", 6, 1, Status::Failure, 7)).expect("append");
+        file.append(&record("tacos", 6, 1, Status::Failure, 7))
+            .expect("append");
         let records = read_runs(&path).expect("read again");
         assert_eq!(records.len(), 3);
         let done = done_runs(&path, &records, "find-suspect", "m").expect("same evaluation");

@@ -384,8 +384,7 @@ async fn fly(
                 }
             }
         }
-        if criteria::failed_for_good(&seen) || criteria::goal_reached(&plan.task.success, &seen)
-        {
+        if criteria::failed_for_good(&seen) || criteria::goal_reached(&plan.task.success, &seen) {
             break Ok(());
         }
     };

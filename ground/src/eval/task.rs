@@ -138,7 +138,11 @@ impl TaskSpec {
 
     /// Checks the task against its scenario and the swarm size; returns the landmark where the
     /// target to detect hides, when there is one.
-    pub fn validate(&self, scenario: &Scenario, drones: usize) -> Result<Option<String>, TaskError> {
+    pub fn validate(
+        &self,
+        scenario: &Scenario,
+        drones: usize,
+    ) -> Result<Option<String>, TaskError> {
         let invalid = |reason: String| TaskError::Invalid {
             task: self.name.clone(),
             reason,
@@ -202,9 +206,12 @@ mod tests {
         broken("time_limit_s = 600.0", "time_limit_s = 0.0");
         broken("detected = \"suspect\"", "");
         broken("delay_s = 3.0", "delay_s = -1.0");
-        broken("time_limit_s = 600.0", "time_limit_s = 600.0\ncolour = \"red\"");
-        let ghost = TaskSpec::from_toml(&good.replacen("\"suspect\"", "\"ghost\"", 1))
-            .expect("parses");
+        broken(
+            "time_limit_s = 600.0",
+            "time_limit_s = 600.0\ncolour = \"red\"",
+        );
+        let ghost =
+            TaskSpec::from_toml(&good.replacen("\"suspect\"", "\"ghost\"", 1)).expect("parses");
         let city = Scenario::builtin("city").expect("city");
         assert!(ghost.validate(&city, 6).is_err());
     }
