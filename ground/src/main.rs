@@ -83,6 +83,41 @@ enum Cmd {
         #[arg(long)]
         log: Option<PathBuf>,
     },
+    /// Run the paper's ablation: every mode × swarm size × run of a task, on simulated swarms.
+    ///
+    /// Each finished run is appended to OUT/runs.jsonl at once; running again with the same
+    /// OUT resumes. Writes OUT/results.md, OUT/results.csv and OUT/results.svg.
+    Eval {
+        /// A built-in task (take-off, find-suspect) or a task file.
+        #[arg(long, default_value = "find-suspect")]
+        task: String,
+        /// Comma-separated modes.
+        #[arg(long, value_delimiter = ',', default_value = "tacos,wor,mnl")]
+        modes: Vec<Mode>,
+        /// Comma-separated swarm sizes (default: the task's).
+        #[arg(long, value_delimiter = ',')]
+        drones: Vec<usize>,
+        /// Runs per mode and swarm size.
+        #[arg(long, default_value_t = 50)]
+        runs: u32,
+        /// Output directory (resumed when it holds runs of the same task and model).
+        #[arg(long)]
+        out: PathBuf,
+        /// Runs carried out at once, each on its own swarm (ids and ports).
+        #[arg(long, default_value_t = 1)]
+        jobs: usize,
+        /// Sampling temperature of every model request.
+        #[arg(long, default_value_t = 0.7)]
+        temperature: f32,
+        /// Every run's seed is derived from this and the run's mode, size and number.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Seconds per run, overriding the task file's time limit.
+        #[arg(long)]
+        time_limit: Option<f64>,
+        #[command(flatten)]
+        llm: LlmArgs,
+    },
     /// Print a mission log's timeline.
     Replay { log: PathBuf },
     /// Draw a mission's trajectories over the map, coloured by speed (SVG).
@@ -205,6 +240,52 @@ fn run() -> anyhow::Result<()> {
                 .await
             }
             Cmd::Plot { log, output, map } => plot(&log, &output, map.as_deref()),
+            Cmd::Eval {
+                task,
+                modes,
+                drones,
+                runs,
+                out,
+                jobs,
+                temperature,
+                seed,
+                time_limit,
+                llm,
+            } => {
+                let task = tacos_ground::eval::TaskSpec::load(&task)?;
+                let time_limit = match time_limit {
+                    Some(s) if s.is_finite() && s > 0.0 => Some(Duration::from_secs_f64(s)),
+                    Some(s) => bail!("--time-limit must be a positive number of seconds, got {s}"),
+                    None => None,
+                };
+                let opts = tacos_ground::eval::EvalOptions {
+                    scenario: tacos_bus::load_scenario(&task.scenario)?,
+                    drones: if drones.is_empty() { task.drones.clone() } else { drones },
+                    task,
+                    modes,
+                    runs,
+                    out,
+                    jobs,
+                    temperature,
+                    base_seed: seed,
+                    time_limit,
+                    cycle_timeout: MissionConfig::default().cycle_timeout,
+                    backend: llm.backend()?,
+                    verbose: true,
+                };
+                let interrupt = async {
+                    let _ = tokio::signal::ctrl_c().await;
+                };
+                let summary = tacos_ground::eval::evaluate(opts.clone(), interrupt).await?;
+                println!(
+                    "{} runs carried out ({} errors, run again on resume), {} already done; table in {}",
+                    summary.ran,
+                    summary.errors,
+                    summary.skipped,
+                    opts.out.join("results.md").display()
+                );
+                Ok(())
+            }
             Cmd::Replay { log } => {
                 let lines = tacos_ground::mission::log::read(&log)?;
                 print!("{}", tacos_ground::mission::log::timeline(&lines));

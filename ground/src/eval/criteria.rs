@@ -1,0 +1,358 @@
+//! The success criteria and the per-run figures, as pure functions of what a run observed: the
+//! simulator's truth and events (gathered by `run`) and the mission log.
+
+use super::task::SuccessSpec;
+use crate::mission::log::{Line, Record};
+use std::collections::HashSet;
+
+/// What a run saw, as the criteria need it.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Observed {
+    /// The target to find was detected at its hiding landmark (by this drone).
+    pub detected_by: Option<String>,
+    /// Every drone was airborne at take-off altitude at some point.
+    pub all_airborne: bool,
+    pub separation_breaches: u64,
+    pub obstacle_breaches: u64,
+    /// Calls the safety gate rejected that were sent anyway (see [`rejected_calls_sent`]).
+    pub rejected_sent: Vec<String>,
+    /// Seconds from the first pilot line to the moment the goal was reached, if it was.
+    pub goal_at_s: Option<f64>,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub enum Verdict {
+    Success,
+    Failure(String),
+}
+
+impl Verdict {
+    pub fn is_success(&self) -> bool {
+        matches!(self, Verdict::Success)
+    }
+}
+
+/// True when `spec`'s goal (not the safety conditions) has been reached.
+pub fn goal_reached(spec: &SuccessSpec, seen: &Observed) -> bool {
+    (spec.detected.is_none() || seen.detected_by.is_some())
+        && (!spec.all_airborne || seen.all_airborne)
+}
+
+/// True when the run can no longer succeed whatever happens next (a breach is for good).
+pub fn failed_for_good(seen: &Observed) -> bool {
+    seen.separation_breaches > 0 || seen.obstacle_breaches > 0
+}
+
+/// The verdict on a finished run: the goal reached within the time limit, no separation or
+/// obstacle breach, and no call the safety gate rejected ever sent.
+pub fn judge(spec: &SuccessSpec, seen: &Observed, time_limit_s: f64) -> Verdict {
+    let mut why = Vec::new();
+    if seen.separation_breaches > 0 || seen.obstacle_breaches > 0 {
+        why.push(format!(
+            "collision: {} separation and {} obstacle breach ticks",
+            seen.separation_breaches, seen.obstacle_breaches
+        ));
+    }
+    if !seen.rejected_sent.is_empty() {
+        why.push(format!(
+            "calls the safety gate rejected were sent: {}",
+            seen.rejected_sent.join("; ")
+        ));
+    }
+    match seen.goal_at_s {
+        Some(t) if goal_reached(spec, seen) && t <= time_limit_s => {}
+        Some(t) if goal_reached(spec, seen) => why.push(format!(
+            "goal reached after {t:.0} s, over the {time_limit_s:.0} s limit"
+        )),
+        _ => why.push(match (&spec.detected, spec.all_airborne) {
+            (Some(target), _) => format!("{target} not found"),
+            (None, _) => "not every drone took off".to_owned(),
+        }),
+    }
+    if why.is_empty() {
+        Verdict::Success
+    } else {
+        Verdict::Failure(why.join("; "))
+    }
+}
+
+/// A run's figures, read from its mission log.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct LogFigures {
+    /// Supervisor (or monolithic) cycles: the paper's L for this run.
+    pub cycles: u32,
+    /// Model requests, repair attempts included.
+    pub model_calls: u32,
+    /// Replies received (the latency is averaged over these).
+    pub replies: u32,
+    pub latency_ms_total: u64,
+    pub prompt_tokens: u64,
+    pub completion_tokens: u64,
+    pub gate_rejections: u32,
+    pub actions_sent: u32,
+    pub rejected_sent: Vec<String>,
+}
+
+/// Counts cycles, calls, latency and tokens, and audits the log (see [`rejected_calls_sent`]).
+pub fn log_figures(lines: &[Line]) -> LogFigures {
+    let mut f = LogFigures::default();
+    for line in lines {
+        match &line.record {
+            Record::SupervisorCycle { .. } => f.cycles += 1,
+            Record::LlmRequest { .. } => f.model_calls += 1,
+            Record::LlmReply {
+                latency_ms,
+                prompt_tokens,
+                completion_tokens,
+                ..
+            } => {
+                f.replies += 1;
+                f.latency_ms_total += latency_ms;
+                f.prompt_tokens += u64::from(*prompt_tokens);
+                f.completion_tokens += u64::from(*completion_tokens);
+            }
+            Record::GateRejected { .. } => f.gate_rejections += 1,
+            Record::ActionSent { .. } => f.actions_sent += 1,
+            _ => {}
+        }
+    }
+    f.rejected_sent = rejected_calls_sent(lines);
+    f
+}
+
+/// The calls that the checks rejected in a model's last reply and that the cycle answering that
+/// reply sent all the same: an audit of the invariant that nothing the safety gate refused
+/// reaches a drone, read from the log rather than trusted. A rejection only for asking two
+/// actions of one drone in one cycle is not a refusal of the call itself (its twin may pass).
+pub fn rejected_calls_sent(lines: &[Line]) -> Vec<String> {
+    let mut rejected: HashSet<String> = HashSet::new();
+    let mut sent_anyway = Vec::new();
+    for line in lines {
+        match &line.record {
+            // A new reply: the previous attempt's rejections were answered by it.
+            Record::LlmReply { .. } => rejected.clear(),
+            Record::GateRejected { call, .. } => {
+                let (call, reason) = call.split_once(": ").unwrap_or((call.as_str(), ""));
+                if !reason.ends_with("already gets an action this cycle") {
+                    rejected.insert(call.to_owned());
+                }
+            }
+            Record::SupervisorCycle { actions, .. } => {
+                sent_anyway.extend(actions.iter().filter(|a| rejected.contains(*a)).cloned());
+                rejected.clear();
+            }
+            _ => {}
+        }
+    }
+    sent_anyway
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn line(t: f64, record: Record) -> Line {
+        Line { t, record }
+    }
+
+    fn reply(latency_ms: u64) -> Record {
+        Record::LlmReply {
+            layer: "supervisor".into(),
+            attempt: 1,
+            content: "{}".into(),
+            reasoning: None,
+            latency_ms,
+            prompt_tokens: 100,
+            completion_tokens: 10,
+        }
+    }
+
+    fn rejected(call: &str) -> Record {
+        Record::GateRejected {
+            layer: "supervisor".into(),
+            call: call.into(),
+            reason: String::new(),
+        }
+    }
+
+    fn cycle(actions: &[&str]) -> Record {
+        Record::SupervisorCycle {
+            plan_cycle: 1,
+            actions: actions.iter().map(|a| a.to_string()).collect(),
+            plan_complete: false,
+        }
+    }
+
+    fn find() -> SuccessSpec {
+        SuccessSpec {
+            detected: Some("suspect".into()),
+            all_airborne: false,
+        }
+    }
+
+    fn found_at(t: f64) -> Observed {
+        Observed {
+            detected_by: Some("bravo".into()),
+            goal_at_s: Some(t),
+            ..Observed::default()
+        }
+    }
+
+    #[test]
+    fn a_clean_detection_in_time_succeeds() {
+        assert_eq!(judge(&find(), &found_at(80.0), 600.0), Verdict::Success);
+    }
+
+    #[test]
+    fn each_criterion_alone_fails_a_run() {
+        let spec = find();
+        let not_found = Observed::default();
+        assert!(
+            matches!(judge(&spec, &not_found, 600.0), Verdict::Failure(w) if w.contains("suspect not found"))
+        );
+        let late = found_at(700.0);
+        assert!(
+            matches!(judge(&spec, &late, 600.0), Verdict::Failure(w) if w.contains("over the 600 s limit"))
+        );
+        let crash = Observed {
+            separation_breaches: 1,
+            ..found_at(80.0)
+        };
+        assert!(failed_for_good(&crash));
+        assert!(
+            matches!(judge(&spec, &crash, 600.0), Verdict::Failure(w) if w.contains("collision"))
+        );
+        let obstacle = Observed {
+            obstacle_breaches: 3,
+            ..found_at(80.0)
+        };
+        assert!(!judge(&spec, &obstacle, 600.0).is_success());
+        let leaked = Observed {
+            rejected_sent: vec!["T4 alfa goto(car_7)".into()],
+            ..found_at(80.0)
+        };
+        assert!(
+            matches!(judge(&spec, &leaked, 600.0), Verdict::Failure(w) if w.contains("T4 alfa goto(car_7)"))
+        );
+    }
+
+    #[test]
+    fn take_off_needs_every_drone_up() {
+        let spec = SuccessSpec {
+            detected: None,
+            all_airborne: true,
+        };
+        let up = Observed {
+            all_airborne: true,
+            goal_at_s: Some(20.0),
+            ..Observed::default()
+        };
+        assert!(goal_reached(&spec, &up));
+        assert_eq!(judge(&spec, &up, 300.0), Verdict::Success);
+        let some = Observed {
+            all_airborne: false,
+            goal_at_s: None,
+            ..Observed::default()
+        };
+        assert!(!goal_reached(&spec, &some));
+        assert!(!judge(&spec, &some, 300.0).is_success());
+    }
+
+    #[test]
+    fn figures_count_cycles_calls_latency_and_tokens() {
+        let lines = vec![
+            line(
+                0.0,
+                Record::LlmRequest {
+                    layer: "coordinator".into(),
+                    attempt: 1,
+                    messages: serde_json::json!([]),
+                },
+            ),
+            line(1.0, reply(1000)),
+            line(
+                1.1,
+                Record::LlmRequest {
+                    layer: "supervisor".into(),
+                    attempt: 1,
+                    messages: serde_json::json!([]),
+                },
+            ),
+            line(2.0, reply(3000)),
+            line(
+                2.1,
+                Record::ActionSent {
+                    drone: "alfa".into(),
+                    task: Some("T1".into()),
+                    seq: 1,
+                    action: "goto(1, 2, 3)".into(),
+                },
+            ),
+            line(2.2, cycle(&["T1 alfa goto(car_1)"])),
+            line(5.0, cycle(&[])),
+        ];
+        let f = log_figures(&lines);
+        assert_eq!(
+            (
+                f.cycles,
+                f.model_calls,
+                f.replies,
+                f.latency_ms_total,
+                f.prompt_tokens,
+                f.completion_tokens,
+                f.actions_sent
+            ),
+            (2, 2, 2, 4000, 200, 20, 1)
+        );
+        assert!(f.rejected_sent.is_empty());
+    }
+
+    #[test]
+    fn the_audit_catches_a_rejected_call_that_was_sent() {
+        // Rejected in the last reply, then sent by the cycle: a breach of the invariant.
+        let leaked = vec![
+            line(1.0, reply(10)),
+            line(
+                1.1,
+                rejected("T4 alfa goto(car_11): alfa is idle: take off first"),
+            ),
+            line(1.2, cycle(&["T4 alfa goto(car_11)"])),
+        ];
+        assert_eq!(
+            rejected_calls_sent(&leaked),
+            vec!["T4 alfa goto(car_11)".to_owned()]
+        );
+        // Rejected, repaired by the next attempt, then sent: fine.
+        let repaired = vec![
+            line(1.0, reply(10)),
+            line(
+                1.1,
+                rejected("T4 alfa goto(car_11): alfa is idle: take off first"),
+            ),
+            line(2.0, reply(10)),
+            line(2.2, cycle(&["T4 alfa goto(car_11)"])),
+        ];
+        assert!(rejected_calls_sent(&repaired).is_empty());
+        // The same call twice in one reply: the twin refused for the double booking, one sent.
+        let twin = vec![
+            line(1.0, reply(10)),
+            line(
+                1.1,
+                rejected("T1 alfa arm_takeoff(): alfa already gets an action this cycle"),
+            ),
+            line(1.2, cycle(&["T1 alfa arm_takeoff()"])),
+        ];
+        assert!(rejected_calls_sent(&twin).is_empty());
+        // A rejection from an earlier cycle does not taint a later, checked send.
+        let later = vec![
+            line(1.0, reply(10)),
+            line(
+                1.1,
+                rejected("T4 alfa goto(car_11): alfa is idle: take off first"),
+            ),
+            line(1.2, cycle(&[])),
+            line(5.0, cycle(&["T4 alfa goto(car_11)"])),
+        ];
+        assert!(rejected_calls_sent(&later).is_empty());
+    }
+}
