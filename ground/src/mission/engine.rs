@@ -596,6 +596,7 @@ impl Mission {
         };
         // Before the view is locked: `swarm_ids` locks it too, and the lock is not reentrant.
         let swarm = self.swarm_ids();
+        let pending = self.drones_with_pending_actions();
         let view = self.link.view();
         let now = Instant::now();
         let visible = self.targets.borrow().clone();
@@ -603,7 +604,7 @@ impl Mission {
             DroneId::new(drone)
                 .ok()
                 .and_then(|id| view.get(&id))
-                .is_some_and(|e| e.ready(now))
+                .is_some_and(|e| e.ready(now) && !pending.contains(&e.id))
         };
         let mut out = Vec::new();
         // No order is imposed here: the plan's temporal dependencies are the Supervisor's to
@@ -628,6 +629,19 @@ impl Mission {
             }
         }
         out
+    }
+
+    /// Drones with an action the engine sent and has not yet seen finish. A drone's status lags
+    /// a send by up to a status period, so right after a cycle it can still look idle and ready:
+    /// offering it again would have the model choose a call that is stale by the time it answers.
+    fn drones_with_pending_actions(&self) -> Vec<DroneId> {
+        self.plan
+            .iter()
+            .flat_map(|p| p.tasks.iter())
+            .chain(self.mnl.tasks.iter())
+            .filter(|t| t.status == TaskStatus::Running)
+            .filter_map(|t| t.sent.as_ref().map(|(d, _)| d.clone()))
+            .collect()
     }
 
     /// A task whose effect already holds is done without flying it: a take-off for a drone that
@@ -1116,6 +1130,7 @@ impl Mission {
     /// targets are checked per call afterwards, by `check_live` and the safety gate.
     fn callable_now(&self) -> Vec<Callable> {
         let swarm = self.swarm_ids();
+        let pending = self.drones_with_pending_actions();
         let view = self.link.view();
         let now = Instant::now();
         let mut out = Vec::new();
@@ -1123,7 +1138,7 @@ impl Mission {
             let Some(entry) = DroneId::new(&drone).ok().and_then(|id| view.get(&id)) else {
                 continue;
             };
-            if !entry.ready(now) {
+            if !entry.ready(now) || pending.contains(&entry.id) {
                 continue;
             }
             let mode = entry.effective_mode(now);
@@ -1617,10 +1632,14 @@ fn check_live(
             rejections.push(format!("{call}: task {} is already {state}", call.task));
             continue;
         }
+        // Busy as the drone reports it, or with a task sent and not yet seen to finish.
         let busy = DroneId::new(&call.drone)
             .ok()
             .and_then(|id| view.get(&id).cloned())
-            .is_some_and(|e| e.busy() && e.effective_mode(now) != DroneMode::Unavailable);
+            .is_some_and(|e| e.busy() && e.effective_mode(now) != DroneMode::Unavailable)
+            || tasks
+                .iter()
+                .any(|(c, s)| *s == TaskStatus::Running && c.drone == call.drone);
         if busy {
             rejections.push(format!(
                 "{call}: {} is still busy with its current action",
@@ -1641,4 +1660,104 @@ fn check_live(
         }
     }
     (accepted, rejections)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn alternatives(
+        schema: &serde_json::Value,
+    ) -> Vec<(String, String, String, serde_json::Value)> {
+        schema
+            .pointer("/properties/actions/items/anyOf")
+            .and_then(|a| a.as_array())
+            .into_iter()
+            .flatten()
+            .map(|alt| {
+                let one = |f: &str| {
+                    alt["properties"][f]["enum"][0]
+                        .as_str()
+                        .unwrap_or("")
+                        .to_owned()
+                };
+                (
+                    one("task"),
+                    one("drone"),
+                    one("action"),
+                    alt["properties"]["target"]["enum"].clone(),
+                )
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_monolithic_schema_offers_only_the_calls_valid_now() {
+        let callable = [
+            Callable {
+                task: "A4".into(),
+                drone: "alfa".into(),
+                actions: vec![ActionName::ArmTakeoff],
+            },
+            Callable {
+                task: "A5".into(),
+                drone: "bravo".into(),
+                actions: vec![
+                    ActionName::Goto,
+                    ActionName::StartTracking,
+                    ActionName::Land,
+                ],
+            },
+        ];
+        let drones = ["alfa".to_owned(), "bravo".to_owned(), "charlie".to_owned()];
+        let places = ["car_1".to_owned(), "villa_2".to_owned()];
+        let schema = callable_schema(&callable, &drones, &places, &["suspect".to_owned()]);
+        let alts = alternatives(&schema);
+        let none = serde_json::json!(["none"]);
+        assert_eq!(
+            alts,
+            vec![
+                (
+                    "A4".into(),
+                    "alfa".into(),
+                    "arm_takeoff".into(),
+                    none.clone()
+                ),
+                (
+                    "A5".into(),
+                    "bravo".into(),
+                    "goto".into(),
+                    serde_json::json!(places)
+                ),
+                ("A5".into(), "bravo".into(), "goto".into(), none.clone()),
+                (
+                    "A5".into(),
+                    "bravo".into(),
+                    "start_tracking".into(),
+                    serde_json::json!(["suspect"])
+                ),
+                ("A5".into(), "bravo".into(), "land".into(), none),
+            ]
+        );
+        // Only the goto without a place takes a point.
+        let items = &schema["properties"]["actions"]["items"]["anyOf"];
+        assert_eq!(items[2]["properties"]["xyz"]["type"], "array");
+        assert_eq!(items[1]["properties"]["xyz"]["type"], "null");
+        assert_eq!(schema["properties"]["actions"]["maxItems"], 2);
+        assert_eq!(
+            schema["required"],
+            serde_json::json!(["reasoning", "actions", "done"])
+        );
+    }
+
+    #[test]
+    fn an_effect_that_holds_is_not_offered_again() {
+        assert!(effect_holds(ActionName::ArmTakeoff, DroneMode::Flying));
+        assert!(!effect_holds(ActionName::ArmTakeoff, DroneMode::Idle));
+        assert!(effect_holds(ActionName::Land, DroneMode::Idle));
+        assert!(!effect_holds(ActionName::Land, DroneMode::Flying));
+        assert!(effect_holds(ActionName::StopTracking, DroneMode::Flying));
+        assert!(!effect_holds(ActionName::StopTracking, DroneMode::Tracking));
+        assert!(!effect_holds(ActionName::Goto, DroneMode::Flying));
+    }
 }
