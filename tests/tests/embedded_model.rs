@@ -13,7 +13,6 @@ use tacos_embedded::{EmbeddedBackend, EmbeddedOptions};
 use tacos_ground::mission::log::{self, MissionLog, Record};
 use tacos_ground::mission::{Mission, MissionConfig, MissionUpdate, Mode};
 use tacos_ground::safety::SafetyGate;
-use tacos_shared::{DroneId, DroneMode};
 use tacos_tests::{SimSwarm, within};
 use tokio::sync::mpsc;
 
@@ -42,15 +41,7 @@ async fn fly() -> anyhow::Result<()> {
 }
 
 async fn take_off(sim: &SimSwarm) -> anyhow::Result<()> {
-    let ids: Vec<DroneId> = DRONES
-        .iter()
-        .map(|d| DroneId::new(*d))
-        .collect::<Result<_, _>>()?;
-    sim.link
-        .wait_for_drones(&ids, Duration::from_secs(60), |s| {
-            s.autopilot_link && s.mode == DroneMode::Idle
-        })
-        .await?;
+    let ids = sim.wait_on_the_ground(&DRONES).await?;
     let mut truth = sim.link.watch_truth().await?;
 
     let log_path =

@@ -12,7 +12,7 @@ use tacos_ground::mission::log::{self, MissionLog, Record};
 use tacos_ground::mission::{Mission, MissionConfig, MissionUpdate, Mode};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{ChatRequest, LlmError, Role as ChatRole};
-use tacos_shared::{DroneId, DroneMode};
+use tacos_shared::DroneId;
 use tacos_tests::{PolicyBackend, SimSwarm, within};
 use tokio::sync::mpsc;
 
@@ -180,14 +180,7 @@ struct Running {
 
 async fn start(tag: &str) -> anyhow::Result<Running> {
     let sim = SimSwarm::start(tag, "city", 3).await?;
-    let ids: Vec<DroneId> = ["alfa", "bravo", "charlie"]
-        .iter()
-        .map(|d| DroneId::new(*d))
-        .collect::<Result<_, _>>()?;
-    sim.link
-        .wait_for_drones(&ids, Duration::from_secs(60), |s| {
-            s.autopilot_link && s.mode == DroneMode::Idle
-        })
+    sim.wait_on_the_ground(&["alfa", "bravo", "charlie"])
         .await?;
     Ok(Running {
         sim,
