@@ -36,6 +36,11 @@ impl DroneEntry {
             .is_some_and(|p| !p.state.is_finished())
     }
 
+    /// True when the drone can take a new action now: available and not busy with one.
+    pub fn ready(&self, now: Instant) -> bool {
+        self.effective_mode(now) != DroneMode::Unavailable && !self.busy()
+    }
+
     /// The mode the ground should assume: unavailable when gone or stale.
     pub fn effective_mode(&self, now: Instant) -> DroneMode {
         match (&self.status, self.link_age(now)) {

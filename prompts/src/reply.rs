@@ -42,10 +42,12 @@ impl fmt::Display for Call {
             .ok()
             .and_then(|v| v.as_str().map(str::to_owned))
             .unwrap_or_default();
-        let arg = match (self.target_name(), self.xyz) {
-            (Some(t), _) => t.to_owned(),
-            (None, Some([x, y, z])) => format!("{x:.1}, {y:.1}, {z:.1}"),
-            (None, None) => String::new(),
+        // Only the argument the action takes: models fill "target" and "xyz" of a take-off or a
+        // landing with filler, which is ignored and must not read as part of the call.
+        let arg = match (self.action, self.target_name(), self.xyz) {
+            (ActionName::Goto | ActionName::StartTracking, Some(t), _) => t.to_owned(),
+            (ActionName::Goto, None, Some([x, y, z])) => format!("{x:.1}, {y:.1}, {z:.1}"),
+            _ => String::new(),
         };
         write!(f, "{} {} {action}({arg})", self.task, self.drone)
     }
@@ -123,6 +125,12 @@ mod tests {
         let reply = CoordinatorReply::parse(good).expect("valid");
         assert_eq!(reply.plan[0].target_name(), Some("car_7"));
         assert_eq!(reply.plan[0].to_string(), "T1 alfa goto(car_7)");
+        let takeoff = Call {
+            action: ActionName::ArmTakeoff,
+            xyz: Some([1.0, 2.0, 3.0]),
+            ..reply.plan[0].clone()
+        };
+        assert_eq!(takeoff.to_string(), "T1 alfa arm_takeoff()");
         assert!(CoordinatorReply::parse(&format!("```json\n{good}\n```")).is_ok());
         assert!(matches!(
             CoordinatorReply::parse("take off!"),

@@ -59,6 +59,24 @@ impl SimSwarm {
         })
     }
 
+    /// Waits (up to a minute) until each of `drones` is alive, linked to its autopilot and
+    /// idle on the ground; returns their ids.
+    pub async fn wait_on_the_ground(
+        &self,
+        drones: &[&str],
+    ) -> anyhow::Result<Vec<tacos_shared::DroneId>> {
+        let ids: Vec<tacos_shared::DroneId> = drones
+            .iter()
+            .map(|d| tacos_shared::DroneId::new(*d))
+            .collect::<Result<_, _>>()?;
+        self.link
+            .wait_for_drones(&ids, Duration::from_secs(60), |s| {
+                s.autopilot_link && s.mode == tacos_shared::DroneMode::Idle
+            })
+            .await?;
+        Ok(ids)
+    }
+
     pub async fn stop(self) {
         self.stack.shutdown(Duration::from_secs(3)).await;
     }

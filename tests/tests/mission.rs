@@ -9,10 +9,10 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 use tacos_ground::launch::Role;
 use tacos_ground::mission::log::{self, MissionLog, Record};
-use tacos_ground::mission::{Mission, MissionConfig, MissionUpdate};
+use tacos_ground::mission::{Mission, MissionConfig, MissionUpdate, Mode};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{ChatRequest, LlmError, Role as ChatRole};
-use tacos_shared::{DroneId, DroneMode};
+use tacos_shared::DroneId;
 use tacos_tests::{PolicyBackend, SimSwarm, within};
 use tokio::sync::mpsc;
 
@@ -180,14 +180,7 @@ struct Running {
 
 async fn start(tag: &str) -> anyhow::Result<Running> {
     let sim = SimSwarm::start(tag, "city", 3).await?;
-    let ids: Vec<DroneId> = ["alfa", "bravo", "charlie"]
-        .iter()
-        .map(|d| DroneId::new(*d))
-        .collect::<Result<_, _>>()?;
-    sim.link
-        .wait_for_drones(&ids, Duration::from_secs(60), |s| {
-            s.autopilot_link && s.mode == DroneMode::Idle
-        })
+    sim.wait_on_the_ground(&["alfa", "bravo", "charlie"])
         .await?;
     Ok(Running {
         sim,
@@ -328,6 +321,80 @@ async fn a_drone_killed_mid_plan_has_its_subtask_reassigned() -> anyhow::Result<
     }
     .await;
     drop(run.lines);
+    run.sim.stop().await;
+    result
+}
+
+/// The stand-in monolithic model: it takes off every drone its schema lets it, and claims the
+/// instructions done. Its first reply also sends alfa to a car before take-off.
+fn monolithic_policy(
+    first_misbehaves: Arc<AtomicBool>,
+) -> impl Fn(&ChatRequest) -> Result<String, LlmError> + Send + Sync {
+    move |request: &ChatRequest| {
+        let offered: Vec<Value> = request
+            .schema
+            .as_ref()
+            .and_then(|s| s.schema.pointer("/properties/actions/items/anyOf"))
+            .and_then(Value::as_array)
+            .cloned()
+            .unwrap_or_default();
+        let first = |alt: &Value, field: &str| alt["properties"][field]["enum"][0].clone();
+        let mut actions: Vec<Value> = offered
+            .iter()
+            .filter(|alt| first(alt, "action") == "arm_takeoff")
+            .map(|alt| json!({ "task": first(alt, "task"), "drone": first(alt, "drone"), "action": "arm_takeoff", "target": "none", "xyz": null }))
+            .collect();
+        if first_misbehaves.swap(false, Ordering::SeqCst) {
+            actions.retain(|a| a["drone"] != "alfa");
+            actions.push(call("A9", "alfa", "goto", "car_11"));
+        }
+        Ok(
+            json!({ "reasoning": "Everyone takes off.", "actions": actions, "done": true })
+                .to_string(),
+        )
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_monolithic_model_is_held_to_its_actions_not_its_claim() -> anyhow::Result<()> {
+    let run = start("mnl").await?;
+    let link = run.sim.link.clone();
+    let result = async {
+        let log_path = std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm("mnllog")));
+        let backend = Arc::new(PolicyBackend::new(monolithic_policy(Arc::new(AtomicBool::new(true)))));
+        let (tx, mut updates) = mpsc::unbounded_channel();
+        // No repairs: the reply with the rejected goto is the one that counts.
+        let cfg = MissionConfig { mode: Mode::Mnl, max_repairs: 0, cycle_timeout: Duration::from_secs(3), ..MissionConfig::default() };
+        let mission = Mission::new(cfg, backend.clone(), SafetyGate::new(run.sim.scenario.clone()), link, Arc::new(MissionLog::create(&log_path)?), tx).await?;
+        let (lines, rx) = mpsc::channel(4);
+        tokio::spawn(mission.run(rx));
+        lines.send("all drones take off".into()).await?;
+        until(&mut updates, Duration::from_secs(90), |u| matches!(u, MissionUpdate::PlanComplete { .. })).await?;
+        drop(lines);
+        let lines = log::read(&log_path)?;
+        // The first request offered take-offs only: every drone was on the ground.
+        let requests = backend.requests.lock().map_err(|_| anyhow::anyhow!("poisoned"))?.clone();
+        let first = requests.first().and_then(|r| r.schema.as_ref()).ok_or_else(|| anyhow::anyhow!("no schema"))?;
+        let offered = first.schema.pointer("/properties/actions/items/anyOf").and_then(Value::as_array).cloned().unwrap_or_default();
+        assert_eq!(offered.len(), 3, "one take-off per grounded drone: {offered:?}");
+        assert!(offered.iter().all(|a| a["properties"]["action"]["enum"] == json!(["arm_takeoff"])), "{offered:?}");
+        // The goto before take-off never left the ground; every drone's take-off did.
+        let sent = sent_tasks(&lines);
+        assert!(lines.iter().any(|l| matches!(&l.record, Record::GateRejected { call, .. } if call.contains("alfa goto(car_11)"))));
+        assert!(!lines.iter().any(|l| matches!(&l.record, Record::ActionSent { action, .. } if action.starts_with("goto"))), "{sent:?}");
+        let mut drones: Vec<&str> = sent.iter().map(|(_, d)| d.as_str()).collect();
+        drones.sort();
+        assert_eq!(drones, ["alfa", "bravo", "charlie"]);
+        // The first cycle claimed done, but it named a rejected call: the engine completed the
+        // instructions only after alfa's take-off, issued in a later cycle, finished.
+        let cycles: Vec<bool> = lines.iter().filter_map(|l| match &l.record { Record::SupervisorCycle { plan_complete, .. } => Some(*plan_complete), _ => None }).collect();
+        assert!(cycles.len() >= 2 && cycles[0], "{cycles:?}");
+        let complete = lines.iter().position(|l| matches!(l.record, Record::PlanComplete { .. }));
+        let alfa_up = lines.iter().position(|l| matches!(&l.record, Record::ActionOutcome { drone, outcome, .. } if drone == "alfa" && outcome == "done"));
+        assert!(alfa_up.is_some() && complete > alfa_up, "complete at {complete:?}, alfa up at {alfa_up:?}");
+        anyhow::Ok(())
+    }
+    .await;
     run.sim.stop().await;
     result
 }

@@ -179,12 +179,22 @@ struct ActivePlan {
     cycles: u32,
 }
 
-/// The monolithic variant's state: the instructions so far and the executed actions only.
+/// The monolithic variant's state. The model's prompt holds the instructions and the executed
+/// actions only; `tasks` is the engine's own bookkeeping of what it issued for them.
 #[derive(Debug, Default)]
 struct Monolithic {
     instructions: Vec<String>,
     executed: Vec<String>,
-    running: Vec<PlanTask>,
+    /// Every call issued for the current instructions, with its status.
+    tasks: Vec<PlanTask>,
+    /// The number of the next fresh task id (`A<n>`) offered to the model.
+    next_task: u32,
+    /// The model's last reply said that its actions carry out the instructions, and every call
+    /// in it passed the checks. There is no plan to hold the model to, so the engine checks
+    /// what it can: the instructions count as carried out only once every action issued for
+    /// them has finished successfully. A failure, a lost or joined drone, or a new instruction
+    /// withdraws the claim and the model is asked again.
+    claimed_done: bool,
     active: bool,
     cycles: u32,
 }
@@ -380,6 +390,8 @@ impl Mission {
                 self.mnl.instructions.push(text.to_owned());
                 self.mnl.active = true;
                 self.mnl.cycles = 0;
+                self.mnl.claimed_done = false;
+                self.mnl.tasks.retain(|t| t.status == TaskStatus::Running);
                 Ok(())
             }
             Mode::Tacos | Mode::Wor => {
@@ -455,6 +467,7 @@ impl Mission {
         match self.cfg.mode {
             Mode::Mnl => {
                 self.mnl.executed.push(format!("event: {text}"));
+                self.mnl.claimed_done = false;
                 Ok(())
             }
             Mode::Tacos | Mode::Wor => {
@@ -488,7 +501,7 @@ impl Mission {
             .plan
             .iter_mut()
             .flat_map(|p| p.tasks.iter_mut())
-            .chain(self.mnl.running.iter_mut());
+            .chain(self.mnl.tasks.iter_mut());
         for t in tasks.filter(|t| {
             t.status == TaskStatus::Running && t.sent.as_ref().is_some_and(|(d, _)| d == drone)
         }) {
@@ -506,7 +519,7 @@ impl Mission {
                 .plan
                 .iter_mut()
                 .flat_map(|p| p.tasks.iter_mut())
-                .chain(self.mnl.running.iter_mut());
+                .chain(self.mnl.tasks.iter_mut());
             for task in tasks.filter(|t| t.status == TaskStatus::Running) {
                 let Some((drone, seq)) = &task.sent else {
                     continue;
@@ -550,7 +563,12 @@ impl Mission {
                 outcome: outcome.clone(),
             });
             match self.cfg.mode {
-                Mode::Mnl => self.mnl.executed.push(format!("{action}: {outcome}")),
+                Mode::Mnl => {
+                    self.mnl.executed.push(format!("{action}: {outcome}"));
+                    if outcome != "done" {
+                        self.mnl.claimed_done = false;
+                    }
+                }
                 _ => {
                     if let Some(plan) = self.plan.as_mut() {
                         plan.memory.push(format!("{action}: {outcome}"));
@@ -565,7 +583,7 @@ impl Mission {
                 self.plan = Some(plan);
             }
         }
-        self.mnl.running.retain(|t| t.status == TaskStatus::Running);
+        self.judge_monolithic();
         !finished.is_empty()
     }
 
@@ -578,6 +596,7 @@ impl Mission {
         };
         // Before the view is locked: `swarm_ids` locks it too, and the lock is not reentrant.
         let swarm = self.swarm_ids();
+        let pending = self.drones_with_pending_actions();
         let view = self.link.view();
         let now = Instant::now();
         let visible = self.targets.borrow().clone();
@@ -585,7 +604,7 @@ impl Mission {
             DroneId::new(drone)
                 .ok()
                 .and_then(|id| view.get(&id))
-                .is_some_and(|e| e.effective_mode(now) != DroneMode::Unavailable && !e.busy())
+                .is_some_and(|e| e.ready(now) && !pending.contains(&e.id))
         };
         let mut out = Vec::new();
         // No order is imposed here: the plan's temporal dependencies are the Supervisor's to
@@ -610,6 +629,19 @@ impl Mission {
             }
         }
         out
+    }
+
+    /// Drones with an action the engine sent and has not yet seen finish. A drone's status lags
+    /// a send by up to a status period, so right after a cycle it can still look idle and ready:
+    /// offering it again would have the model choose a call that is stale by the time it answers.
+    fn drones_with_pending_actions(&self) -> Vec<DroneId> {
+        self.plan
+            .iter()
+            .flat_map(|p| p.tasks.iter())
+            .chain(self.mnl.tasks.iter())
+            .filter(|t| t.status == TaskStatus::Running)
+            .filter_map(|t| t.sent.as_ref().map(|(d, _)| d.clone()))
+            .collect()
     }
 
     /// A task whose effect already holds is done without flying it: a take-off for a drone that
@@ -638,14 +670,8 @@ impl Mission {
             else {
                 continue;
             };
-            let busy = entry.busy();
             let mode = entry.effective_mode(now);
-            let holds = match task.call.action {
-                ActionName::ArmTakeoff => mode.is_airborne(),
-                ActionName::Land | ActionName::Hold => mode == DroneMode::Idle,
-                _ => false,
-            };
-            if holds && !busy {
+            if effect_holds(task.call.action, mode) && !entry.busy() {
                 task.status = TaskStatus::Done;
                 let what = format!("already {mode}: nothing to do");
                 self.log.note(Record::Event {
@@ -882,6 +908,10 @@ impl Mission {
         if plan.cycles >= self.cfg.max_cycles_per_plan {
             if let Some(plan) = self.plan.take() {
                 self.finish_plan(plan, "abandoned after too many cycles");
+                self.tell(MissionUpdate::Error(format!(
+                    "the plan was not complete after {} Supervisor cycles",
+                    self.cfg.max_cycles_per_plan
+                )));
             }
             return Ok(());
         }
@@ -899,81 +929,64 @@ impl Mission {
             &self.world_text(),
             &plan.memory,
         );
-        let messages = supervisor_messages(user);
-        let schema = startable_schema(&startable);
-        self.tell(MissionUpdate::Thinking {
+        let ask = CycleAsk {
             layer: "supervisor",
-        });
-        self.stats.supervisor_calls += 1;
-        let (reply_reasoning, claimed_complete, actions) = {
-            let (gate, link) = (&self.gate, &self.link);
-            let visible = self.targets.borrow().clone();
-            let plan_tasks: Vec<(Call, TaskStatus)> = self.plan_lines();
-            self.caller
-                .ask(
-                    &mut self.stats,
-                    "supervisor",
-                    messages,
-                    Output::Supervisor,
-                    schema,
-                    self.cfg.supervisor_max_tokens,
-                    SupervisorReply::parse,
-                    |reply: &SupervisorReply| {
-                        let (calls, mut rejections) = match_startable(&reply.actions, &startable);
-                        let (accepted, live) =
-                            check_live(&calls, gate, link, &visible, &plan_tasks);
-                        rejections.extend(live);
-                        Checked {
-                            accepted: (reply.reasoning.clone(), reply.plan_complete, accepted),
-                            rejections,
-                        }
-                    },
-                )
-                .await?
+            output: Output::Supervisor,
+            messages: supervisor_messages(user),
+            schema: startable_schema(&startable),
+            parse: |text| SupervisorReply::parse(text).map(CycleReply::from),
+            only: Some(startable),
+            tasks: self.plan_lines(),
         };
-        let mut sent = Vec::new();
-        for (call, checked) in actions {
-            let seq = self.send(&checked, Some(call.task.clone())).await?;
-            sent.push(call.to_string());
-            if let Some(plan) = self.plan.as_mut() {
+        let cycle = self
+            .ask_and_send(ask, |mission, call, drone, seq| {
+                let Some(plan) = mission.plan.as_mut() else {
+                    return;
+                };
                 plan.memory.push(format!("issued {call}"));
+                let sent = Some((drone, seq));
                 match plan.tasks.iter_mut().find(|t| t.call.task == call.task) {
                     Some(t) => {
-                        t.call = call.clone();
+                        t.call = call;
                         t.status = TaskStatus::Running;
-                        t.sent = Some((checked.drone().clone(), seq));
+                        t.sent = sent;
                     }
                     None => plan.tasks.push(PlanTask {
                         call,
                         status: TaskStatus::Running,
-                        sent: Some((checked.drone().clone(), seq)),
+                        sent,
                     }),
                 }
-            }
-        }
+            })
+            .await?;
+        // The Supervisor's claim that the plan is complete is logged only: the plan is
+        // complete when its tasks are done (`poll_outcomes`).
         if let Some(plan) = self.plan.as_mut() {
             plan.cycles += 1;
-            self.stats.cycles_total += 1;
-            self.log.note(Record::SupervisorCycle {
-                plan_cycle: plan.cycles,
-                actions: sent.clone(),
-                plan_complete: claimed_complete,
-            });
-            let _ = self.updates.send(MissionUpdate::Cycle {
-                plan_cycle: plan.cycles,
-                reasoning: reply_reasoning,
-                actions: sent,
-            });
+            let n = plan.cycles;
+            self.note_cycle(n, cycle);
         }
         Ok(())
     }
 
     async fn monolithic_cycle(&mut self) -> Result<(), MissionError> {
+        if self.mnl.claimed_done {
+            // The model said its actions carry out the instructions: wait for their outcomes.
+            return Ok(());
+        }
         if self.mnl.cycles >= self.cfg.max_cycles_per_plan {
             self.mnl.active = false;
-            self.log.note(Record::Event {
-                text: "monolithic model stopped after too many cycles".into(),
-            });
+            let text = format!(
+                "the monolithic model did not carry out the instructions in {} cycles",
+                self.mnl.cycles
+            );
+            self.log.note(Record::Event { text: text.clone() });
+            self.tell(MissionUpdate::Error(text));
+            return Ok(());
+        }
+        // As for the Supervisor: when no drone can take an action, there is nothing to decide.
+        let callable = self.callable_now();
+        if callable.is_empty() {
             return Ok(());
         }
         let user = render::monolithic_request(
@@ -982,39 +995,86 @@ impl Mission {
             &self.world_text(),
             &self.mnl.executed,
         );
-        let messages = vec![
-            ChatMessage::system(texts::MONOLITHIC),
-            ChatMessage::user(user),
-        ];
         let (drones, places) = self.enums();
-        let schema = schema::build(Output::Monolithic, &drones, &places);
-        self.tell(MissionUpdate::Thinking {
+        let trackable: Vec<String> = self
+            .gate
+            .scenario()
+            .targets
+            .iter()
+            .filter(|t| t.hidden_at.is_none())
+            .map(|t| t.name.clone())
+            .collect();
+        let ask = CycleAsk {
             layer: "monolithic",
-        });
-        self.stats.supervisor_calls += 1;
-        let (reasoning, done, actions) = {
-            let (gate, link) = (&self.gate, &self.link);
-            let visible = self.targets.borrow().clone();
-            let running: Vec<(Call, TaskStatus)> = self
+            output: Output::Monolithic,
+            messages: vec![
+                ChatMessage::system(texts::MONOLITHIC),
+                ChatMessage::user(user),
+            ],
+            schema: callable_schema(&callable, &drones, &places, &trackable),
+            parse: |text| MonolithicReply::parse(text).map(CycleReply::from),
+            only: None,
+            tasks: self
                 .mnl
-                .running
+                .tasks
                 .iter()
                 .map(|t| (t.call.clone(), t.status.clone()))
-                .collect();
+                .collect(),
+        };
+        let cycle = self
+            .ask_and_send(ask, |mission, call, drone, seq| {
+                mission.mnl.tasks.push(PlanTask {
+                    call,
+                    status: TaskStatus::Running,
+                    sent: Some((drone, seq)),
+                });
+            })
+            .await?;
+        self.mnl.next_task += callable.len() as u32;
+        self.mnl.cycles += 1;
+        self.mnl.claimed_done = cycle.claim_stands();
+        self.note_cycle(self.mnl.cycles, cycle);
+        self.judge_monolithic();
+        Ok(())
+    }
+
+    /// The common part of a Supervisor and a monolithic cycle: ask the model (with the repair
+    /// loop), keep the calls that are among `only` (when given) and pass `check_live` and the
+    /// safety gate, send them, and hand each sent call to `issued` for the caller's bookkeeping.
+    async fn ask_and_send(
+        &mut self,
+        ask: CycleAsk,
+        issued: fn(&mut Mission, Call, DroneId, u64),
+    ) -> Result<CycleOutcome, MissionError> {
+        self.tell(MissionUpdate::Thinking { layer: ask.layer });
+        self.stats.supervisor_calls += 1;
+        let (reasoning, claim, all_passed, accepted) = {
+            let (gate, link) = (&self.gate, &self.link);
+            let visible = self.targets.borrow().clone();
+            let (only, tasks) = (&ask.only, &ask.tasks);
             self.caller
                 .ask(
                     &mut self.stats,
-                    "monolithic",
-                    messages,
-                    Output::Monolithic,
-                    schema,
+                    ask.layer,
+                    ask.messages,
+                    ask.output,
+                    ask.schema,
                     self.cfg.supervisor_max_tokens,
-                    MonolithicReply::parse,
-                    |reply: &MonolithicReply| {
-                        let (accepted, rejections) =
-                            check_live(&reply.actions, gate, link, &visible, &running);
+                    ask.parse,
+                    |reply: &CycleReply| {
+                        let (calls, mut rejections) = match only {
+                            Some(startable) => match_startable(&reply.actions, startable),
+                            None => (reply.actions.clone(), Vec::new()),
+                        };
+                        let (accepted, live) = check_live(&calls, gate, link, &visible, tasks);
+                        rejections.extend(live);
                         Checked {
-                            accepted: (reply.reasoning.clone(), reply.done, accepted),
+                            accepted: (
+                                reply.reasoning.clone(),
+                                reply.claim,
+                                rejections.is_empty(),
+                                accepted,
+                            ),
                             rejections,
                         }
                     },
@@ -1022,38 +1082,83 @@ impl Mission {
                 .await?
         };
         let mut sent = Vec::new();
-        for (call, checked) in actions {
+        for (call, checked) in accepted {
             let seq = self.send(&checked, Some(call.task.clone())).await?;
             sent.push(call.to_string());
-            self.mnl.running.push(PlanTask {
-                call,
-                status: TaskStatus::Running,
-                sent: Some((checked.drone().clone(), seq)),
-            });
+            issued(self, call, checked.drone().clone(), seq);
         }
-        self.mnl.cycles += 1;
+        Ok(CycleOutcome {
+            reasoning,
+            claim,
+            all_passed,
+            sent,
+        })
+    }
+
+    /// Counts a cycle, logs it with the model's claim, and reports it.
+    fn note_cycle(&mut self, plan_cycle: u32, cycle: CycleOutcome) {
         self.stats.cycles_total += 1;
         self.log.note(Record::SupervisorCycle {
-            plan_cycle: self.mnl.cycles,
-            actions: sent.clone(),
-            plan_complete: done,
+            plan_cycle,
+            actions: cycle.sent.clone(),
+            plan_complete: cycle.claim,
         });
         self.tell(MissionUpdate::Cycle {
-            plan_cycle: self.mnl.cycles,
-            reasoning,
-            actions: sent.clone(),
+            plan_cycle,
+            reasoning: cycle.reasoning,
+            actions: cycle.sent,
         });
-        if done && sent.is_empty() && self.mnl.running.is_empty() {
-            self.mnl.active = false;
-            self.stats.cycles_per_plan.push(self.mnl.cycles);
-            self.log.note(Record::PlanComplete {
-                cycles: self.mnl.cycles,
-            });
-            self.tell(MissionUpdate::PlanComplete {
-                cycles: self.mnl.cycles,
+    }
+
+    /// The monolithic model's instructions are carried out when its claim stands and every
+    /// action it issued for them has finished (a failure has withdrawn the claim already).
+    fn judge_monolithic(&mut self) {
+        let m = &self.mnl;
+        if !(m.active && m.claimed_done) || m.tasks.iter().any(|t| t.status == TaskStatus::Running)
+        {
+            return;
+        }
+        self.mnl.active = false;
+        let cycles = self.mnl.cycles;
+        self.stats.cycles_per_plan.push(cycles);
+        self.log.note(Record::PlanComplete { cycles });
+        self.tell(MissionUpdate::PlanComplete { cycles });
+    }
+
+    /// What the monolithic model may call now: for each drone that can take an action, a fresh
+    /// task id and the actions its mode allows whose effect does not already hold. Points and
+    /// targets are checked per call afterwards, by `check_live` and the safety gate.
+    fn callable_now(&self) -> Vec<Callable> {
+        let swarm = self.swarm_ids();
+        let pending = self.drones_with_pending_actions();
+        let view = self.link.view();
+        let now = Instant::now();
+        let mut out = Vec::new();
+        for drone in swarm {
+            let Some(entry) = DroneId::new(&drone).ok().and_then(|id| view.get(&id)) else {
+                continue;
+            };
+            if !entry.ready(now) || pending.contains(&entry.id) {
+                continue;
+            }
+            let mode = entry.effective_mode(now);
+            let actions: Vec<ActionName> = ALL_ACTIONS
+                .into_iter()
+                .filter(|a| {
+                    !effect_holds(*a, mode)
+                        && tacos_shared::action::mode_forbids(&mode_probe(*a), mode).is_none()
+                })
+                .collect();
+            if actions.is_empty() {
+                continue;
+            }
+            out.push(Callable {
+                task: format!("A{}", self.mnl.next_task + 1 + out.len() as u32),
+                drone,
+                actions,
             });
         }
-        Ok(())
+        out
     }
 
     async fn send(
@@ -1205,6 +1310,170 @@ impl Caller {
             completion_tokens: reply.usage.completion_tokens,
         });
     }
+}
+
+/// One cycle's question to its model: the Supervisor's or the monolithic model's.
+struct CycleAsk {
+    layer: &'static str,
+    output: Output,
+    messages: Vec<ChatMessage>,
+    schema: serde_json::Value,
+    parse: fn(&str) -> Result<CycleReply, ReplyError>,
+    /// The calls the reply may choose from (the Supervisor's startable calls); `None`: any call
+    /// that passes the live checks (the monolithic model, which has no plan).
+    only: Option<Vec<Call>>,
+    /// The tasks issued so far, so a running or finished task is not issued again.
+    tasks: Vec<(Call, TaskStatus)>,
+}
+
+/// A Supervisor or monolithic reply: reasoning, calls to issue now, and the model's claim that
+/// the work is complete (`plan_complete` or `done`).
+struct CycleReply {
+    reasoning: String,
+    actions: Vec<Call>,
+    claim: bool,
+}
+
+impl From<SupervisorReply> for CycleReply {
+    fn from(r: SupervisorReply) -> Self {
+        CycleReply {
+            reasoning: r.reasoning,
+            actions: r.actions,
+            claim: r.plan_complete,
+        }
+    }
+}
+
+impl From<MonolithicReply> for CycleReply {
+    fn from(r: MonolithicReply) -> Self {
+        CycleReply {
+            reasoning: r.reasoning,
+            actions: r.actions,
+            claim: r.done,
+        }
+    }
+}
+
+/// What a cycle did.
+struct CycleOutcome {
+    reasoning: String,
+    /// The model claimed the work complete.
+    claim: bool,
+    /// Every call of the accepted reply passed the checks.
+    all_passed: bool,
+    sent: Vec<String>,
+}
+
+impl CycleOutcome {
+    /// A claim of completion counts only from a reply whose every call passed: a reply that
+    /// names a rejected call and says "done" meant that call to be part of the work.
+    fn claim_stands(&self) -> bool {
+        self.claim && self.all_passed
+    }
+}
+
+/// One drone the monolithic model may give an action to now, under a fresh task id.
+struct Callable {
+    task: String,
+    drone: String,
+    actions: Vec<ActionName>,
+}
+
+const ALL_ACTIONS: [ActionName; 6] = [
+    ActionName::ArmTakeoff,
+    ActionName::Goto,
+    ActionName::StartTracking,
+    ActionName::StopTracking,
+    ActionName::Land,
+    ActionName::Hold,
+];
+
+/// An action of this kind, for asking whether a mode allows it (the argument does not matter
+/// to the mode rules; the real argument is checked by the safety gate).
+fn mode_probe(name: ActionName) -> Action {
+    match name {
+        ActionName::ArmTakeoff => Action::ArmTakeoff,
+        ActionName::Goto => Action::Goto {
+            target: tacos_shared::Vec3::default(),
+        },
+        ActionName::StartTracking => Action::StartTracking {
+            target: String::new(),
+        },
+        ActionName::StopTracking => Action::StopTracking,
+        ActionName::Land => Action::Land,
+        ActionName::Hold => Action::Hold,
+    }
+}
+
+/// The action's effect already holds for an idle drone in `mode`: take-off when airborne,
+/// landing or hold on the ground, stop-tracking when not tracking. Sending it would only be
+/// refused by the drone or do nothing.
+fn effect_holds(action: ActionName, mode: DroneMode) -> bool {
+    match action {
+        ActionName::ArmTakeoff => mode.is_airborne(),
+        ActionName::Land | ActionName::Hold => mode == DroneMode::Idle,
+        ActionName::StopTracking => mode != DroneMode::Tracking,
+        ActionName::Goto | ActionName::StartTracking => false,
+    }
+}
+
+/// The monolithic model's output schema for this cycle: each call is one of the calls that are
+/// valid now (a ready drone under its fresh task id, an action its mode allows, and an
+/// argument of the right kind: no target for take-off, landing, hold and stop-tracking; a place
+/// or a point for goto; a target for tracking). The model still chooses which, and may choose
+/// none.
+fn callable_schema(
+    callable: &[Callable],
+    drones: &[String],
+    places: &[String],
+    trackable: &[String],
+) -> serde_json::Value {
+    use serde_json::json;
+    let mut schema = schema::build(Output::Monolithic, drones, places);
+    let call = |c: &Callable, action: ActionName, target: serde_json::Value, xyz| {
+        json!({
+            "type": "object",
+            "properties": {
+                "task": { "type": "string", "enum": [c.task] },
+                "drone": { "type": "string", "enum": [c.drone] },
+                "action": { "type": "string", "enum": [serde_json::to_value(action).unwrap_or_default()] },
+                "target": { "type": "string", "enum": target },
+                "xyz": xyz
+            },
+            "required": ["task", "drone", "action", "target", "xyz"],
+            "additionalProperties": false
+        })
+    };
+    let none = json!([schema::NO_TARGET]);
+    let null = json!({ "type": "null" });
+    let point =
+        json!({ "type": "array", "items": { "type": "number" }, "minItems": 3, "maxItems": 3 });
+    let mut alternatives = Vec::new();
+    for c in callable {
+        for &action in &c.actions {
+            match action {
+                ActionName::Goto => {
+                    if !places.is_empty() {
+                        alternatives.push(call(c, action, json!(places), null.clone()));
+                    }
+                    alternatives.push(call(c, action, none.clone(), point.clone()));
+                }
+                ActionName::StartTracking => {
+                    if !trackable.is_empty() {
+                        alternatives.push(call(c, action, json!(trackable), null.clone()));
+                    }
+                }
+                _ => alternatives.push(call(c, action, none.clone(), null.clone())),
+            }
+        }
+    }
+    if let Some(items) = schema.pointer_mut("/properties/actions/items") {
+        *items = json!({ "anyOf": alternatives });
+    }
+    if let Some(actions) = schema.pointer_mut("/properties/actions") {
+        actions["maxItems"] = serde_json::Value::from(callable.len().max(1));
+    }
+    schema
 }
 
 /// The Coordinator's messages: its configuration prompt, the few-shot examples as turns, then
@@ -1363,10 +1632,14 @@ fn check_live(
             rejections.push(format!("{call}: task {} is already {state}", call.task));
             continue;
         }
+        // Busy as the drone reports it, or with a task sent and not yet seen to finish.
         let busy = DroneId::new(&call.drone)
             .ok()
             .and_then(|id| view.get(&id).cloned())
-            .is_some_and(|e| e.busy() && e.effective_mode(now) != DroneMode::Unavailable);
+            .is_some_and(|e| e.busy() && e.effective_mode(now) != DroneMode::Unavailable)
+            || tasks
+                .iter()
+                .any(|(c, s)| *s == TaskStatus::Running && c.drone == call.drone);
         if busy {
             rejections.push(format!(
                 "{call}: {} is still busy with its current action",
@@ -1387,4 +1660,104 @@ fn check_live(
         }
     }
     (accepted, rejections)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn alternatives(
+        schema: &serde_json::Value,
+    ) -> Vec<(String, String, String, serde_json::Value)> {
+        schema
+            .pointer("/properties/actions/items/anyOf")
+            .and_then(|a| a.as_array())
+            .into_iter()
+            .flatten()
+            .map(|alt| {
+                let one = |f: &str| {
+                    alt["properties"][f]["enum"][0]
+                        .as_str()
+                        .unwrap_or("")
+                        .to_owned()
+                };
+                (
+                    one("task"),
+                    one("drone"),
+                    one("action"),
+                    alt["properties"]["target"]["enum"].clone(),
+                )
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_monolithic_schema_offers_only_the_calls_valid_now() {
+        let callable = [
+            Callable {
+                task: "A4".into(),
+                drone: "alfa".into(),
+                actions: vec![ActionName::ArmTakeoff],
+            },
+            Callable {
+                task: "A5".into(),
+                drone: "bravo".into(),
+                actions: vec![
+                    ActionName::Goto,
+                    ActionName::StartTracking,
+                    ActionName::Land,
+                ],
+            },
+        ];
+        let drones = ["alfa".to_owned(), "bravo".to_owned(), "charlie".to_owned()];
+        let places = ["car_1".to_owned(), "villa_2".to_owned()];
+        let schema = callable_schema(&callable, &drones, &places, &["suspect".to_owned()]);
+        let alts = alternatives(&schema);
+        let none = serde_json::json!(["none"]);
+        assert_eq!(
+            alts,
+            vec![
+                (
+                    "A4".into(),
+                    "alfa".into(),
+                    "arm_takeoff".into(),
+                    none.clone()
+                ),
+                (
+                    "A5".into(),
+                    "bravo".into(),
+                    "goto".into(),
+                    serde_json::json!(places)
+                ),
+                ("A5".into(), "bravo".into(), "goto".into(), none.clone()),
+                (
+                    "A5".into(),
+                    "bravo".into(),
+                    "start_tracking".into(),
+                    serde_json::json!(["suspect"])
+                ),
+                ("A5".into(), "bravo".into(), "land".into(), none),
+            ]
+        );
+        // Only the goto without a place takes a point.
+        let items = &schema["properties"]["actions"]["items"]["anyOf"];
+        assert_eq!(items[2]["properties"]["xyz"]["type"], "array");
+        assert_eq!(items[1]["properties"]["xyz"]["type"], "null");
+        assert_eq!(schema["properties"]["actions"]["maxItems"], 2);
+        assert_eq!(
+            schema["required"],
+            serde_json::json!(["reasoning", "actions", "done"])
+        );
+    }
+
+    #[test]
+    fn an_effect_that_holds_is_not_offered_again() {
+        assert!(effect_holds(ActionName::ArmTakeoff, DroneMode::Flying));
+        assert!(!effect_holds(ActionName::ArmTakeoff, DroneMode::Idle));
+        assert!(effect_holds(ActionName::Land, DroneMode::Idle));
+        assert!(!effect_holds(ActionName::Land, DroneMode::Flying));
+        assert!(effect_holds(ActionName::StopTracking, DroneMode::Flying));
+        assert!(!effect_holds(ActionName::StopTracking, DroneMode::Tracking));
+        assert!(!effect_holds(ActionName::Goto, DroneMode::Flying));
+    }
 }

@@ -26,11 +26,13 @@ pub fn resolve(
         ActionName::StopTracking => Ok(Action::StopTracking),
         ActionName::Land => Ok(Action::Land),
         ActionName::Hold => Ok(Action::Hold),
+        // A named place wins over a point: the call reads (and is logged) as "goto(<name>)",
+        // and small models fill "xyz" with filler beside a name.
         ActionName::Goto => match (call.target_name(), call.xyz) {
-            (_, Some([x, y, z])) => Ok(Action::Goto {
+            (None, Some([x, y, z])) => Ok(Action::Goto {
                 target: Vec3::new(x, y, z),
             }),
-            (Some(name), None) => {
+            (Some(name), _) => {
                 if let Some(l) = scenario.world.landmark(name) {
                     Ok(Action::Goto {
                         target: Vec3::new(l.position.x, l.position.y, l.position.z + altitude),
@@ -96,6 +98,17 @@ mod tests {
             Ok(Action::Goto {
                 target: Vec3::new(1.0, 2.0, 3.0)
             })
+        );
+        assert_eq!(
+            resolve(
+                &call(ActionName::Goto, "car_7", Some([1.0, 2.0, 3.0])),
+                &city,
+                &[]
+            ),
+            Ok(Action::Goto {
+                target: Vec3::new(car.x, car.y, 10.0)
+            }),
+            "the name wins, as the call is shown"
         );
         assert!(resolve(&call(ActionName::Goto, "none", None), &city, &[]).is_err());
         assert!(resolve(&call(ActionName::Goto, "atlantis", None), &city, &[]).is_err());
