@@ -161,6 +161,11 @@ impl Motion {
         })
     }
 
+    /// True while a plan is being sampled (the planner flies and has solved at least once).
+    pub fn has_plan(&self) -> bool {
+        self.plan.is_some()
+    }
+
     pub fn stats(&self) -> SolveStats {
         self.stats
     }
@@ -300,8 +305,8 @@ impl Motion {
         last.is_none_or(|t| now - t >= self.cfg.plan_period - 1e-3)
     }
 
-    /// The solve to run now, if one is due and none is out: the planner is lent to the job
-    /// until [`Motion::solve_done`] returns it.
+    /// The solve to run now, unless one is out: the planner is lent to the job until
+    /// [`Motion::solve_done`] returns it. The caller paces solves (the shell's planner timer).
     pub fn solve_job(
         &mut self,
         now: f64,
@@ -310,9 +315,6 @@ impl Motion {
         goal: Goal,
         tracking: Option<&str>,
     ) -> Option<SolveJob> {
-        if self.plan.is_some() && !self.due(self.last_solve, now) {
-            return None;
-        }
         let range = self.planner_cfg.neighbour_range;
         let neighbours = neighbours_in_range(position, self.neighbours(now), range);
         let planner = self.planner.take()?;
@@ -370,7 +372,9 @@ impl Motion {
         tracking: Option<&str>,
     ) -> MotionOutput {
         let mut path = None;
+        let due = self.plan.is_none() || self.due(self.last_solve, now);
         if let Steering::Toward(goal) = steering
+            && due
             && let Some(job) = self.solve_job(now, position, velocity, goal, tracking)
         {
             path = self.solve_done(job.run());

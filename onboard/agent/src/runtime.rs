@@ -98,6 +98,22 @@ impl Malformed {
     }
 }
 
+/// Hands a solve to a blocking thread when the planner flies (`Steering::Toward`).
+fn start_solve(
+    motion: &mut Motion,
+    executor: &Executor,
+    steering: Steering,
+    wall: f64,
+) -> Option<tokio::task::JoinHandle<SolveDone>> {
+    let Steering::Toward(goal) = steering else {
+        return None;
+    };
+    let vehicle = executor.vehicle()?;
+    let tracking = executor.following().map(|(target, _)| target);
+    let job = motion.solve_job(wall, vehicle.position, vehicle.velocity, goal, tracking)?;
+    Some(tokio::task::spawn_blocking(move || job.run()))
+}
+
 /// Runs the drone until `shutdown` completes.
 pub async fn run(
     cfg: OnboardConfig,
@@ -143,6 +159,11 @@ async fn run_inner(
     // The solve in flight on a blocking thread: the control loop keeps streaming the current
     // plan meanwhile, so a slow solve never stalls the setpoints.
     let mut solving: Option<tokio::task::JoinHandle<SolveDone>> = None;
+    // Solves are paced by their own timer (not every n-th control tick, which would round the
+    // period up to a multiple of 20 ms); each starts from the state the last tick saw.
+    let mut plan_timer = tokio::time::interval(Duration::from_secs_f64(cfg.motion.plan_period));
+    plan_timer.set_missed_tick_behavior(MissedTickBehavior::Skip);
+    let mut last_steering: Option<Steering> = None;
     let mut failsafe = FailsafeTimer::new(cfg.failsafe_hold_s, cfg.failsafe_land_s, now());
     let mut control = tokio::time::interval(Duration::from_secs_f64(1.0 / cfg.control_rate_hz));
     control.set_missed_tick_behavior(MissedTickBehavior::Skip);
@@ -211,6 +232,11 @@ async fn run_inner(
                     Err(e) => return Err(OnboardError::PlannerLost(e.to_string())),
                 }
             }
+            _ = plan_timer.tick() => {
+                if solving.is_none() && let Some(steering) = last_steering {
+                    solving = start_solve(&mut motion, &executor, steering, wall_seconds());
+                }
+            }
             sample = targets.recv_async() => {
                 let sample = sample.map_err(|_| OnboardError::SubscriberClosed(keys.targets()))?;
                 match tacos_bus::decode::<TargetsMessage>(&sample) {
@@ -246,14 +272,14 @@ async fn run_inner(
                     for command in out.commands {
                         ports.send_command(command)?;
                     }
+                    last_steering = out.steering;
                     if let (Some(steering), Some(vehicle)) = (out.steering, executor.vehicle()) {
-                        if let Steering::Toward(goal) = steering
+                        // The first solve of a new goal starts at once; then the timer paces.
+                        if let Steering::Toward(_) = steering
                             && solving.is_none()
+                            && !motion.has_plan()
                         {
-                            let tracking = executor.following().map(|(target, _)| target);
-                            if let Some(job) = motion.solve_job(wall, vehicle.position, vehicle.velocity, goal, tracking) {
-                                solving = Some(tokio::task::spawn_blocking(move || job.run()));
-                            }
+                            solving = start_solve(&mut motion, &executor, steering, wall);
                         }
                         let step = motion.tick(wall, vehicle.position, vehicle.velocity, steering);
                         path_out = step.path;
