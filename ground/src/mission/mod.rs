@@ -8,9 +8,11 @@
 
 pub mod directives;
 pub mod engine;
+pub mod input;
 pub mod log;
 pub mod resolve;
 
+pub use input::{InputClosed, MissionInputs, PilotInput};
 pub use engine::{
     Mission, MissionConfig, MissionError, MissionStats, MissionUpdate, Mode, coordinator_messages,
 };
