@@ -11,6 +11,7 @@ pub mod link;
 pub mod mission;
 pub mod pilot;
 pub mod plot;
+pub mod script;
 pub mod safety;
 pub mod swarm;
 pub mod table;

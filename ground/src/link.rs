@@ -8,8 +8,10 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tacos_bus::{BusArgs, BusError};
 use tacos_shared::keys::Keys;
+use tacos_shared::scenario::FaultKind;
 use tacos_shared::messages::{
-    ActionState, DroneStatus, GroundHeartbeat, SimTruth, TargetObservation, TargetsMessage,
+    ActionState, DroneStatus, FaultRequest, GroundHeartbeat, SimTruth, TargetObservation,
+    TargetsMessage,
     WorldEvent,
 };
 use tacos_shared::{ActionCommand, DroneId};
@@ -211,6 +213,17 @@ impl GroundLink {
         )
         .await?;
         Ok(seq)
+    }
+
+    /// Asks the simulator to inject a fault on one vehicle (`sim/faults`; simulation only: a
+    /// real swarm has no simulator listening).
+    pub async fn inject_fault(&self, drone: &DroneId, fault: FaultKind) -> Result<(), LinkError> {
+        let request = FaultRequest {
+            drone: drone.clone(),
+            fault,
+        };
+        tacos_bus::put(&self.session, &self.keys.sim_faults(), &request, true).await?;
+        Ok(())
     }
 
     /// Waits until every drone in `ids` is alive and satisfies `ready`.
