@@ -7,6 +7,8 @@ use tacos_ground::link::GroundLink;
 use tacos_shared::SwarmId;
 use tacos_shared::scenario::Scenario;
 
+pub mod chat_server;
+
 /// A swarm id no other test (or run) uses.
 pub fn unique_swarm(tag: &str) -> SwarmId {
     use std::sync::atomic::{AtomicU32, Ordering};
