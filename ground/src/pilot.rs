@@ -157,6 +157,15 @@ pub async fn run_session(
     if result.is_ok() && opts.interactive && std::io::IsTerminal::is_terminal(&std::io::stdout()) {
         // The pilot's full-screen terminal: map, swarm, chat, events, status.
         let targets = link_for_terminal.watch_targets().await?;
+        // The swarm table lists this run's drones, not every slot of the map (a demo of six
+        // drones in the city would show fourteen "unavailable" rows).
+        let mut scenario = scenario;
+        {
+            let view = link_for_terminal.view();
+            if view.drones().next().is_some() {
+                scenario.drones.retain(|d| view.get(&d.id).is_some());
+            }
+        }
         if let Err(e) = crate::tui::run_terminal(
             link_for_terminal.clone(),
             scenario,

@@ -139,7 +139,7 @@ impl PilotInput {
             };
             match self.link.send(&checked, None).await {
                 Ok(seq) => {
-                    self.follow_outcome(checked.drone().clone(), seq);
+                    self.follow_outcome(checked.drone().clone(), action.to_string(), seq);
                     self.log.note(Record::ActionSent {
                         drone: drone.clone(),
                         task: None,
@@ -168,7 +168,7 @@ impl PilotInput {
 
     /// Logs the outcome of a direct command's action when it comes (the engine only follows
     /// the actions of its plans).
-    fn follow_outcome(&self, drone: DroneId, seq: u64) {
+    fn follow_outcome(&self, drone: DroneId, action: String, seq: u64) {
         let (link, log, updates) = (self.link.clone(), self.log.clone(), self.updates.clone());
         tokio::spawn(async move {
             let outcome = match link.wait_outcome(&drone, seq, OUTCOME_WAIT).await {
@@ -185,7 +185,7 @@ impl PilotInput {
             });
             let _ = updates.send(MissionUpdate::Outcome {
                 drone: drone.to_string(),
-                action: format!("direct #{seq}"),
+                action,
                 outcome,
             });
         });

@@ -268,12 +268,28 @@ pub fn render_map(state: &TerminalState, area: Rect, buf: &mut Buffer) {
     // Labels, placed here rather than by the canvas so that they line up with its dots and do
     // not overwrite each other: drones first, then targets, then landmarks.
     let mut labels = MapLabels::new(inner, x_bounds, y_bounds);
+    // Drones that share a cell (a pad of ten, a formation) are one marker named after the
+    // first, with how many more are there: "●alfa+4".
+    let mut cells: Vec<((u16, u16), &DroneRow, usize)> = Vec::new();
     for drone in &state.drones {
+        let Some(cell) = drone.position.and_then(|p| labels.cell(p.x, p.y)) else {
+            continue;
+        };
+        match cells.iter_mut().find(|(c, _, _)| *c == cell) {
+            Some((_, _, more)) => *more += 1,
+            None => cells.push((cell, drone, 0)),
+        }
+    }
+    for (_, drone, more) in cells {
         if let Some(p) = drone.position {
             let style = Style::new()
                 .fg(mode_color(drone.mode))
                 .add_modifier(Modifier::BOLD);
-            labels.place(buf, p.x, p.y, DRONE_MARKER, &drone.id, style);
+            let name = match more {
+                0 => drone.id.clone(),
+                n => format!("{}+{n}", drone.id),
+            };
+            labels.place(buf, p.x, p.y, DRONE_MARKER, &name, style);
         }
     }
     for target in &state.targets {
