@@ -124,7 +124,10 @@ impl PilotInput {
             Directive::Land(d) => (vec![d], Action::Land),
             Directive::Hold(d) => (vec![d], Action::Hold),
         };
+        // One line for the whole command: with twenty drones, a line per drone would flood
+        // the pilot's event log (the mission log keeps each action).
         let mut outcomes = Vec::new();
+        let mut sent = Vec::new();
         for drone in targets {
             let checked = {
                 let view = self.link.view();
@@ -146,15 +149,13 @@ impl PilotInput {
                         seq,
                         action: action.to_string(),
                     });
-                    let _ = self.updates.send(MissionUpdate::Sent {
-                        drone: drone.clone(),
-                        action: action.to_string(),
-                        seq,
-                    });
-                    outcomes.push(format!("{drone}: sent #{seq}"));
+                    sent.push(drone);
                 }
                 Err(e) => outcomes.push(format!("{drone}: {e}")),
             }
+        }
+        if !sent.is_empty() {
+            outcomes.insert(0, format!("{action} sent to {}", sent.join(", ")));
         }
         let outcome = outcomes.join("; ");
         self.log.note(Record::Direct {
@@ -167,7 +168,7 @@ impl PilotInput {
     }
 
     /// Logs the outcome of a direct command's action when it comes (the engine only follows
-    /// the actions of its plans).
+    /// the actions of its plans); tells the pilot when it did not finish well.
     fn follow_outcome(&self, drone: DroneId, action: String, seq: u64) {
         let (link, log, updates) = (self.link.clone(), self.log.clone(), self.updates.clone());
         tokio::spawn(async move {
@@ -183,6 +184,11 @@ impl PilotInput {
                 seq,
                 outcome: outcome.clone(),
             });
+            // The swarm table shows each drone's action and state; only what went wrong is
+            // worth an event line.
+            if outcome == "done" {
+                return;
+            }
             let _ = updates.send(MissionUpdate::Outcome {
                 drone: drone.to_string(),
                 action,

@@ -26,11 +26,14 @@ pub fn resolve(
         ActionName::StopTracking => Ok(Action::StopTracking),
         ActionName::Land => Ok(Action::Land),
         ActionName::Hold => Ok(Action::Hold),
+        // A named place wins over coordinates: "goto small_park" is what the model meant, and
+        // the numbers a small model writes beside a name are usually invented (the embedded
+        // 135M model fills "xyz" with 1.0, 2.0, 3.0 whatever the target).
         ActionName::Goto => match (call.target_name(), call.xyz) {
-            (_, Some([x, y, z])) => Ok(Action::Goto {
+            (None, Some([x, y, z])) => Ok(Action::Goto {
                 target: Vec3::new(x, y, z),
             }),
-            (Some(name), None) => {
+            (Some(name), _) => {
                 if let Some(l) = scenario.world.landmark(name) {
                     Ok(Action::Goto {
                         target: Vec3::new(l.position.x, l.position.y, l.position.z + altitude),
@@ -96,6 +99,17 @@ mod tests {
             Ok(Action::Goto {
                 target: Vec3::new(1.0, 2.0, 3.0)
             })
+        );
+        assert_eq!(
+            resolve(
+                &call(ActionName::Goto, "car_7", Some([1.0, 2.0, 3.0])),
+                &city,
+                &[]
+            ),
+            Ok(Action::Goto {
+                target: Vec3::new(car.x, car.y, 10.0)
+            }),
+            "the name wins over invented coordinates"
         );
         assert!(resolve(&call(ActionName::Goto, "none", None), &city, &[]).is_err());
         assert!(resolve(&call(ActionName::Goto, "atlantis", None), &city, &[]).is_err());

@@ -268,16 +268,21 @@ pub fn render_map(state: &TerminalState, area: Rect, buf: &mut Buffer) {
     // Labels, placed here rather than by the canvas so that they line up with its dots and do
     // not overwrite each other: drones first, then targets, then landmarks.
     let mut labels = MapLabels::new(inner, x_bounds, y_bounds);
-    // Drones that share a cell (a pad of ten, a formation) are one marker named after the
-    // first, with how many more are there: "●alfa+4".
+    // Drones too close to label apart (a pad of ten, a formation) are one marker named after
+    // the first, with how many more are there: "●alfa+4". A drone joins a group when its cell
+    // would fall under the group's marker or label.
     let mut cells: Vec<((u16, u16), &DroneRow, usize)> = Vec::new();
     for drone in &state.drones {
-        let Some(cell) = drone.position.and_then(|p| labels.cell(p.x, p.y)) else {
+        let Some((col, row)) = drone.position.and_then(|p| labels.cell(p.x, p.y)) else {
             continue;
         };
-        match cells.iter_mut().find(|(c, _, _)| *c == cell) {
+        let under = |((c, r), first, _): &&mut ((u16, u16), &DroneRow, usize)| {
+            let span = first.id.chars().count() as u16 + 3;
+            *r == row && col + 1 >= *c && col <= c.saturating_add(span)
+        };
+        match cells.iter_mut().find(under) {
             Some((_, _, more)) => *more += 1,
-            None => cells.push((cell, drone, 0)),
+            None => cells.push(((col, row), drone, 0)),
         }
     }
     for (_, drone, more) in cells {
