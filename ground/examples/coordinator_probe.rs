@@ -35,9 +35,17 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .landmarks
         .iter()
         .map(|l| l.name.clone())
-        .chain(scenario.targets.iter().filter(|t| t.hidden_at.is_none()).map(|t| t.name.clone()))
+        .chain(
+            scenario
+                .targets
+                .iter()
+                .filter(|t| t.hidden_at.is_none())
+                .map(|t| t.name.clone()),
+        )
         .collect();
-    let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
     for instruction in args {
         let history = render::history(&[HistoryEntry::Pilot(instruction.clone())]);
         let messages = coordinator_messages(render::coordinator_request(
@@ -60,9 +68,18 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         };
         let reply = runtime.block_on(model.chat(&request))?;
         let plan = tacos_prompts::CoordinatorReply::parse(&reply.content)
-            .map(|r| r.plan.iter().map(|c| c.to_string()).collect::<Vec<_>>().join("; "))
+            .map(|r| {
+                r.plan
+                    .iter()
+                    .map(|c| c.to_string())
+                    .collect::<Vec<_>>()
+                    .join("; ")
+            })
             .unwrap_or_else(|e| format!("unparsable: {e}"));
-        println!("{instruction:?} ({:.0} s) => {plan}", reply.latency.as_secs_f64());
+        println!(
+            "{instruction:?} ({:.0} s) => {plan}",
+            reply.latency.as_secs_f64()
+        );
     }
     Ok(())
 }

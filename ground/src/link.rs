@@ -8,12 +8,11 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tacos_bus::{BusArgs, BusError};
 use tacos_shared::keys::Keys;
-use tacos_shared::scenario::FaultKind;
 use tacos_shared::messages::{
     ActionState, DroneStatus, FaultRequest, GroundHeartbeat, SimTruth, TargetObservation,
-    TargetsMessage,
-    WorldEvent,
+    TargetsMessage, WorldEvent,
 };
+use tacos_shared::scenario::FaultKind;
 use tacos_shared::{ActionCommand, DroneId};
 use tokio::sync::{broadcast, watch};
 use tokio::task::JoinHandle;

@@ -123,7 +123,11 @@ fn completion(request: &Value, model: &str, content: &str) -> Value {
     let words = |t: &str| t.split_whitespace().count();
     let prompt: usize = request["messages"]
         .as_array()
-        .map(|m| m.iter().map(|m| words(m["content"].as_str().unwrap_or_default())).sum())
+        .map(|m| {
+            m.iter()
+                .map(|m| words(m["content"].as_str().unwrap_or_default()))
+                .sum()
+        })
         .unwrap_or(0);
     json!({
         "id": "chatcmpl-standin",

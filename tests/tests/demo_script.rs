@@ -191,10 +191,16 @@ async fn a_script_takes_off_flies_one_goto_and_lands_all_in_order() -> anyhow::R
     )?;
     let log_path = temp("script", "jsonl");
     let (ok, stdout, stderr) = demo(&script, &server, &log_path).await?;
-    assert!(ok, "the script failed\nstdout:\n{stdout}\nstderr:\n{stderr}");
+    assert!(
+        ok,
+        "the script failed\nstdout:\n{stdout}\nstderr:\n{stderr}"
+    );
     // The loading server's 503 was retried, then every request was answered.
     assert_eq!(server.count(503), 1, "stdout:\n{stdout}");
-    assert!(server.count(200) >= 4, "two Coordinator and two Supervisor calls at least");
+    assert!(
+        server.count(200) >= 4,
+        "two Coordinator and two Supervisor calls at least"
+    );
 
     let lines = log::read(&log_path)?;
     let sent: Vec<(usize, String, String, u64)> = lines
@@ -223,17 +229,32 @@ async fn a_script_takes_off_flies_one_goto_and_lands_all_in_order() -> anyhow::R
 
     // Order: each take-off done → (alfa's) the goto sent → goto done → land all → landings done.
     let alfa_takeoff = takeoffs.iter().find(|s| s.1 == "alfa").map_or(0, |s| s.3);
-    assert!(done(&lines, alfa_takeoff) < gotos[0].0, "goto before alfa was up");
+    assert!(
+        done(&lines, alfa_takeoff) < gotos[0].0,
+        "goto before alfa was up"
+    );
     let goto_done = done(&lines, gotos[0].3);
-    let direct = position(&lines, "direct land all", |r| {
-        matches!(r, Record::Direct { text, .. } if text == "land all")
-    });
+    let direct = position(
+        &lines,
+        "direct land all",
+        |r| matches!(r, Record::Direct { text, .. } if text == "land all"),
+    );
     for t in &takeoffs {
-        assert!(done(&lines, t.3) < direct, "{} landed before its take-off finished", t.1);
+        assert!(
+            done(&lines, t.3) < direct,
+            "{} landed before its take-off finished",
+            t.1
+        );
     }
     for l in &lands {
-        assert!(goto_done < l.0, "a landing was sent before the goto finished");
-        assert!(l.0 < direct, "the land actions are logged before the direct command's summary");
+        assert!(
+            goto_done < l.0,
+            "a landing was sent before the goto finished"
+        );
+        assert!(
+            l.0 < direct,
+            "the land actions are logged before the direct command's summary"
+        );
         assert!(done(&lines, l.3) > l.0);
     }
     let pilot: Vec<&str> = lines
@@ -254,9 +275,11 @@ async fn a_script_takes_off_flies_one_goto_and_lands_all_in_order() -> anyhow::R
             .any(|l| matches!(l.record, Record::GateRejected { .. })),
         "a competent model's calls all pass the gate"
     );
-    position(&lines, "script verdict", |r| {
-        matches!(r, Record::Event { text } if text == "script complete: 9 steps")
-    });
+    position(
+        &lines,
+        "script verdict",
+        |r| matches!(r, Record::Event { text } if text == "script complete: 9 steps"),
+    );
     let _ = std::fs::remove_file(&script);
     let _ = std::fs::remove_file(&log_path);
     Ok(())
@@ -275,18 +298,28 @@ async fn a_failing_step_ends_the_run_non_zero_naming_its_line() -> anyhow::Resul
     let (ok, stdout, stderr) = demo(&script, &server, &log_path).await?;
     assert!(!ok, "the run must fail\nstdout:\n{stdout}");
     assert!(
-        stderr.contains("script line 2 `wait until alfa near car_11 within 2` failed: not within 2 s"),
+        stderr.contains(
+            "script line 2 `wait until alfa near car_11 within 2` failed: not within 2 s"
+        ),
         "unclear error: {stderr}"
     );
     let lines = log::read(&log_path)?;
-    position(&lines, "the failure in the log", |r| {
-        matches!(r, Record::Event { text } if text.starts_with("script line 2"))
-    });
+    position(
+        &lines,
+        "the failure in the log",
+        |r| matches!(r, Record::Event { text } if text.starts_with("script line 2")),
+    );
     assert!(
-        !lines.iter().any(|l| matches!(l.record, Record::Direct { .. })),
+        !lines
+            .iter()
+            .any(|l| matches!(l.record, Record::Direct { .. })),
         "the step after the failing one ran"
     );
-    assert_eq!(server.exchanges.lock().map_or(1, |e| e.len()), 0, "no model was asked");
+    assert_eq!(
+        server.exchanges.lock().map_or(1, |e| e.len()),
+        0,
+        "no model was asked"
+    );
     let _ = std::fs::remove_file(&script);
     let _ = std::fs::remove_file(&log_path);
     Ok(())

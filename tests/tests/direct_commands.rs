@@ -64,7 +64,8 @@ impl LlmBackend for SlowSupervisor {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn land_all_is_sent_while_a_model_call_is_pending_and_the_late_reply_is_not() -> anyhow::Result<()> {
+async fn land_all_is_sent_while_a_model_call_is_pending_and_the_late_reply_is_not()
+-> anyhow::Result<()> {
     let sim = SimSwarm::start("direct", "city", 3).await?;
     let result = async {
         let link = sim.link.clone();
@@ -78,8 +79,10 @@ async fn land_all_is_sent_while_a_model_call_is_pending_and_the_late_reply_is_no
         .await?;
         let gate = SafetyGate::new(sim.scenario.clone());
         // Set-up: all three in the air (through the gate, without a model).
-        let takeoffs: Vec<(DroneId, Action)> =
-            ids.iter().map(|d| (d.clone(), Action::ArmTakeoff)).collect();
+        let takeoffs: Vec<(DroneId, Action)> = ids
+            .iter()
+            .map(|d| (d.clone(), Action::ArmTakeoff))
+            .collect();
         run_actions(&link, &gate, &takeoffs, None, Duration::from_secs(90)).await?;
 
         let log_path =
@@ -106,32 +109,47 @@ async fn land_all_is_sent_while_a_model_call_is_pending_and_the_late_reply_is_no
         let mission_task = tokio::spawn(mission.run_with(inputs));
 
         input.submit("alfa, inspect car_11").await?;
-        within("the Supervisor's call to be pending", Duration::from_secs(30), pending.wait_for(|p| *p)).await??;
+        within(
+            "the Supervisor's call to be pending",
+            Duration::from_secs(30),
+            pending.wait_for(|p| *p),
+        )
+        .await??;
 
         let typed = Instant::now();
         input.submit("land all").await?;
         // Everything below happens while the model call is still held.
-        within("every drone to be landing", Duration::from_secs(10), async {
-            let mut version = link.changes();
-            loop {
-                let landing = {
-                    let view = link.view();
-                    ids.iter().all(|d| {
-                        view.get(d)
-                            .and_then(|e| e.status.as_ref())
-                            .and_then(|s| s.action.as_ref())
-                            .is_some_and(|p| p.action == Action::Land)
-                    })
-                };
-                if landing {
-                    return;
+        within(
+            "every drone to be landing",
+            Duration::from_secs(10),
+            async {
+                let mut version = link.changes();
+                loop {
+                    let landing = {
+                        let view = link.view();
+                        ids.iter().all(|d| {
+                            view.get(d)
+                                .and_then(|e| e.status.as_ref())
+                                .and_then(|s| s.action.as_ref())
+                                .is_some_and(|p| p.action == Action::Land)
+                        })
+                    };
+                    if landing {
+                        return;
+                    }
+                    let _ = version.recv().await;
                 }
-                let _ = version.recv().await;
-            }
-        })
+            },
+        )
         .await?;
-        assert!(!backend.returned.load(Ordering::SeqCst), "the model call returned first");
-        println!("land all reached every drone {:.0} ms after it was typed", typed.elapsed().as_secs_f64() * 1e3);
+        assert!(
+            !backend.returned.load(Ordering::SeqCst),
+            "the model call returned first"
+        );
+        println!(
+            "land all reached every drone {:.0} ms after it was typed",
+            typed.elapsed().as_secs_f64() * 1e3
+        );
 
         // Release the model: its goto for alfa is older than the pilot's command. Whichever
         // check catches it first (alfa is busy landing; the override), it is not sent, and the
@@ -155,7 +173,10 @@ async fn land_all_is_sent_while_a_model_call_is_pending_and_the_late_reply_is_no
                 let landed = {
                     let view = link.view();
                     let now = std::time::Instant::now();
-                    ids.iter().all(|d| view.get(d).is_some_and(|e| e.effective_mode(now) == DroneMode::Idle))
+                    ids.iter().all(|d| {
+                        view.get(d)
+                            .is_some_and(|e| e.effective_mode(now) == DroneMode::Idle)
+                    })
                 };
                 if landed {
                     return;
@@ -177,9 +198,16 @@ async fn land_all_is_sent_while_a_model_call_is_pending_and_the_late_reply_is_no
             .collect();
         assert_eq!(sent.len(), 3, "three landings and nothing else: {sent:?}");
         assert!(sent.iter().all(|(_, a)| a == "land()"), "{sent:?}");
-        let direct = lines.iter().position(|l| matches!(&l.record, Record::Direct { text, .. } if text == "land all"));
-        let reply = lines.iter().position(|l| matches!(&l.record, Record::LlmReply { layer, .. } if layer == "supervisor"));
-        assert!(direct.is_some() && reply.is_some() && direct < reply, "the command was logged before the model replied");
+        let direct = lines
+            .iter()
+            .position(|l| matches!(&l.record, Record::Direct { text, .. } if text == "land all"));
+        let reply = lines.iter().position(
+            |l| matches!(&l.record, Record::LlmReply { layer, .. } if layer == "supervisor"),
+        );
+        assert!(
+            direct.is_some() && reply.is_some() && direct < reply,
+            "the command was logged before the model replied"
+        );
         let _ = std::fs::remove_file(&log_path);
         anyhow::Ok(())
     }

@@ -74,7 +74,10 @@ pub enum DroneState {
 
 #[derive(Debug, Clone, PartialEq)]
 pub enum Condition {
-    Drones { who: Who, state: DroneState },
+    Drones {
+        who: Who,
+        state: DroneState,
+    },
     /// The simulator's perception reported this target (since the script started).
     Detected(String),
     /// A plan completed since the last `say`.
@@ -188,7 +191,9 @@ fn parse_step(content: &str) -> Result<StepKind, String> {
                 })
             }
             [s] => Ok(StepKind::Wait(seconds(s)?)),
-            _ => Err("expected `wait <seconds>` or `wait until <condition> [within <seconds>]`".into()),
+            _ => Err(
+                "expected `wait <seconds>` or `wait until <condition> [within <seconds>]`".into(),
+            ),
         },
         "expect" => Ok(StepKind::Expect(parse_condition(&words)?)),
         "fail" => match words.as_slice() {
@@ -205,7 +210,7 @@ fn parse_step(content: &str) -> Result<StepKind, String> {
 fn seconds(word: &str) -> Result<Duration, String> {
     let s = word.strip_suffix('s').unwrap_or(word);
     match s.parse::<f64>() {
-        Ok(v) if v.is_finite() && v >= 0.0 && v <= 86_400.0 => Ok(Duration::from_secs_f64(v)),
+        Ok(v) if (0.0..=86_400.0).contains(&v) => Ok(Duration::from_secs_f64(v)),
         _ => Err(format!("{word:?} is not a number of seconds (0 to 86400)")),
     }
 }
@@ -281,9 +286,10 @@ impl Script {
             let drone_ok = |d: &str| drones.iter().any(|x| x == d);
             let state_ok = |s: &DroneState| -> Result<(), String> {
                 match s {
-                    DroneState::Tracking(Some(t)) if !target(t) => {
-                        Err(format!("{t:?} is not a target of the {} map", scenario.name))
-                    }
+                    DroneState::Tracking(Some(t)) if !target(t) => Err(format!(
+                        "{t:?} is not a target of the {} map",
+                        scenario.name
+                    )),
                     DroneState::Near(p) if !place(p) => Err(format!(
                         "{p:?} is neither a landmark nor a target of the {} map",
                         scenario.name
@@ -291,12 +297,8 @@ impl Script {
                     _ => Ok(()),
                 }
             };
-            let unknown_drone = |d: &str| {
-                format!(
-                    "{d:?} is not a drone of this run ({})",
-                    drones.join(", ")
-                )
-            };
+            let unknown_drone =
+                |d: &str| format!("{d:?} is not a drone of this run ({})", drones.join(", "));
             let condition = match &step.kind {
                 StepKind::WaitUntil { condition, .. } | StepKind::Expect(condition) => {
                     Some(condition)
@@ -327,7 +329,10 @@ impl Script {
                     }
                 }
                 Some(Condition::Detected(t)) if !target(t) => {
-                    return fail(format!("{t:?} is not a target of the {} map", scenario.name));
+                    return fail(format!(
+                        "{t:?} is not a target of the {} map",
+                        scenario.name
+                    ));
                 }
                 _ => {}
             }
@@ -399,7 +404,11 @@ mod tests {
         let cases = [
             ("say hi\nwait forever\n", 2, "not a number of seconds"),
             ("\n\nfly to the park\n", 3, "unknown step \"fly\""),
-            ("wait until all swimming", 1, "unknown drone state \"swimming\""),
+            (
+                "wait until all swimming",
+                1,
+                "unknown drone state \"swimming\"",
+            ),
             ("wait until plan complete within soon", 1, "not a number"),
             ("say\n", 1, "needs the pilot's words"),
             ("expect 0 flying", 1, "at least 1"),

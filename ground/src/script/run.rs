@@ -89,17 +89,15 @@ impl Facts<'_> {
             DroneState::Landed => mode == DroneMode::Idle,
             DroneState::Unavailable => mode == DroneMode::Unavailable,
             DroneState::Tracking(None) => mode == DroneMode::Tracking,
-            DroneState::Tracking(Some(target)) => {
-                mode == DroneMode::Tracking
-                    && self
-                        .view
-                        .get(id)
-                        .and_then(|e| e.status.as_ref())
-                        .and_then(|s| s.action.as_ref())
-                        .is_some_and(|p| {
-                            matches!(&p.action, Action::StartTracking { target: t } if t == target)
-                        })
-            }
+            DroneState::Tracking(Some(target)) => mode == DroneMode::Tracking
+                && self
+                    .view
+                    .get(id)
+                    .and_then(|e| e.status.as_ref())
+                    .and_then(|s| s.action.as_ref())
+                    .is_some_and(
+                        |p| matches!(&p.action, Action::StartTracking { target: t } if t == target),
+                    ),
             DroneState::Near(place) => {
                 let Some(at) = self.place(place) else {
                     return false;
@@ -110,9 +108,7 @@ impl Facts<'_> {
                         .view
                         .get(id)
                         .and_then(|e| e.status.as_ref())
-                        .is_some_and(|s| {
-                            (s.position.x - at.x).hypot(s.position.y - at.y) <= radius
-                        })
+                        .is_some_and(|s| (s.position.x - at.x).hypot(s.position.y - at.y) <= radius)
             }
         }
     }
@@ -156,12 +152,14 @@ impl Facts<'_> {
                             .iter()
                             .filter(|d| !self.seen.killed.contains(d))
                             .collect();
-                        !counted.is_empty()
-                            && count(&mut counted.iter().copied()) == counted.len()
+                        !counted.is_empty() && count(&mut counted.iter().copied()) == counted.len()
                     }
                     Who::Any => count(&mut self.drones.iter()) >= 1,
                     Who::AtLeast(n) => count(&mut self.drones.iter()) >= *n,
-                    Who::Drone(d) => self.drones.iter().any(|x| x.as_str() == d && self.is(x, state)),
+                    Who::Drone(d) => self
+                        .drones
+                        .iter()
+                        .any(|x| x.as_str() == d && self.is(x, state)),
                 }
             }
             Condition::Detected(target) => self.seen.detected.contains(target),
@@ -170,10 +168,12 @@ impl Facts<'_> {
             Condition::NoBreaches => {
                 return match self.truth {
                     None => Err("no ground truth from the simulator yet".into()),
-                    Some(t) if t.separation_breaches > 0 || t.obstacle_breaches > 0 => Err(format!(
-                        "{} separation and {} obstacle breaches (closest pair {:.2} m)",
-                        t.separation_breaches, t.obstacle_breaches, t.min_pair_distance
-                    )),
+                    Some(t) if t.separation_breaches > 0 || t.obstacle_breaches > 0 => {
+                        Err(format!(
+                            "{} separation and {} obstacle breaches (closest pair {:.2} m)",
+                            t.separation_breaches, t.obstacle_breaches, t.min_pair_distance
+                        ))
+                    }
                     Some(_) => Ok(()),
                 };
             }
@@ -293,10 +293,7 @@ impl Runner {
         match kind {
             StepKind::Say(text) => {
                 self.seen.plans_complete_since_say = 0;
-                self.input
-                    .submit(text)
-                    .await
-                    .map_err(|e| e.to_string())?;
+                self.input.submit(text).await.map_err(|e| e.to_string())?;
                 Ok(())
             }
             StepKind::Wait(d) => {
@@ -326,7 +323,9 @@ impl Runner {
                     .inject_fault(&drone, FaultKind::VehicleDies)
                     .await
                     .map_err(|e| e.to_string())?;
-                self.say(&format!("script: {drone} fails (the simulator kills the vehicle)"));
+                self.say(&format!(
+                    "script: {drone} fails (the simulator kills the vehicle)"
+                ));
                 self.seen.killed.push(drone);
                 self.seen.plans_since_fail = 0;
                 Ok(())

@@ -955,6 +955,9 @@ fn drones_sharing_a_map_cell_are_one_marker_with_a_count() {
     assert!(find(&buf, "●d1+2").is_some(), "{screen}");
     assert!(find(&buf, "●d4").is_some(), "{screen}");
     for hidden in ["d2", "d3"] {
-        assert!(!screen.contains(hidden), "{hidden} drawn over its neighbour:\n{screen}");
+        assert!(
+            !screen.contains(hidden),
+            "{hidden} drawn over its neighbour:\n{screen}"
+        );
     }
 }
