@@ -8,6 +8,7 @@ use crate::link::{GroundLink, LinkError};
 use crate::patterns::{fly_points, fly_swap};
 use crate::pilot::{SessionOptions, SessionReport, run_session};
 use crate::safety::SafetyGate;
+use crate::script::{Script, ScriptOptions, ScriptReport, run_script};
 use std::sync::Arc;
 use std::time::Duration;
 use tacos_bus::BusArgs;
@@ -54,6 +55,21 @@ pub enum DemoPlan {
         backend: Arc<dyn LlmBackend>,
         session: SessionOptions,
     },
+    /// A pilot script, headless (`crate::script`).
+    Script {
+        backend: Arc<dyn LlmBackend>,
+        script: Script,
+        options: ScriptOptions,
+    },
+}
+
+/// What a finished demo reports.
+#[derive(Debug)]
+pub enum DemoReport {
+    /// The fixed pattern was flown and checked.
+    Flown,
+    Session(SessionReport),
+    Script(ScriptReport),
 }
 
 /// Runs the whole demo; every child is shut down before this returns.
@@ -61,7 +77,7 @@ pub async fn run_demo(
     opts: DemoOptions,
     plan: DemoPlan,
     interrupt: impl std::future::Future<Output = ()>,
-) -> Result<Option<SessionReport>, DemoError> {
+) -> Result<DemoReport, DemoError> {
     let swarm = SwarmId::new(format!("demo{}", std::process::id()))
         .map_err(|e| DemoError::Step(e.to_string()))?;
     let config = StackConfig::on_loopback(
@@ -96,14 +112,21 @@ pub async fn run_demo(
     let mut result = tokio::select! {
         r = async {
             match plan {
-                DemoPlan::Fixed => fly_points(&link, &gate, &ids, truth, opts.verbose).await.map(|()| None),
-                DemoPlan::Swap => fly_swap(&link, &gate, &ids, truth, opts.verbose).await.map(|()| None),
+                DemoPlan::Fixed => fly_points(&link, &gate, &ids, truth, opts.verbose).await.map(|()| DemoReport::Flown),
+                DemoPlan::Swap => fly_swap(&link, &gate, &ids, truth, opts.verbose).await.map(|()| DemoReport::Flown),
                 DemoPlan::Llm { backend, session } => {
                     link.wait_for_drones(&ids, Duration::from_secs(60), |s| s.autopilot_link && s.mode == DroneMode::Idle).await?;
                     let report = run_session(link.clone(), gate.clone(), backend, session)
                         .await
                         .map_err(|e| DemoError::Step(e.to_string()))?;
-                    Ok(Some(report))
+                    Ok(DemoReport::Session(report))
+                }
+                DemoPlan::Script { backend, script, options } => {
+                    link.wait_for_drones(&ids, Duration::from_secs(60), |s| s.autopilot_link && s.mode == DroneMode::Idle).await?;
+                    let report = run_script(link.clone(), gate.clone(), backend, &script, options)
+                        .await
+                        .map_err(|e| DemoError::Step(e.to_string()))?;
+                    Ok(DemoReport::Script(report))
                 }
             }
         } => r,

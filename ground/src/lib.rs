@@ -14,6 +14,7 @@ pub mod patterns;
 pub mod pilot;
 pub mod plot;
 pub mod safety;
+pub mod script;
 pub mod swarm;
 pub mod table;
 pub mod tui;

@@ -9,9 +9,10 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tacos_bus::{BusArgs, BusError};
 use tacos_shared::keys::Keys;
 use tacos_shared::messages::{
-    ActionState, DroneStatus, GroundHeartbeat, SimTruth, TargetObservation, TargetsMessage,
-    WorldEvent,
+    ActionState, DroneStatus, FaultRequest, GroundHeartbeat, SimTruth, TargetObservation,
+    TargetsMessage, WorldEvent,
 };
+use tacos_shared::scenario::FaultKind;
 use tacos_shared::{ActionCommand, DroneId};
 use tokio::sync::{broadcast, watch};
 use tokio::task::JoinHandle;
@@ -211,6 +212,17 @@ impl GroundLink {
         )
         .await?;
         Ok(seq)
+    }
+
+    /// Asks the simulator to inject a fault on one vehicle (`sim/faults`; simulation only: a
+    /// real swarm has no simulator listening).
+    pub async fn inject_fault(&self, drone: &DroneId, fault: FaultKind) -> Result<(), LinkError> {
+        let request = FaultRequest {
+            drone: drone.clone(),
+            fault,
+        };
+        tacos_bus::put(&self.session, &self.keys.sim_faults(), &request, true).await?;
+        Ok(())
     }
 
     /// Waits until every drone in `ids` is alive and satisfies `ready`.

@@ -7,11 +7,12 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tacos_bus::BusArgs;
 use tacos_embedded::{EmbeddedBackend, EmbeddedOptions};
-use tacos_ground::demo::{DemoOptions, DemoPlan, run_demo};
+use tacos_ground::demo::{DemoOptions, DemoPlan, DemoReport, run_demo};
 use tacos_ground::link::GroundLink;
 use tacos_ground::mission::{MissionConfig, Mode};
 use tacos_ground::pilot::SessionOptions;
 use tacos_ground::safety::SafetyGate;
+use tacos_ground::script::ScriptOptions;
 use tacos_llm::{LlmBackend, OpenAiBackend, OpenAiConfig};
 use tacos_shared::action::Action;
 use tacos_shared::messages::ActionState;
@@ -54,9 +55,10 @@ enum Cmd {
     },
     /// Start a simulated swarm on this machine and fly it.
     Demo {
-        /// Number of drones (up to the map's slots: 20 in the city, 3 in the lab).
-        #[arg(long, default_value_t = 6)]
-        drones: usize,
+        /// Number of drones (up to the map's slots: 20 in the city, 3 in the lab); default 6,
+        /// or every slot of a smaller map.
+        #[arg(long)]
+        drones: Option<usize>,
         /// Built-in map (city, lab) or a scenario file.
         #[arg(long = "map", alias = "scenario", default_value = "city")]
         map: String,
@@ -74,6 +76,10 @@ enum Cmd {
         /// A pilot line, carried out before anything else (repeatable, in order).
         #[arg(long)]
         say: Vec<String>,
+        /// Run a pilot script headless (see the README for its format); exits non-zero
+        /// naming the first step that fails.
+        #[arg(long, conflicts_with_all = ["say", "no_llm"])]
+        script: Option<PathBuf>,
         /// tacos (full), wor (Supervisor without the Coordinator's reasoning), mnl (one model).
         #[arg(long, default_value = "tacos")]
         mode: Mode,
@@ -222,6 +228,7 @@ fn run() -> anyhow::Result<()> {
                 pattern,
                 no_terminal,
                 say,
+                script,
                 mode,
                 llm,
                 log,
@@ -233,6 +240,7 @@ fn run() -> anyhow::Result<()> {
                     pattern,
                     no_terminal,
                     say,
+                    script,
                     mode,
                     llm,
                     log,
@@ -377,12 +385,13 @@ fn plot(log: &std::path::Path, output: &std::path::Path, map: Option<&str>) -> a
 }
 
 struct DemoArgs {
-    drones: usize,
+    drones: Option<usize>,
     map: String,
     no_llm: bool,
     pattern: String,
     no_terminal: bool,
     say: Vec<String>,
+    script: Option<PathBuf>,
     mode: Mode,
     llm: LlmArgs,
     log: Option<PathBuf>,
@@ -390,10 +399,31 @@ struct DemoArgs {
 
 async fn demo(args: DemoArgs) -> anyhow::Result<()> {
     let scenario = tacos_bus::load_scenario(&args.map)?;
+    let drones = args.drones.unwrap_or(6.min(scenario.drones.len()));
+    // A script is read and checked against the map before anything starts.
+    let script = match &args.script {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading {}", path.display()))?;
+            let script = tacos_ground::script::parse(&text)
+                .and_then(|s| {
+                    let drones: Vec<String> = scenario
+                        .drones
+                        .iter()
+                        .take(drones)
+                        .map(|d| d.id.to_string())
+                        .collect();
+                    s.check(&scenario, &drones).map(|()| s)
+                })
+                .with_context(|| format!("script {}", path.display()))?;
+            Some(script)
+        }
+        None => None,
+    };
     let opts = DemoOptions {
         scenario_arg: args.map.clone(),
         scenario,
-        drones: args.drones,
+        drones,
         verbose: true,
     };
     let interrupt = async {
@@ -427,28 +457,49 @@ async fn demo(args: DemoArgs) -> anyhow::Result<()> {
         backend.describe(),
         log_path.display()
     );
+    let mission = MissionConfig {
+        mode: args.mode,
+        ..MissionConfig::default()
+    };
+    if let Some(script) = script {
+        let options = ScriptOptions {
+            mission,
+            log_path,
+            verbose: true,
+        };
+        let plan = DemoPlan::Script {
+            backend,
+            script,
+            options,
+        };
+        if let DemoReport::Script(report) = run_demo(opts, plan, interrupt).await? {
+            print_stats(&report.stats, &report.log_path);
+        }
+        return Ok(());
+    }
     let session = SessionOptions {
-        mission: MissionConfig {
-            mode: args.mode,
-            ..MissionConfig::default()
-        },
+        mission,
         say: args.say.clone(),
         interactive: !args.no_terminal,
         log_path,
         line_timeout: Duration::from_secs(600),
         verbose: true,
     };
-    let report = run_demo(opts, DemoPlan::Llm { backend, session }, interrupt).await?;
-    if let Some(report) = report {
-        let s = &report.stats;
-        println!(
-            "demo finished: {} model calls, {} supervisor cycles, {} actions sent, {} gate rejections; mission log {}",
-            s.model_calls,
-            s.cycles_total,
-            s.actions_sent,
-            s.gate_rejections,
-            report.log_path.display()
-        );
+    if let DemoReport::Session(report) =
+        run_demo(opts, DemoPlan::Llm { backend, session }, interrupt).await?
+    {
+        print_stats(&report.stats, &report.log_path);
     }
     Ok(())
+}
+
+fn print_stats(s: &tacos_ground::mission::MissionStats, log: &std::path::Path) {
+    println!(
+        "demo finished: {} model calls, {} supervisor cycles, {} actions sent by the models, {} gate rejections; mission log {}",
+        s.model_calls,
+        s.cycles_total,
+        s.actions_sent,
+        s.gate_rejections,
+        log.display()
+    );
 }

@@ -3,7 +3,7 @@
 
 use crate::link::GroundLink;
 use crate::mission::log::MissionLog;
-use crate::mission::{Mission, MissionConfig, MissionStats, MissionUpdate};
+use crate::mission::{Mission, MissionConfig, MissionStats, MissionUpdate, PilotInput};
 use crate::safety::SafetyGate;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -41,7 +41,8 @@ pub struct SessionReport {
     pub log_path: PathBuf,
 }
 
-fn describe(update: &MissionUpdate) -> String {
+/// One line of text for an update, as the headless modes print it.
+pub fn describe(update: &MissionUpdate) -> String {
     match update {
         MissionUpdate::Thinking { layer } => format!("{layer} thinking…"),
         MissionUpdate::Plan { reasoning, calls } => format!(
@@ -96,6 +97,8 @@ pub async fn run_session(
     let scenario = gate.scenario().clone();
     let description = backend.describe();
     let (updates_tx, mut updates) = mpsc::unbounded_channel();
+    let (input, inputs) =
+        PilotInput::new(link.clone(), gate.clone(), log.clone(), updates_tx.clone());
     let mission = Mission::new(
         opts.mission.clone(),
         backend,
@@ -105,8 +108,7 @@ pub async fn run_session(
         updates_tx,
     )
     .await?;
-    let (lines_tx, lines_rx) = mpsc::channel(16);
-    let mission_task = tokio::spawn(mission.run(lines_rx));
+    let mission_task = tokio::spawn(mission.run_with(inputs));
     let start = Instant::now();
     let say = |text: &str| {
         if opts.verbose {
@@ -117,7 +119,7 @@ pub async fn run_session(
     let mut result = Ok(());
     for line in &opts.say {
         say(&format!("pilot: {line}"));
-        if lines_tx.send(line.clone()).await.is_err() {
+        if input.submit(line).await.is_err() {
             result = Err(SessionError::Line {
                 line: line.clone(),
                 reason: "the mission stopped".into(),
@@ -155,12 +157,21 @@ pub async fn run_session(
     if result.is_ok() && opts.interactive && std::io::IsTerminal::is_terminal(&std::io::stdout()) {
         // The pilot's full-screen terminal: map, swarm, chat, events, status.
         let targets = link_for_terminal.watch_targets().await?;
+        // The swarm table lists this run's drones, not every slot of the map (a demo of six
+        // drones in the city would show fourteen "unavailable" rows).
+        let mut scenario = scenario;
+        {
+            let view = link_for_terminal.view();
+            if view.drones().next().is_some() {
+                scenario.drones.retain(|d| view.get(&d.id).is_some());
+            }
+        }
         if let Err(e) = crate::tui::run_terminal(
             link_for_terminal.clone(),
             scenario,
             description,
             updates,
-            lines_tx.clone(),
+            input.clone(),
             targets,
         )
         .await
@@ -180,7 +191,7 @@ pub async fn run_session(
                 line = stdin.next_line() => match line {
                     Ok(Some(text)) if text.trim() == "quit" => break,
                     Ok(Some(text)) => {
-                        if lines_tx.send(text).await.is_err() {
+                        if input.submit(&text).await.is_err() {
                             break;
                         }
                     }
@@ -193,7 +204,7 @@ pub async fn run_session(
             }
         }
     }
-    drop(lines_tx);
+    drop(input);
     let stats = match tokio::time::timeout(Duration::from_secs(5), mission_task).await {
         Ok(Ok(stats)) => stats,
         _ => MissionStats::default(),

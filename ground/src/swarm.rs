@@ -74,15 +74,25 @@ impl SwarmView {
         })
     }
 
+    /// A drone whose own report turns unusable (its autopilot died or its link to it broke,
+    /// while its onboard process still runs) has left the swarm as far as missions go, and
+    /// joins again when the report recovers: the same changes as its liveliness token's.
     pub fn apply_status(&mut self, status: DroneStatus, now: Instant) -> SwarmChange {
         let id = status.drone.clone();
         let entry = self.entry(&id);
+        let usable = |s: &DroneStatus| s.autopilot_link && s.mode != DroneMode::Unavailable;
+        let before = entry.status.as_ref().map(usable);
+        let after = usable(&status);
         // A status can arrive just before the liveliness token; it proves the drone is there.
         entry.alive = true;
         entry.gone_at = None;
         entry.status = Some(status);
         entry.last_status_at = Some(now);
-        SwarmChange::Status(id)
+        match (before, after) {
+            (Some(true), false) => SwarmChange::Left(id),
+            (Some(false), true) => SwarmChange::Joined(id),
+            _ => SwarmChange::Status(id),
+        }
     }
 
     pub fn apply_liveliness(
@@ -171,5 +181,42 @@ mod tests {
             DroneMode::Unavailable
         );
         assert!(view.alive_ids().is_empty());
+    }
+
+    #[test]
+    fn a_drone_whose_autopilot_dies_leaves_and_rejoins_when_it_recovers() {
+        let t0 = Instant::now();
+        let mut view = SwarmView::default();
+        let alfa = DroneId::new("alfa").expect("valid");
+        let dead = DroneStatus {
+            mode: DroneMode::Unavailable,
+            autopilot_link: false,
+            ..status("alfa")
+        };
+        // Booting without an autopilot, then up: one join.
+        assert_eq!(
+            view.apply_status(dead.clone(), t0),
+            SwarmChange::Status(alfa.clone())
+        );
+        assert_eq!(
+            view.apply_status(status("alfa"), t0),
+            SwarmChange::Joined(alfa.clone())
+        );
+        assert_eq!(
+            view.apply_status(status("alfa"), t0),
+            SwarmChange::Status(alfa.clone())
+        );
+        assert_eq!(
+            view.apply_status(dead.clone(), t0),
+            SwarmChange::Left(alfa.clone())
+        );
+        assert_eq!(
+            view.apply_status(dead, t0),
+            SwarmChange::Status(alfa.clone())
+        );
+        assert_eq!(
+            view.apply_status(status("alfa"), t0),
+            SwarmChange::Joined(alfa)
+        );
     }
 }

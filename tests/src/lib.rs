@@ -10,6 +10,8 @@ use tacos_shared::scenario::Scenario;
 use tacos_shared::{DroneId, DroneMode};
 use tokio::sync::watch;
 
+pub mod chat_server;
+
 /// A swarm id no other test (or run) uses.
 pub fn unique_swarm(tag: &str) -> SwarmId {
     use std::sync::atomic::{AtomicU32, Ordering};

@@ -2,6 +2,7 @@
 //! pending plan, the two memories, automatic replans, and the bookkeeping of what was sent.
 
 use super::directives::{self, Directive};
+use super::input::MissionInputs;
 use super::log::{MissionLog, Record};
 use super::resolve::resolve;
 use crate::link::GroundLink;
@@ -97,6 +98,8 @@ pub enum MissionError {
         attempts: u32,
         reason: String,
     },
+    #[error("not sending {action} to {drone}: the pilot gave a direct command meanwhile")]
+    Overridden { drone: String, action: String },
     #[error("sending {action} to {drone} failed: {reason}")]
     Send {
         drone: String,
@@ -222,6 +225,9 @@ pub struct Mission {
     plan: Option<ActivePlan>,
     mnl: Monolithic,
     stats: MissionStats,
+    /// Counts the direct commands `PilotInput` carried out; a change the engine has not yet
+    /// seen means a model's proposal is older than the pilot's command (see `mission::input`).
+    overrides: watch::Receiver<u64>,
 }
 
 /// The result of checking one reply: what may be done, and why the rest may not.
@@ -276,6 +282,8 @@ impl Mission {
             plan: None,
             mnl: Monolithic::default(),
             stats: MissionStats::default(),
+            // No sender: never changes until `run_with` brings the pilot's.
+            overrides: watch::channel(0).1,
         })
     }
 
@@ -296,7 +304,23 @@ impl Mission {
     }
 
     /// Runs the mission until `inputs` closes: pilot lines in, cycles on every change.
-    pub async fn run(mut self, mut inputs: mpsc::Receiver<String>) -> MissionStats {
+    pub async fn run(self, inputs: mpsc::Receiver<String>) -> MissionStats {
+        let (_no_overrides, overrides) = watch::channel(0);
+        self.run_with(MissionInputs {
+            lines: inputs,
+            overrides,
+        })
+        .await
+    }
+
+    /// As `run`, with the direct commands of a `PilotInput` carried out beside the engine.
+    pub async fn run_with(mut self, inputs: MissionInputs) -> MissionStats {
+        let MissionInputs {
+            lines: mut inputs,
+            overrides: mut wake,
+        } = inputs;
+        self.overrides = wake.clone();
+        let mut wake_open = true;
         let mut membership = self.link.membership();
         let mut events = match self.link.watch_events().await {
             Ok(rx) => rx,
@@ -311,8 +335,13 @@ impl Mission {
         loop {
             let mut cycle_due = false;
             tokio::select! {
+                changed = wake.changed(), if wake_open => if changed.is_err() {
+                    wake_open = false;
+                },
                 line = inputs.recv() => match line {
                     Some(text) => {
+                        // The pilot's direct command came before this line.
+                        self.take_override();
                         if let Err(e) = self.pilot(&text).await {
                             self.tell(MissionUpdate::Error(e.to_string()));
                         }
@@ -342,6 +371,7 @@ impl Mission {
                     cycle_due = self.poll_outcomes() || (self.busy() && last_cycle.elapsed() >= self.cfg.cycle_timeout);
                 }
             }
+            self.take_override();
             if cycle_due && self.busy() {
                 last_cycle = Instant::now();
                 if let Err(e) = self.cycle().await {
@@ -353,6 +383,20 @@ impl Mission {
             outcome: "pilot closed the session".into(),
         });
         self.stats
+    }
+
+    /// After a direct command carried out by `PilotInput`: the models' plan ends, as with one
+    /// the engine carries out itself. True when there was one.
+    fn take_override(&mut self) -> bool {
+        if !self.overrides.has_changed().unwrap_or(false) {
+            return false;
+        }
+        self.overrides.borrow_and_update();
+        if let Some(plan) = self.plan.take() {
+            self.finish_plan(plan, "interrupted by a direct command");
+        }
+        self.mnl.active = false;
+        true
     }
 
     /// Where every drone is, for `tacos-ground plot` (twice a second).
@@ -1166,6 +1210,13 @@ impl Mission {
         checked: &CheckedAction,
         task: Option<String>,
     ) -> Result<u64, MissionError> {
+        // Whatever a model proposed before the pilot's direct command must not follow it.
+        if self.overrides.has_changed().unwrap_or(false) {
+            return Err(MissionError::Overridden {
+                drone: checked.drone().to_string(),
+                action: checked.action().to_string(),
+            });
+        }
         let seq = self
             .link
             .send(checked, task.clone())

@@ -4,13 +4,16 @@
 //!
 //! Every call a model proposes is resolved (`resolve`), checked at the safety gate, and only
 //! then sent; rejected replies go back to their model with the reasons (`engine`). Direct
-//! commands (`directives`) never wait for a model. Everything is written to the mission `log`.
+//! commands (`directives`) never wait for a model: `input` carries them out beside the engine.
+//! Everything is written to the mission `log`.
 
 pub mod directives;
 pub mod engine;
+pub mod input;
 pub mod log;
 pub mod resolve;
 
 pub use engine::{
     Mission, MissionConfig, MissionError, MissionStats, MissionUpdate, Mode, coordinator_messages,
 };
+pub use input::{InputClosed, MissionInputs, PilotInput};

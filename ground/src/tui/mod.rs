@@ -15,13 +15,12 @@ mod tests;
 pub use state::{Command, TerminalState};
 
 use crate::link::GroundLink;
-use crate::mission::MissionUpdate;
+use crate::mission::{MissionUpdate, PilotInput};
 use crossterm::event::{Event, EventStream, KeyEventKind};
 use crossterm::{cursor, execute, terminal};
 use futures_util::StreamExt;
 use ratatui::Terminal;
 use ratatui::backend::CrosstermBackend;
-use std::collections::VecDeque;
 use std::io::Stdout;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -108,17 +107,27 @@ impl Drop for TerminalGuard {
     }
 }
 
+/// Aborts the task when the terminal closes.
+struct AbortOnDrop(tokio::task::JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
 /// Runs the pilot's terminal until the pilot quits (Ctrl-C, Esc, `:q`) or the terminal fails.
 ///
-/// The mission runs elsewhere: `updates` brings what it does, submitted lines leave on `lines`
-/// (queued here, never blocking the screen), and `targets` brings the observed targets. The
-/// swarm is read from `link` at every frame.
+/// The mission runs elsewhere: `updates` brings what it does, submitted lines go to `input`
+/// (direct commands are carried out at once, other lines queued in a background task so the
+/// screen never blocks), and `targets` brings the observed targets. The swarm is read from
+/// `link` at every frame.
 pub async fn run_terminal(
     link: Arc<GroundLink>,
     scenario: Scenario,
     backend_description: String,
     mut updates: mpsc::UnboundedReceiver<MissionUpdate>,
-    lines: mpsc::Sender<String>,
+    input: PilotInput,
     mut targets: watch::Receiver<Vec<TargetObservation>>,
 ) -> Result<(), TuiError> {
     let guard = TerminalGuard::enter()?;
@@ -131,7 +140,7 @@ pub async fn run_terminal(
             &scenario,
             backend_description,
             &mut updates,
-            &lines,
+            &input,
             &mut targets,
         )
         .await
@@ -147,15 +156,25 @@ async fn event_loop(
     scenario: &Scenario,
     backend_description: String,
     updates: &mut mpsc::UnboundedReceiver<MissionUpdate>,
-    lines: &mpsc::Sender<String>,
+    input: &PilotInput,
     targets: &mut watch::Receiver<Vec<TargetObservation>>,
 ) -> Result<(), TuiError> {
     let mut state = TerminalState::new(scenario, backend_description, Instant::now());
     let mut keys = EventStream::new();
     let mut frame = tokio::time::interval(FRAME);
     frame.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-    let mut outbox: VecDeque<String> = VecDeque::new();
-    let (mut updates_open, mut targets_open, mut lines_open) = (true, true, true);
+    // Lines for the models wait here for room in the engine's queue, off the screen's loop.
+    let (outbox, mut queued) = mpsc::unbounded_channel::<String>();
+    let forward = input.clone();
+    let forwarder = tokio::spawn(async move {
+        while let Some(line) = queued.recv().await {
+            if forward.submit(&line).await.is_err() {
+                break;
+            }
+        }
+    });
+    let _stop_forwarder = AbortOnDrop(forwarder);
+    let (mut updates_open, mut targets_open) = (true, true);
     loop {
         tokio::select! {
             _ = frame.tick() => {}
@@ -178,27 +197,21 @@ async fn event_loop(
                     targets_open = false;
                 }
             }
-            permit = lines.reserve(), if lines_open && !outbox.is_empty() => match permit {
-                Ok(permit) => {
-                    if let Some(line) = outbox.pop_front() {
-                        permit.send(line);
-                    }
-                }
-                Err(_) => {
-                    lines_open = false;
-                    outbox.clear();
-                    state.log(state::EventKind::Error, "the mission no longer takes lines");
-                }
-            },
             event = keys.next() => match event {
                 Some(Ok(Event::Key(key))) if key.kind != KeyEventKind::Release => {
                     match state.key(key) {
                         Some(Command::Quit) => return Ok(()),
                         Some(Command::Submit(line)) => {
-                            if lines_open {
-                                outbox.push_back(line);
-                            } else {
+                            if input.is_closed() {
                                 state.log(state::EventKind::Error, format!("not sent (the mission stopped): {line}"));
+                            } else if input.directive(&line).is_some() {
+                                // Gate check and a zenoh put per drone: immediate, and never
+                                // behind lines waiting for the models.
+                                if input.submit(&line).await.is_err() {
+                                    state.log(state::EventKind::Error, format!("not sent (the mission stopped): {line}"));
+                                }
+                            } else if outbox.send(line).is_err() {
+                                state.log(state::EventKind::Error, "the mission no longer takes lines");
                             }
                         }
                         None => {}

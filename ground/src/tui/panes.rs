@@ -268,12 +268,33 @@ pub fn render_map(state: &TerminalState, area: Rect, buf: &mut Buffer) {
     // Labels, placed here rather than by the canvas so that they line up with its dots and do
     // not overwrite each other: drones first, then targets, then landmarks.
     let mut labels = MapLabels::new(inner, x_bounds, y_bounds);
+    // Drones too close to label apart (a pad of ten, a formation) are one marker named after
+    // the first, with how many more are there: "●alfa+4". A drone joins a group when its cell
+    // would fall under the group's marker or label.
+    let mut cells: Vec<((u16, u16), &DroneRow, usize)> = Vec::new();
     for drone in &state.drones {
+        let Some((col, row)) = drone.position.and_then(|p| labels.cell(p.x, p.y)) else {
+            continue;
+        };
+        let under = |((c, r), first, _): &&mut ((u16, u16), &DroneRow, usize)| {
+            let span = first.id.chars().count() as u16 + 3;
+            *r == row && col + 1 >= *c && col <= c.saturating_add(span)
+        };
+        match cells.iter_mut().find(under) {
+            Some((_, _, more)) => *more += 1,
+            None => cells.push(((col, row), drone, 0)),
+        }
+    }
+    for (_, drone, more) in cells {
         if let Some(p) = drone.position {
             let style = Style::new()
                 .fg(mode_color(drone.mode))
                 .add_modifier(Modifier::BOLD);
-            labels.place(buf, p.x, p.y, DRONE_MARKER, &drone.id, style);
+            let name = match more {
+                0 => drone.id.clone(),
+                n => format!("{}+{n}", drone.id),
+            };
+            labels.place(buf, p.x, p.y, DRONE_MARKER, &name, style);
         }
     }
     for target in &state.targets {

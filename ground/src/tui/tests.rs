@@ -934,3 +934,30 @@ const SCREEN: &[&str] = &[
     "│›                                                                                                                     │",
     "└ Enter send · ↑↓ history · Tab focus · PgUp/PgDn scroll · Esc quit ───────────────────────────────────────────────────┘",
 ];
+
+#[test]
+fn drones_sharing_a_map_cell_are_one_marker_with_a_count() {
+    let t0 = Instant::now();
+    let mut state = TerminalState::new(&lab(), "test", t0);
+    let mut view = SwarmView::default();
+    // Three drones 0.2 m apart share a cell of a 30-column lab map; a fourth stands apart.
+    for (id, x) in [("d1", -3.0), ("d2", -2.8), ("d3", -2.9), ("d4", 3.0)] {
+        view.apply_status(
+            status(id, DroneMode::Flying, [x, -3.0, 1.0], [0.0; 3], None),
+            t0,
+        );
+    }
+    state.refresh_swarm(&view, t0);
+    let area = Rect::new(0, 0, 30, 16);
+    let mut buf = Buffer::empty(area);
+    panes::render_map(&state, area, &mut buf);
+    let screen = text(&buf).join("\n");
+    assert!(find(&buf, "●d1+2").is_some(), "{screen}");
+    assert!(find(&buf, "●d4").is_some(), "{screen}");
+    for hidden in ["d2", "d3"] {
+        assert!(
+            !screen.contains(hidden),
+            "{hidden} drawn over its neighbour:\n{screen}"
+        );
+    }
+}

@@ -1,0 +1,85 @@
+//! Asks the embedded model's Coordinator once per instruction, with every drone of the map
+//! flying above its home, and prints the plan it makes: a quick way to see how the small model
+//! reads a pilot line before writing it into a mission script.
+//! Run: `cargo run -p tacos-ground --example coordinator_probe -- lab "alfa, check small_park"`
+
+use tacos_embedded::{EmbeddedBackend, EmbeddedOptions};
+use tacos_ground::mission::engine::coordinator_messages;
+use tacos_llm::{ChatRequest, LlmBackend, ResponseSchema};
+use tacos_prompts::render::{self, DroneLine, HistoryEntry};
+use tacos_prompts::schema::{self, Output};
+use tacos_shared::DroneMode;
+use tacos_shared::scenario::Scenario;
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let mut args = std::env::args().skip(1);
+    let map = args.next().unwrap_or_else(|| "lab".into());
+    let scenario = Scenario::builtin(&map)?;
+    let model = EmbeddedBackend::load(EmbeddedOptions::from_env())?;
+    let drones: Vec<DroneLine> = scenario
+        .drones
+        .iter()
+        .take(6)
+        .map(|d| DroneLine {
+            id: d.id.to_string(),
+            mode: DroneMode::Flying,
+            position: d.home + tacos_shared::Vec3::new(0.0, 0.0, scenario.limits.takeoff_altitude),
+            speed: 0.0,
+            action: Some(format!("T1 {} arm_takeoff()", d.id)),
+            state: Some("done".into()),
+        })
+        .collect();
+    let ids: Vec<String> = drones.iter().map(|d| d.id.clone()).collect();
+    let places: Vec<String> = scenario
+        .world
+        .landmarks
+        .iter()
+        .map(|l| l.name.clone())
+        .chain(
+            scenario
+                .targets
+                .iter()
+                .filter(|t| t.hidden_at.is_none())
+                .map(|t| t.name.clone()),
+        )
+        .collect();
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    for instruction in args {
+        let history = render::history(&[HistoryEntry::Pilot(instruction.clone())]);
+        let messages = coordinator_messages(render::coordinator_request(
+            &render::swarm(&drones),
+            &render::world(&scenario.world, &[], &[]),
+            &render::plan(&[]),
+            &history,
+            &instruction,
+        ));
+        let request = ChatRequest {
+            messages,
+            schema: Some(ResponseSchema {
+                name: Output::Coordinator.name().into(),
+                schema: schema::build(Output::Coordinator, &ids, &places),
+            }),
+            max_tokens: 600,
+            temperature: 0.0,
+            seed: Some(7),
+            reasoning_effort: None,
+        };
+        let reply = runtime.block_on(model.chat(&request))?;
+        let plan = tacos_prompts::CoordinatorReply::parse(&reply.content)
+            .map(|r| {
+                r.plan
+                    .iter()
+                    .map(|c| c.to_string())
+                    .collect::<Vec<_>>()
+                    .join("; ")
+            })
+            .unwrap_or_else(|e| format!("unparsable: {e}"));
+        println!(
+            "{instruction:?} ({:.0} s) => {plan}",
+            reply.latency.as_secs_f64()
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,443 @@
+//! Runs a script against a live swarm: the mission engine with the language-model layers, the
+//! pilot's lines through [`PilotInput`] (so direct commands are instant, as typed), conditions
+//! read from the swarm view, the simulator's events and truth, and the engine's updates.
+
+use super::parse::{Condition, DroneState, Script, StepKind, Victim, Who};
+use crate::link::GroundLink;
+use crate::mission::log::{MissionLog, Record};
+use crate::mission::{Mission, MissionConfig, MissionStats, MissionUpdate, PilotInput};
+use crate::pilot::describe;
+use crate::safety::SafetyGate;
+use crate::swarm::SwarmView;
+use std::collections::BTreeSet;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tacos_llm::LlmBackend;
+use tacos_shared::action::Action;
+use tacos_shared::messages::{SimTruth, TargetObservation, WorldEvent};
+use tacos_shared::scenario::{FaultKind, Scenario};
+use tacos_shared::{DroneId, DroneMode};
+use tokio::sync::{mpsc, watch};
+
+/// How often a `wait until` looks again when nothing woke it.
+const POLL: Duration = Duration::from_millis(200);
+
+#[derive(Debug, Clone)]
+pub struct ScriptOptions {
+    pub mission: MissionConfig,
+    pub log_path: PathBuf,
+    /// Print each step and each update (stdout).
+    pub verbose: bool,
+}
+
+#[derive(Debug, Clone)]
+pub struct ScriptReport {
+    pub stats: MissionStats,
+    pub log_path: PathBuf,
+    pub steps: usize,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ScriptError {
+    #[error(transparent)]
+    Log(#[from] crate::mission::log::LogError),
+    #[error(transparent)]
+    Link(#[from] crate::link::LinkError),
+    #[error("script line {line} `{text}` failed: {reason}")]
+    Step {
+        line: usize,
+        text: String,
+        reason: String,
+    },
+}
+
+/// What the script has seen so far, beside the live swarm view.
+#[derive(Debug, Default)]
+struct Seen {
+    detected: BTreeSet<String>,
+    plans_complete_since_say: u32,
+    plans_since_fail: u32,
+    /// Drones a `fail` step killed: `all` no longer counts them.
+    killed: Vec<DroneId>,
+}
+
+/// Everything a condition is judged on, at one instant.
+struct Facts<'a> {
+    view: &'a SwarmView,
+    now: Instant,
+    scenario: &'a Scenario,
+    /// The drones of the run, in the map's order.
+    drones: &'a [DroneId],
+    targets: &'a [TargetObservation],
+    truth: Option<&'a SimTruth>,
+    seen: &'a Seen,
+}
+
+impl Facts<'_> {
+    fn mode(&self, id: &DroneId) -> DroneMode {
+        self.view
+            .get(id)
+            .map_or(DroneMode::Unavailable, |e| e.effective_mode(self.now))
+    }
+
+    /// Whether one drone is in `state`.
+    fn is(&self, id: &DroneId, state: &DroneState) -> bool {
+        let mode = self.mode(id);
+        match state {
+            DroneState::Flying => mode.is_airborne(),
+            DroneState::Landed => mode == DroneMode::Idle,
+            DroneState::Unavailable => mode == DroneMode::Unavailable,
+            DroneState::Tracking(None) => mode == DroneMode::Tracking,
+            DroneState::Tracking(Some(target)) => mode == DroneMode::Tracking
+                && self
+                    .view
+                    .get(id)
+                    .and_then(|e| e.status.as_ref())
+                    .and_then(|s| s.action.as_ref())
+                    .is_some_and(
+                        |p| matches!(&p.action, Action::StartTracking { target: t } if t == target),
+                    ),
+            DroneState::Near(place) => {
+                let Some(at) = self.place(place) else {
+                    return false;
+                };
+                let radius = 2.0 * self.scenario.limits.detection_radius;
+                mode != DroneMode::Unavailable
+                    && self
+                        .view
+                        .get(id)
+                        .and_then(|e| e.status.as_ref())
+                        .is_some_and(|s| (s.position.x - at.x).hypot(s.position.y - at.y) <= radius)
+            }
+        }
+    }
+
+    /// A landmark's position, or where a visible target was last observed.
+    fn place(&self, name: &str) -> Option<tacos_shared::Vec3> {
+        self.scenario
+            .world
+            .landmarks
+            .iter()
+            .find(|l| l.name == name)
+            .map(|l| l.position)
+            .or_else(|| {
+                self.targets
+                    .iter()
+                    .find(|t| t.name == name)
+                    .map(|t| t.position)
+            })
+    }
+
+    /// Each drone's mode, for messages: "alfa flying, bravo idle".
+    fn summary(&self) -> String {
+        self.drones
+            .iter()
+            .map(|d| format!("{d} {}", self.mode(d)))
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
+    /// Ok when the condition holds; otherwise what was seen instead.
+    fn check(&self, condition: &Condition) -> Result<(), String> {
+        let holds = match condition {
+            Condition::Drones { who, state } => {
+                let count = |ids: &mut dyn Iterator<Item = &DroneId>| {
+                    ids.filter(|d| self.is(d, state)).count()
+                };
+                match who {
+                    Who::All => {
+                        let counted: Vec<&DroneId> = self
+                            .drones
+                            .iter()
+                            .filter(|d| !self.seen.killed.contains(d))
+                            .collect();
+                        !counted.is_empty() && count(&mut counted.iter().copied()) == counted.len()
+                    }
+                    Who::Any => count(&mut self.drones.iter()) >= 1,
+                    Who::AtLeast(n) => count(&mut self.drones.iter()) >= *n,
+                    Who::Drone(d) => self
+                        .drones
+                        .iter()
+                        .any(|x| x.as_str() == d && self.is(x, state)),
+                }
+            }
+            Condition::Detected(target) => self.seen.detected.contains(target),
+            Condition::PlanComplete => self.seen.plans_complete_since_say > 0,
+            Condition::Replanned => self.seen.plans_since_fail > 0,
+            Condition::NoBreaches => {
+                return match self.truth {
+                    None => Err("no ground truth from the simulator yet".into()),
+                    Some(t) if t.separation_breaches > 0 || t.obstacle_breaches > 0 => {
+                        Err(format!(
+                            "{} separation and {} obstacle breaches (closest pair {:.2} m)",
+                            t.separation_breaches, t.obstacle_breaches, t.min_pair_distance
+                        ))
+                    }
+                    Some(_) => Ok(()),
+                };
+            }
+        };
+        if holds {
+            Ok(())
+        } else {
+            let detected = if self.seen.detected.is_empty() {
+                "nothing".to_owned()
+            } else {
+                self.seen
+                    .detected
+                    .iter()
+                    .cloned()
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            };
+            Err(format!(
+                "{condition} does not hold: {}; detected {detected}; plans complete since the last say: {}",
+                self.summary(),
+                self.seen.plans_complete_since_say
+            ))
+        }
+    }
+}
+
+/// The running script: the mission's pilot input and what it reports.
+struct Runner {
+    link: Arc<GroundLink>,
+    scenario: Scenario,
+    drones: Vec<DroneId>,
+    input: PilotInput,
+    log: Arc<MissionLog>,
+    updates: mpsc::UnboundedReceiver<MissionUpdate>,
+    events: mpsc::Receiver<WorldEvent>,
+    targets: watch::Receiver<Vec<TargetObservation>>,
+    truth: watch::Receiver<Option<SimTruth>>,
+    seen: Seen,
+    start: Instant,
+    verbose: bool,
+}
+
+impl Runner {
+    fn say(&self, text: &str) {
+        if self.verbose {
+            println!("[{:>6.1}s] {text}", self.start.elapsed().as_secs_f64());
+        }
+    }
+
+    fn update(&mut self, update: &MissionUpdate) {
+        self.say(&describe(update));
+        match update {
+            MissionUpdate::PlanComplete { .. } => self.seen.plans_complete_since_say += 1,
+            MissionUpdate::Plan { .. } => self.seen.plans_since_fail += 1,
+            _ => {}
+        }
+    }
+
+    fn event(&mut self, event: &WorldEvent) {
+        self.say(&format!("world: {event}"));
+        if let WorldEvent::Detection { target, .. } = event {
+            self.seen.detected.insert(target.clone());
+        }
+    }
+
+    /// Takes in whatever has arrived without waiting.
+    fn drain(&mut self) {
+        while let Ok(u) = self.updates.try_recv() {
+            self.update(&u);
+        }
+        while let Ok(e) = self.events.try_recv() {
+            self.event(&e);
+        }
+    }
+
+    fn check(&self, condition: &Condition) -> Result<(), String> {
+        let targets = self.targets.borrow().clone();
+        let truth = self.truth.borrow().clone();
+        let view = self.link.view();
+        Facts {
+            view: &view,
+            now: Instant::now(),
+            scenario: &self.scenario,
+            drones: &self.drones,
+            targets: &targets,
+            truth: truth.as_ref(),
+            seen: &self.seen,
+        }
+        .check(condition)
+    }
+
+    /// Follows the mission until `deadline`, or until `done` says stop.
+    async fn follow_until(
+        &mut self,
+        deadline: tokio::time::Instant,
+        mut done: impl FnMut(&Runner) -> bool,
+    ) -> bool {
+        loop {
+            self.drain();
+            if done(self) {
+                return true;
+            }
+            let now = tokio::time::Instant::now();
+            if now >= deadline {
+                return false;
+            }
+            let wake = deadline.min(now + POLL);
+            tokio::select! {
+                Some(u) = self.updates.recv() => self.update(&u),
+                Some(e) = self.events.recv() => self.event(&e),
+                _ = tokio::time::sleep_until(wake) => {}
+            }
+        }
+    }
+
+    async fn step(&mut self, kind: &StepKind) -> Result<(), String> {
+        match kind {
+            StepKind::Say(text) => {
+                self.seen.plans_complete_since_say = 0;
+                self.input.submit(text).await.map_err(|e| e.to_string())?;
+                Ok(())
+            }
+            StepKind::Wait(d) => {
+                let deadline = tokio::time::Instant::now() + *d;
+                self.follow_until(deadline, |_| false).await;
+                Ok(())
+            }
+            StepKind::WaitUntil { condition, within } => {
+                let deadline = tokio::time::Instant::now() + *within;
+                if self
+                    .follow_until(deadline, |r| r.check(condition).is_ok())
+                    .await
+                {
+                    Ok(())
+                } else {
+                    let why = self.check(condition).err().unwrap_or_default();
+                    Err(format!("not within {} s: {why}", within.as_secs_f64()))
+                }
+            }
+            StepKind::Expect(condition) => {
+                self.drain();
+                self.check(condition)
+            }
+            StepKind::Fail(victim) => {
+                let drone = self.victim(victim)?;
+                self.link
+                    .inject_fault(&drone, FaultKind::VehicleDies)
+                    .await
+                    .map_err(|e| e.to_string())?;
+                self.say(&format!(
+                    "script: {drone} fails (the simulator kills the vehicle)"
+                ));
+                self.seen.killed.push(drone);
+                self.seen.plans_since_fail = 0;
+                Ok(())
+            }
+        }
+    }
+
+    fn victim(&self, victim: &Victim) -> Result<DroneId, String> {
+        match victim {
+            Victim::Drone(d) => DroneId::new(d).map_err(|e| e.to_string()),
+            Victim::One(state) => {
+                let targets = self.targets.borrow().clone();
+                let view = self.link.view();
+                let facts = Facts {
+                    view: &view,
+                    now: Instant::now(),
+                    scenario: &self.scenario,
+                    drones: &self.drones,
+                    targets: &targets,
+                    truth: None,
+                    seen: &self.seen,
+                };
+                self.drones
+                    .iter()
+                    .find(|d| !self.seen.killed.contains(d) && facts.is(d, state))
+                    .cloned()
+                    .ok_or_else(|| format!("no drone is {state}: {}", facts.summary()))
+            }
+        }
+    }
+}
+
+/// Runs `script` step by step on a swarm that is up; returns at the first failing step.
+pub async fn run_script(
+    link: Arc<GroundLink>,
+    gate: SafetyGate,
+    backend: Arc<dyn LlmBackend>,
+    script: &Script,
+    opts: ScriptOptions,
+) -> Result<ScriptReport, ScriptError> {
+    let log = Arc::new(MissionLog::create(&opts.log_path)?);
+    let scenario = gate.scenario().clone();
+    let drones: Vec<DroneId> = {
+        let view = link.view();
+        scenario
+            .drones
+            .iter()
+            .filter(|d| view.get(&d.id).is_some())
+            .map(|d| d.id.clone())
+            .collect()
+    };
+    // Subscribed before the mission starts, so no event is missed.
+    let events = link.watch_events().await?;
+    let targets = link.watch_targets().await?;
+    let truth = link.watch_truth().await?;
+    let (updates_tx, updates) = mpsc::unbounded_channel();
+    let (input, inputs) =
+        PilotInput::new(link.clone(), gate.clone(), log.clone(), updates_tx.clone());
+    let mission = Mission::new(
+        opts.mission.clone(),
+        backend,
+        gate,
+        link.clone(),
+        log.clone(),
+        updates_tx,
+    )
+    .await?;
+    let mission_task = tokio::spawn(mission.run_with(inputs));
+    let mut runner = Runner {
+        link,
+        scenario,
+        drones,
+        input,
+        log: log.clone(),
+        updates,
+        events,
+        targets,
+        truth,
+        seen: Seen::default(),
+        start: Instant::now(),
+        verbose: opts.verbose,
+    };
+    let mut result = Ok(());
+    for step in &script.steps {
+        runner.say(&format!("script line {}: {}", step.line, step.text));
+        if let Err(reason) = runner.step(&step.kind).await {
+            result = Err(ScriptError::Step {
+                line: step.line,
+                text: step.text.clone(),
+                reason,
+            });
+            break;
+        }
+    }
+    let verdict = match &result {
+        Ok(()) => format!("script complete: {} steps", script.steps.len()),
+        Err(e) => e.to_string(),
+    };
+    runner.log.note(Record::Event {
+        text: verdict.clone(),
+    });
+    runner.say(&verdict);
+    // Closing the input ends the mission (after any model call in flight).
+    let Runner { input, .. } = runner;
+    drop(input);
+    let stats = match tokio::time::timeout(Duration::from_secs(5), mission_task).await {
+        Ok(Ok(stats)) => stats,
+        _ => MissionStats::default(),
+    };
+    result.map(|()| ScriptReport {
+        stats,
+        log_path: log.path().to_owned(),
+        steps: script.steps.len(),
+    })
+}

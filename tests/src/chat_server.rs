@@ -1,0 +1,183 @@
+//! An OpenAI-compatible chat-completions server on loopback, for running the real
+//! `tacos-ground` binary against a stand-in model. It speaks HTTP/1.1 the way a served model
+//! does: `POST /v1/chat/completions` only (404 otherwise), a JSON body with `model` and
+//! `messages` (400 when malformed), the configured model name (404 for another), a chat
+//! completion with `usage` on success, and `{"error": {...}}` bodies on errors. The reply text
+//! comes from a policy that reads the request; it may answer with an error status instead.
+
+use serde_json::{Value, json};
+use std::sync::{Arc, Mutex};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpListener, TcpStream};
+
+/// What the policy answers: the message content, or an error the server returns as HTTP.
+pub type PolicyResult = Result<String, (u16, String)>;
+
+/// A running server; it stops when the test's runtime ends.
+pub struct ChatServer {
+    /// Base URL for `--llm-url` (ends in `/v1`).
+    pub url: String,
+    /// The model name it serves.
+    pub model: String,
+    /// Every request body received, in order, with the status answered.
+    pub exchanges: Arc<Mutex<Vec<(Value, u16)>>>,
+}
+
+impl ChatServer {
+    /// Serves `model` on a free loopback port; `policy` sees each request's JSON body (with
+    /// its index, from 0) and decides the reply.
+    pub async fn start<F>(model: &str, policy: F) -> std::io::Result<ChatServer>
+    where
+        F: Fn(usize, &Value) -> PolicyResult + Send + Sync + 'static,
+    {
+        let listener = TcpListener::bind("127.0.0.1:0").await?;
+        let url = format!("http://{}/v1", listener.local_addr()?);
+        let exchanges: Arc<Mutex<Vec<(Value, u16)>>> = Arc::new(Mutex::new(Vec::new()));
+        let policy = Arc::new(policy);
+        let (served, log) = (model.to_owned(), exchanges.clone());
+        tokio::spawn(async move {
+            while let Ok((stream, _)) = listener.accept().await {
+                let (policy, served, log) = (policy.clone(), served.clone(), log.clone());
+                tokio::spawn(async move {
+                    let _ = serve(stream, policy.as_ref(), &served, &log).await;
+                });
+            }
+        });
+        Ok(ChatServer {
+            url,
+            model: model.to_owned(),
+            exchanges,
+        })
+    }
+
+    /// How many requests were answered with `status`.
+    pub fn count(&self, status: u16) -> usize {
+        self.exchanges
+            .lock()
+            .map_or(0, |e| e.iter().filter(|(_, s)| *s == status).count())
+    }
+}
+
+async fn serve<F>(
+    mut stream: TcpStream,
+    policy: &F,
+    served: &str,
+    log: &Mutex<Vec<(Value, u16)>>,
+) -> std::io::Result<()>
+where
+    F: Fn(usize, &Value) -> PolicyResult,
+{
+    // One request per connection (`connection: close`), like a server that does not keep alive.
+    let (head, body) = read_request(&mut stream).await?;
+    let request_line = head.lines().next().unwrap_or_default().to_owned();
+    let (status, reply) = if !request_line.starts_with("POST /v1/chat/completions ") {
+        (404, error_body("not found", "invalid_request_error"))
+    } else {
+        match serde_json::from_slice::<Value>(&body) {
+            Err(e) => (
+                400,
+                error_body(&format!("invalid JSON: {e}"), "invalid_request_error"),
+            ),
+            Ok(request) => {
+                let answer = if request["model"] != served {
+                    Err((404, format!("model {} not found", request["model"])))
+                } else if !request["messages"].is_array() {
+                    Err((400, "messages must be an array".to_owned()))
+                } else {
+                    let index = log.lock().map_or(0, |l| l.len());
+                    policy(index, &request)
+                };
+                let status = answer.as_ref().map_or_else(|(s, _)| *s, |_| 200);
+                if let Ok(mut l) = log.lock() {
+                    l.push((request.clone(), status));
+                }
+                match answer {
+                    Ok(content) => (200, completion(&request, served, &content)),
+                    Err((status, message)) => (status, error_body(&message, "server_error")),
+                }
+            }
+        }
+    };
+    let reason = match status {
+        200 => "OK",
+        400 => "Bad Request",
+        404 => "Not Found",
+        429 => "Too Many Requests",
+        503 => "Service Unavailable",
+        _ => "Error",
+    };
+    let body = reply.to_string();
+    let response = format!(
+        "HTTP/1.1 {status} {reason}\r\ncontent-type: application/json\r\ncontent-length: {}\r\nconnection: close\r\n\r\n{body}",
+        body.len()
+    );
+    stream.write_all(response.as_bytes()).await?;
+    stream.shutdown().await
+}
+
+fn error_body(message: &str, kind: &str) -> Value {
+    json!({ "error": { "message": message, "type": kind, "code": null } })
+}
+
+fn completion(request: &Value, model: &str, content: &str) -> Value {
+    let words = |t: &str| t.split_whitespace().count();
+    let prompt: usize = request["messages"]
+        .as_array()
+        .map(|m| {
+            m.iter()
+                .map(|m| words(m["content"].as_str().unwrap_or_default()))
+                .sum()
+        })
+        .unwrap_or(0);
+    json!({
+        "id": "chatcmpl-standin",
+        "object": "chat.completion",
+        "created": 0,
+        "model": model,
+        "choices": [{
+            "index": 0,
+            "message": { "role": "assistant", "content": content },
+            "finish_reason": "stop"
+        }],
+        "usage": {
+            "prompt_tokens": prompt,
+            "completion_tokens": words(content),
+            "total_tokens": prompt + words(content)
+        }
+    })
+}
+
+/// Reads one HTTP/1.1 request: the head (as text) and a Content-Length body.
+async fn read_request(stream: &mut TcpStream) -> std::io::Result<(String, Vec<u8>)> {
+    let mut data = Vec::new();
+    let mut buf = [0u8; 8192];
+    loop {
+        let n = stream.read(&mut buf).await?;
+        if n == 0 {
+            return Ok((String::from_utf8_lossy(&data).into_owned(), Vec::new()));
+        }
+        data.extend_from_slice(&buf[..n]);
+        if let Some(end) = data.windows(4).position(|w| w == b"\r\n\r\n") {
+            let head = String::from_utf8_lossy(&data[..end]).into_owned();
+            let length = head
+                .lines()
+                .find_map(|l| {
+                    let (name, value) = l.split_once(':')?;
+                    name.trim()
+                        .eq_ignore_ascii_case("content-length")
+                        .then(|| value.trim().parse::<usize>().ok())
+                        .flatten()
+                })
+                .unwrap_or(0);
+            while data.len() < end + 4 + length {
+                let n = stream.read(&mut buf).await?;
+                if n == 0 {
+                    break;
+                }
+                data.extend_from_slice(&buf[..n]);
+            }
+            let body = data.get(end + 4..).unwrap_or_default().to_vec();
+            return Ok((head, body));
+        }
+    }
+}

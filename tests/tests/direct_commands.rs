@@ -1,0 +1,217 @@
+//! A pilot's direct command does not wait for a model: `land all` typed while the Supervisor's
+//! model call is still pending is checked at the gate and sent at once, the drones land while
+//! the call is held, and what the model proposes afterwards is never sent: the plan ends.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+use tacos_ground::direct::run_actions;
+use tacos_ground::mission::log::{self, MissionLog, Record};
+use tacos_ground::mission::{Mission, MissionConfig, MissionUpdate, PilotInput};
+use tacos_ground::safety::SafetyGate;
+use tacos_llm::{BoxFuture, ChatReply, ChatRequest, LlmBackend, LlmError, Usage};
+use tacos_shared::action::Action;
+use tacos_shared::{DroneId, DroneMode};
+use tacos_tests::{SimSwarm, within};
+use tokio::sync::{Notify, mpsc, watch};
+
+/// A model whose Coordinator answers at once with a goto for alfa, and whose first Supervisor
+/// call is held until the test releases it (a slow model); every Supervisor reply proposes
+/// that goto.
+struct SlowSupervisor {
+    /// Set while a Supervisor call is being held.
+    pending: watch::Sender<bool>,
+    release: Notify,
+    returned: AtomicBool,
+}
+
+const PLAN: &str = r#"{"reasoning":"Alfa inspects car_11.","plan":[{"task":"T1","drone":"alfa","action":"goto","target":"car_11","xyz":null}]}"#;
+const CYCLE: &str = r#"{"reasoning":"Alfa is flying: start T1.","actions":[{"task":"T1","drone":"alfa","action":"goto","target":"car_11","xyz":null}],"plan_complete":false}"#;
+
+impl LlmBackend for SlowSupervisor {
+    fn chat<'a>(&'a self, request: &'a ChatRequest) -> BoxFuture<'a, Result<ChatReply, LlmError>> {
+        Box::pin(async move {
+            let start = std::time::Instant::now();
+            let coordinator = request
+                .messages
+                .first()
+                .is_some_and(|m| m.content.starts_with("You are the Coordinator"));
+            let content = if coordinator || self.returned.load(Ordering::SeqCst) {
+                if coordinator { PLAN } else { CYCLE }
+            } else {
+                let released = self.release.notified();
+                self.pending.send_replace(true);
+                released.await;
+                self.returned.store(true, Ordering::SeqCst);
+                CYCLE
+            };
+            Ok(ChatReply {
+                content: content.to_owned(),
+                reasoning: None,
+                usage: Usage {
+                    prompt_tokens: 1,
+                    completion_tokens: 1,
+                },
+                latency: start.elapsed(),
+                model: "slow".into(),
+            })
+        })
+    }
+
+    fn describe(&self) -> String {
+        "slow supervisor stand-in".into()
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn land_all_is_sent_while_a_model_call_is_pending_and_the_late_reply_is_not()
+-> anyhow::Result<()> {
+    let sim = SimSwarm::start("direct", "city", 3).await?;
+    let result = async {
+        let link = sim.link.clone();
+        let ids: Vec<DroneId> = ["alfa", "bravo", "charlie"]
+            .iter()
+            .map(|d| DroneId::new(*d))
+            .collect::<Result<_, _>>()?;
+        link.wait_for_drones(&ids, Duration::from_secs(60), |s| {
+            s.autopilot_link && s.mode == DroneMode::Idle
+        })
+        .await?;
+        let gate = SafetyGate::new(sim.scenario.clone());
+        // Set-up: all three in the air (through the gate, without a model).
+        let takeoffs: Vec<(DroneId, Action)> = ids
+            .iter()
+            .map(|d| (d.clone(), Action::ArmTakeoff))
+            .collect();
+        run_actions(&link, &gate, &takeoffs, None, Duration::from_secs(90)).await?;
+
+        let log_path =
+            std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm("dlog")));
+        let log = Arc::new(MissionLog::create(&log_path)?);
+        let (pending_tx, mut pending) = watch::channel(false);
+        let backend = Arc::new(SlowSupervisor {
+            pending: pending_tx,
+            release: Notify::new(),
+            returned: AtomicBool::new(false),
+        });
+        let (updates_tx, mut updates) = mpsc::unbounded_channel();
+        let (input, inputs) =
+            PilotInput::new(link.clone(), gate.clone(), log.clone(), updates_tx.clone());
+        let mission = Mission::new(
+            MissionConfig::default(),
+            backend.clone(),
+            gate,
+            link.clone(),
+            log.clone(),
+            updates_tx,
+        )
+        .await?;
+        let mission_task = tokio::spawn(mission.run_with(inputs));
+
+        input.submit("alfa, inspect car_11").await?;
+        within(
+            "the Supervisor's call to be pending",
+            Duration::from_secs(30),
+            pending.wait_for(|p| *p),
+        )
+        .await??;
+
+        let typed = Instant::now();
+        input.submit("land all").await?;
+        // Everything below happens while the model call is still held.
+        within(
+            "every drone to be landing",
+            Duration::from_secs(10),
+            async {
+                let mut version = link.changes();
+                loop {
+                    let landing = {
+                        let view = link.view();
+                        ids.iter().all(|d| {
+                            view.get(d)
+                                .and_then(|e| e.status.as_ref())
+                                .and_then(|s| s.action.as_ref())
+                                .is_some_and(|p| p.action == Action::Land)
+                        })
+                    };
+                    if landing {
+                        return;
+                    }
+                    let _ = version.recv().await;
+                }
+            },
+        )
+        .await?;
+        assert!(
+            !backend.returned.load(Ordering::SeqCst),
+            "the model call returned first"
+        );
+        println!(
+            "land all reached every drone {:.0} ms after it was typed",
+            typed.elapsed().as_secs_f64() * 1e3
+        );
+
+        // Release the model: its goto for alfa is older than the pilot's command. Whichever
+        // check catches it first (alfa is busy landing; the override), it is not sent, and the
+        // plan ends.
+        backend.release.notify_one();
+        let ended = within("the plan to end", Duration::from_secs(30), async {
+            while let Some(u) = updates.recv().await {
+                if let MissionUpdate::Event(text) = &u
+                    && text.starts_with("plan ended")
+                {
+                    return text.clone();
+                }
+            }
+            String::new()
+        })
+        .await?;
+        assert_eq!(ended, "plan ended: interrupted by a direct command");
+        within("all to land", Duration::from_secs(120), async {
+            let mut version = link.changes();
+            loop {
+                let landed = {
+                    let view = link.view();
+                    let now = std::time::Instant::now();
+                    ids.iter().all(|d| {
+                        view.get(d)
+                            .is_some_and(|e| e.effective_mode(now) == DroneMode::Idle)
+                    })
+                };
+                if landed {
+                    return;
+                }
+                let _ = version.recv().await;
+            }
+        })
+        .await?;
+        drop(input);
+        within("the mission to end", Duration::from_secs(10), mission_task).await??;
+
+        let lines = log::read(&log_path)?;
+        let sent: Vec<(String, String)> = lines
+            .iter()
+            .filter_map(|l| match &l.record {
+                Record::ActionSent { drone, action, .. } => Some((drone.clone(), action.clone())),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(sent.len(), 3, "three landings and nothing else: {sent:?}");
+        assert!(sent.iter().all(|(_, a)| a == "land()"), "{sent:?}");
+        let direct = lines
+            .iter()
+            .position(|l| matches!(&l.record, Record::Direct { text, .. } if text == "land all"));
+        let reply = lines.iter().position(
+            |l| matches!(&l.record, Record::LlmReply { layer, .. } if layer == "supervisor"),
+        );
+        assert!(
+            direct.is_some() && reply.is_some() && direct < reply,
+            "the command was logged before the model replied"
+        );
+        let _ = std::fs::remove_file(&log_path);
+        anyhow::Ok(())
+    }
+    .await;
+    sim.stop().await;
+    result
+}
