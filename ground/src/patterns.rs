@@ -131,7 +131,7 @@ async fn land_all(
     phase(
         link,
         gate,
-        &say,
+        say,
         "land",
         ids.iter().map(|id| (id.clone(), Action::Land)).collect(),
         90,
