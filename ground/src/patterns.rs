@@ -34,6 +34,26 @@ impl Say {
     }
 }
 
+/// Starts a pattern's narration and waits until every drone is up, linked to its autopilot and
+/// on the ground.
+async fn wait_until_ready(
+    link: &GroundLink,
+    ids: &[DroneId],
+    verbose: bool,
+) -> Result<Say, DemoError> {
+    let say = Say {
+        start: Instant::now(),
+        verbose,
+    };
+    say.line(format!("waiting for {} drones to come up", ids.len()));
+    link.wait_for_drones(ids, Duration::from_secs(60), |s| {
+        s.autopilot_link && s.mode == DroneMode::Idle
+    })
+    .await?;
+    say.line("all drones alive, autopilot links up, on the ground");
+    Ok(say)
+}
+
 /// All take off, each flies to a point north of its pad, all land.
 pub async fn fly_points(
     link: &GroundLink,
@@ -42,18 +62,9 @@ pub async fn fly_points(
     mut truth: watch::Receiver<Option<SimTruth>>,
     verbose: bool,
 ) -> Result<(), DemoError> {
-    let say = Say {
-        start: Instant::now(),
-        verbose,
-    };
+    let say = wait_until_ready(link, ids, verbose).await?;
     let scenario = gate.scenario();
     let limits = scenario.limits;
-    say.line(format!("waiting for {} drones to come up", ids.len()));
-    link.wait_for_drones(ids, Duration::from_secs(60), |s| {
-        s.autopilot_link && s.mode == DroneMode::Idle
-    })
-    .await?;
-    say.line("all drones alive, autopilot links up, on the ground");
 
     let homes: Vec<Vec3> = ids
         .iter()
@@ -192,15 +203,7 @@ pub async fn fly_swap(
     mut truth: watch::Receiver<Option<SimTruth>>,
     verbose: bool,
 ) -> Result<(), DemoError> {
-    let say = Say {
-        start: Instant::now(),
-        verbose,
-    };
-    say.line(format!("waiting for {} drones to come up", ids.len()));
-    link.wait_for_drones(ids, Duration::from_secs(60), |s| {
-        s.autopilot_link && s.mode == DroneMode::Idle
-    })
-    .await?;
+    let say = wait_until_ready(link, ids, verbose).await?;
     let all = |action: Action| ids.iter().map(|id| (id.clone(), action.clone())).collect();
     phase(link, gate, &say, "take off", all(Action::ArmTakeoff), 60).await?;
 

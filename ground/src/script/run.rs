@@ -431,10 +431,7 @@ pub async fn run_script(
     // Closing the input ends the mission (after any model call in flight).
     let Runner { input, .. } = runner;
     drop(input);
-    let stats = match tokio::time::timeout(Duration::from_secs(5), mission_task).await {
-        Ok(Ok(stats)) => stats,
-        _ => MissionStats::default(),
-    };
+    let stats = crate::mission::engine::stats_when_done(mission_task).await;
     result.map(|()| ScriptReport {
         stats,
         log_path: log.path().to_owned(),
