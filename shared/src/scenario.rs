@@ -107,6 +107,11 @@ pub struct DroneSlot {
     pub home: Vec3,
 }
 
+/// Required vertical separation / required horizontal separation between two drones: a drone's
+/// downwash reaches further below it than its wake reaches sideways. The onboard planner and the
+/// ground's choice of goal points use the same figure.
+pub const DOWNWASH_FACTOR: f64 = 2.0;
+
 /// Tuning that the scenario fixes for every drone in it.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

@@ -87,6 +87,11 @@ async fn take_off(sim: &SimSwarm) -> anyhow::Result<()> {
     .await;
     drop(lines);
     let _ = within("the mission to end", Duration::from_secs(10), mission_task).await;
+    // What the model did, for whoever reads a failure (nextest shows it for failed tests only).
+    match log::read(&log_path) {
+        Ok(lines) => eprintln!("mission timeline:\n{}", log::timeline(&lines)),
+        Err(e) => eprintln!("mission log {} unreadable: {e}", log_path.display()),
+    }
     outcome??;
 
     // The simulator's truth: every vehicle is alive, armed and off the ground. (Not "at take-off

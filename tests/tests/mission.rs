@@ -398,3 +398,156 @@ async fn the_monolithic_model_is_held_to_its_actions_not_its_claim() -> anyhow::
     run.sim.stop().await;
     result
 }
+
+/// A stand-in model that plans `plan` and, as Supervisor, starts the first call its schema
+/// offers for each drone: it issues again whatever failed, while the engine offers it.
+fn offered_policy(plan: Value) -> impl Fn(&ChatRequest) -> Result<String, LlmError> + Send + Sync {
+    move |request: &ChatRequest| {
+        let system = &request.messages[0].content;
+        if system.starts_with("You are the Coordinator") {
+            return Ok(json!({ "reasoning": "As the pilot said.", "plan": plan }).to_string());
+        }
+        let offered: Vec<Value> = request
+            .schema
+            .as_ref()
+            .and_then(|s| s.schema.pointer("/properties/actions/items/anyOf"))
+            .and_then(Value::as_array)
+            .cloned()
+            .unwrap_or_default();
+        let first = |alt: &Value, field: &str| alt["properties"][field]["enum"][0].clone();
+        let mut actions: Vec<Value> = Vec::new();
+        for alt in &offered {
+            if !actions.iter().any(|a| a["drone"] == first(alt, "drone")) {
+                actions.push(json!({ "task": first(alt, "task"), "drone": first(alt, "drone"), "action": first(alt, "action"), "target": first(alt, "target"), "xyz": null }));
+            }
+        }
+        Ok(json!({ "reasoning": "Each drone does its next task.", "actions": actions, "plan_complete": false }).to_string())
+    }
+}
+
+async fn run_offered(
+    run: &Running,
+    tag: &str,
+    plan: Value,
+    say: &str,
+) -> anyhow::Result<(
+    mpsc::UnboundedReceiver<MissionUpdate>,
+    mpsc::Sender<String>,
+    std::path::PathBuf,
+    u32,
+)> {
+    let log_path = std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm(tag)));
+    let backend = Arc::new(PolicyBackend::new(offered_policy(plan)));
+    let (tx, updates) = mpsc::unbounded_channel();
+    let cfg = MissionConfig {
+        cycle_timeout: Duration::from_secs(3),
+        ..MissionConfig::default()
+    };
+    let max = cfg.max_task_failures;
+    let mission = Mission::new(
+        cfg,
+        backend,
+        SafetyGate::new(run.sim.scenario.clone()),
+        run.sim.link.clone(),
+        Arc::new(MissionLog::create(&log_path)?),
+        tx,
+    )
+    .await?;
+    let (lines, rx) = mpsc::channel(4);
+    tokio::spawn(mission.run(rx));
+    lines.send(say.into()).await?;
+    Ok((updates, lines, log_path, max))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn three_drones_sent_to_one_car_each_get_a_point_of_their_own() -> anyhow::Result<()> {
+    let run = start("onecar").await?;
+    let result = async {
+        let plan = json!([
+            call("T1", "alfa", "arm_takeoff", "none"),
+            call("T2", "bravo", "arm_takeoff", "none"),
+            call("T3", "charlie", "arm_takeoff", "none"),
+            call("T4", "alfa", "goto", "car_1"),
+            call("T5", "bravo", "goto", "car_1"),
+            call("T6", "charlie", "goto", "car_1"),
+        ]);
+        let (mut updates, lines, log_path, _) =
+            run_offered(&run, "onecarlog", plan, "everyone to car_1").await?;
+        until(&mut updates, Duration::from_secs(150), |u| {
+            matches!(u, MissionUpdate::PlanComplete { .. })
+        })
+        .await?;
+        drop(lines);
+        let lines = log::read(&log_path)?;
+        let goals: Vec<tacos_shared::Vec3> = lines
+            .iter()
+            .filter_map(|l| match &l.record {
+                Record::ActionSent { action, .. } => action
+                    .strip_prefix("goto(")?
+                    .strip_suffix(')')
+                    .and_then(|p| {
+                        let v: Vec<f64> = p.split(", ").filter_map(|x| x.parse().ok()).collect();
+                        (v.len() == 3).then(|| tacos_shared::Vec3::new(v[0], v[1], v[2]))
+                    }),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(goals.len(), 3, "{goals:?}");
+        let spacing = run.sim.scenario.limits.safety_distance;
+        for (i, a) in goals.iter().enumerate() {
+            for b in &goals[i + 1..] {
+                assert!(
+                    (a - b).norm() > spacing,
+                    "goals {a:?} and {b:?} closer than {spacing} m"
+                );
+            }
+        }
+        let car = run
+            .sim
+            .scenario
+            .world
+            .landmark("car_1")
+            .map(|l| l.position)
+            .ok_or_else(|| anyhow::anyhow!("no car_1"))?;
+        assert!(
+            goals
+                .iter()
+                .any(|g| (g.x - car.x).abs() < 1e-6 && (g.y - car.y).abs() < 1e-6),
+            "none of {goals:?} is above car_1"
+        );
+        anyhow::Ok(())
+    }
+    .await;
+    run.sim.stop().await;
+    result
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_task_that_keeps_failing_gives_the_plan_up_with_the_reason() -> anyhow::Result<()> {
+    let run = start("hopeless").await?;
+    let result = async {
+        let plan = json!([call("T1", "alfa", "arm_takeoff", "none"), call("T2", "alfa", "start_tracking", "suspect")]);
+        let (mut updates, lines, log_path, max) = run_offered(&run, "hopelog", plan, "alfa, take off and follow the suspect").await?;
+        let error = within("the plan to be given up", Duration::from_secs(120), async {
+            while let Some(u) = updates.recv().await {
+                match u {
+                    MissionUpdate::Error(e) => return Ok(e),
+                    MissionUpdate::PlanComplete { .. } => anyhow::bail!("a plan with a hopeless task completed"),
+                    _ => {}
+                }
+            }
+            anyhow::bail!("the mission ended without an error")
+        })
+        .await??;
+        drop(lines);
+        assert!(error.contains("T2 alfa start_tracking(suspect)") && error.contains(&format!("failed {max} times")), "{error}");
+        let lines = log::read(&log_path)?;
+        let tries = sent_tasks(&lines).iter().filter(|(t, _)| t == "T2").count();
+        assert_eq!(tries, max as usize, "T2 was sent {tries} times");
+        assert!(lines.iter().any(|l| matches!(&l.record, Record::Event { text } if text.starts_with("plan ended: abandoned"))));
+        anyhow::Ok(())
+    }
+    .await;
+    run.sim.stop().await;
+    result
+}

@@ -4,7 +4,7 @@
 use super::directives::{self, Directive};
 use super::input::MissionInputs;
 use super::log::{MissionLog, Record};
-use super::resolve::resolve;
+use super::resolve::{claimed_points, resolve};
 use crate::link::GroundLink;
 use crate::safety::{CheckedAction, SafetyGate};
 use crate::swarm::SwarmChange;
@@ -64,6 +64,9 @@ pub struct MissionConfig {
     pub cycle_timeout: Duration,
     /// A plan is abandoned after this many Supervisor cycles.
     pub max_cycles_per_plan: u32,
+    /// A plan is abandoned when one of its tasks has failed this many times: a goal that cannot
+    /// be reached is reported to the pilot, not retried until the cycle limit.
+    pub max_task_failures: u32,
     pub coordinator_max_tokens: u32,
     pub supervisor_max_tokens: u32,
     pub temperature: f32,
@@ -77,6 +80,7 @@ impl Default for MissionConfig {
             max_repairs: 2,
             cycle_timeout: Duration::from_secs(10),
             max_cycles_per_plan: 30,
+            max_task_failures: 3,
             coordinator_max_tokens: 600,
             supervisor_max_tokens: 400,
             temperature: 0.0,
@@ -171,6 +175,8 @@ struct PlanTask {
     call: Call,
     status: TaskStatus,
     sent: Option<(DroneId, u64)>,
+    /// Times this task has failed; the plan is given up at `max_task_failures`.
+    failures: u32,
 }
 
 #[derive(Debug, Clone)]
@@ -605,6 +611,9 @@ impl Mission {
                         seq: *seq,
                         outcome: finished.last().map(|f| f.2.clone()).unwrap_or_default(),
                     });
+                    if matches!(status, TaskStatus::Failed(_)) {
+                        task.failures += 1;
+                    }
                     task.status = status;
                 }
             }
@@ -630,8 +639,23 @@ impl Mission {
             }
         }
         if let Some(plan) = self.plan.take() {
+            let given_up = plan
+                .tasks
+                .iter()
+                .find(|t| t.failures >= self.cfg.max_task_failures)
+                .map(|t| match &t.status {
+                    TaskStatus::Failed(why) => {
+                        format!("{} failed {} times (last: {why})", t.call, t.failures)
+                    }
+                    _ => format!("{} failed {} times", t.call, t.failures),
+                });
             if plan.tasks.iter().all(|t| t.status == TaskStatus::Done) {
                 self.finish_plan(plan, "complete");
+            } else if let Some(why) = given_up {
+                self.finish_plan(plan, &format!("abandoned: {why}"));
+                self.tell(MissionUpdate::Error(format!(
+                    "the plan was given up: {why}"
+                )));
             } else {
                 self.plan = Some(plan);
             }
@@ -673,7 +697,8 @@ impl Mission {
                     drone: drone.clone(),
                     ..task.call.clone()
                 };
-                let Ok(action) = resolve(&call, self.gate.scenario(), &visible) else {
+                let claimed = claimed_points(&view, &drone, now);
+                let Ok(action) = resolve(&call, self.gate.scenario(), &visible, &claimed) else {
                     continue;
                 };
                 if self.gate.check(&view, &drone, &action, now).is_ok() {
@@ -929,11 +954,13 @@ impl Mission {
                     call,
                     status: TaskStatus::Running,
                     sent: t.sent.clone(),
+                    failures: t.failures,
                 },
                 None => PlanTask {
                     call,
                     status: TaskStatus::NotStarted,
                     sent: None,
+                    failures: 0,
                 },
             })
             .collect();
@@ -1008,6 +1035,7 @@ impl Mission {
                         call,
                         status: TaskStatus::Running,
                         sent,
+                        failures: 0,
                     }),
                 }
             })
@@ -1080,6 +1108,7 @@ impl Mission {
                     call,
                     status: TaskStatus::Running,
                     sent: Some((drone, seq)),
+                    failures: 0,
                 });
             })
             .await?;
@@ -1650,7 +1679,7 @@ fn check_static(
     if !scenario.drones.iter().any(|d| d.id.as_str() == call.drone) {
         return Err(format!("there is no drone {:?}", call.drone));
     }
-    let action = resolve(call, scenario, visible)?;
+    let action = resolve(call, scenario, visible, &[])?;
     if let Action::Goto { target } = action {
         scenario
             .world
@@ -1707,7 +1736,13 @@ fn check_live(
             ));
             continue;
         }
-        let action = match resolve(call, gate.scenario(), visible) {
+        // Clear of where the other drones are or go, this cycle's accepted gotos included.
+        let mut claimed = claimed_points(&view, &call.drone, now);
+        claimed.extend(accepted.iter().filter_map(|(_, c)| match c.action() {
+            Action::Goto { target } => Some(*target),
+            _ => None,
+        }));
+        let action = match resolve(call, gate.scenario(), visible, &claimed) {
             Ok(a) => a,
             Err(why) => {
                 rejections.push(format!("{call}: {why}"));

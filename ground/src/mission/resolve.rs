@@ -1,11 +1,16 @@
 //! Turns a model's call into a concrete action: a landmark or a moving target named in a goto
-//! becomes a point, at an altitude low enough for the perception stand-in to see what is there.
+//! becomes a point, at an altitude low enough for the perception stand-in to see what is there,
+//! and clear of the points other drones hold or are headed for (two drones sent to one car must
+//! not both be given the same point: the planner keeps them apart and the second would never
+//! arrive).
 
+use crate::swarm::SwarmView;
+use std::time::Instant;
 use tacos_prompts::{ActionName, Call};
-use tacos_shared::Vec3;
 use tacos_shared::action::Action;
-use tacos_shared::messages::TargetObservation;
-use tacos_shared::scenario::Scenario;
+use tacos_shared::messages::{ActionState, TargetObservation};
+use tacos_shared::scenario::{DOWNWASH_FACTOR, Scenario};
+use tacos_shared::{DroneMode, Vec3};
 
 /// The altitude of a goto to a landmark: the take-off altitude, capped below the detection
 /// altitude so a drone that visits a place can see a hidden target there.
@@ -14,11 +19,73 @@ pub fn inspect_altitude(scenario: &Scenario) -> f64 {
     l.takeoff_altitude.min(0.8 * l.detection_altitude)
 }
 
-/// The action a call asks for, or why it names nothing that can be flown to.
+/// The points drones other than `drone` hold or are headed for: the goal of a running goto, or
+/// where an airborne drone is. (A goto sent in the last status period is not seen yet; callers
+/// add the goals they have just accepted.)
+pub fn claimed_points(view: &SwarmView, drone: &str, now: Instant) -> Vec<Vec3> {
+    view.drones()
+        .filter(|e| e.id.as_str() != drone)
+        .filter(|e| e.effective_mode(now) != DroneMode::Unavailable)
+        .filter_map(|e| {
+            let status = e.status.as_ref()?;
+            match &status.action {
+                Some(p) if matches!(p.state, ActionState::Running { .. }) => {
+                    if let Action::Goto { target } = p.action {
+                        return Some(target);
+                    }
+                }
+                _ => {}
+            }
+            status.mode.is_airborne().then_some(status.position)
+        })
+        .collect()
+}
+
+/// How far apart two goal points must be: the safety distance plus the planner's margin on
+/// each side, in the downwash-scaled metric (vertical offsets count half).
+pub fn goal_spacing(scenario: &Scenario) -> f64 {
+    scenario.limits.safety_distance + 1.0
+}
+
+fn scaled_distance(a: &Vec3, b: &Vec3) -> f64 {
+    let d = a - b;
+    (d.x * d.x + d.y * d.y + (d.z / DOWNWASH_FACTOR).powi(2)).sqrt()
+}
+
+/// The point itself when no claim is near it; otherwise the first free point on rings round it
+/// (one and two spacings out, every 45°) that is inside the bounds and outside every obstacle;
+/// the point itself when none is free (the planner then keeps the drones apart).
+fn free_spot(base: Vec3, scenario: &Scenario, claimed: &[Vec3]) -> Vec3 {
+    let spacing = goal_spacing(scenario);
+    let free = |p: &Vec3| claimed.iter().all(|c| scaled_distance(p, c) >= spacing);
+    if free(&base) {
+        return base;
+    }
+    (1..=2)
+        .flat_map(|ring| {
+            (0..8).map(move |k| {
+                let angle = f64::from(k) * std::f64::consts::FRAC_PI_4;
+                let r = f64::from(ring) * spacing;
+                base + Vec3::new(r * angle.cos(), r * angle.sin(), 0.0)
+            })
+        })
+        .find(|p| {
+            free(p)
+                && scenario
+                    .world
+                    .check_point(p, scenario.limits.drone_radius)
+                    .is_ok()
+        })
+        .unwrap_or(base)
+}
+
+/// The action a call asks for, or why it names nothing that can be flown to. A goto to a named
+/// place keeps clear of the `claimed` points; a goto to an explicit point is taken as given.
 pub fn resolve(
     call: &Call,
     scenario: &Scenario,
     visible: &[TargetObservation],
+    claimed: &[Vec3],
 ) -> Result<Action, String> {
     let altitude = inspect_altitude(scenario);
     match call.action {
@@ -33,13 +100,14 @@ pub fn resolve(
                 target: Vec3::new(x, y, z),
             }),
             (Some(name), _) => {
+                let above = |p: &Vec3| Vec3::new(p.x, p.y, p.z + altitude);
                 if let Some(l) = scenario.world.landmark(name) {
                     Ok(Action::Goto {
-                        target: Vec3::new(l.position.x, l.position.y, l.position.z + altitude),
+                        target: free_spot(above(&l.position), scenario, claimed),
                     })
                 } else if let Some(t) = visible.iter().find(|t| t.name == name) {
                     Ok(Action::Goto {
-                        target: Vec3::new(t.position.x, t.position.y, t.position.z + altitude),
+                        target: free_spot(above(&t.position), scenario, claimed),
                     })
                 } else {
                     Err(format!(
@@ -84,7 +152,7 @@ mod tests {
         let city = Scenario::builtin("city").expect("city");
         let car = city.world.landmark("car_7").expect("car_7").position;
         assert_eq!(
-            resolve(&call(ActionName::Goto, "car_7", None), &city, &[]),
+            resolve(&call(ActionName::Goto, "car_7", None), &city, &[], &[]),
             Ok(Action::Goto {
                 target: Vec3::new(car.x, car.y, 10.0)
             })
@@ -93,6 +161,7 @@ mod tests {
             resolve(
                 &call(ActionName::Goto, "none", Some([1.0, 2.0, 3.0])),
                 &city,
+                &[],
                 &[]
             ),
             Ok(Action::Goto {
@@ -103,6 +172,7 @@ mod tests {
             resolve(
                 &call(ActionName::Goto, "car_7", Some([1.0, 2.0, 3.0])),
                 &city,
+                &[],
                 &[]
             ),
             Ok(Action::Goto {
@@ -110,9 +180,75 @@ mod tests {
             }),
             "the name wins, as the call is shown"
         );
-        assert!(resolve(&call(ActionName::Goto, "none", None), &city, &[]).is_err());
-        assert!(resolve(&call(ActionName::Goto, "atlantis", None), &city, &[]).is_err());
-        assert!(resolve(&call(ActionName::StartTracking, "car_7", None), &city, &[]).is_err());
-        assert!(resolve(&call(ActionName::StartTracking, "van", None), &city, &[]).is_ok());
+        assert!(resolve(&call(ActionName::Goto, "none", None), &city, &[], &[]).is_err());
+        assert!(resolve(&call(ActionName::Goto, "atlantis", None), &city, &[], &[]).is_err());
+        assert!(
+            resolve(
+                &call(ActionName::StartTracking, "car_7", None),
+                &city,
+                &[],
+                &[]
+            )
+            .is_err()
+        );
+        assert!(
+            resolve(
+                &call(ActionName::StartTracking, "van", None),
+                &city,
+                &[],
+                &[]
+            )
+            .is_ok()
+        );
+    }
+
+    #[test]
+    fn a_place_another_drone_claims_gives_a_free_point_beside_it() {
+        let city = Scenario::builtin("city").expect("city");
+        let car = city.world.landmark("car_7").expect("car_7").position;
+        let above = Vec3::new(car.x, car.y, 10.0);
+        let spacing = goal_spacing(&city);
+        let goto = |claimed: &[Vec3]| match resolve(
+            &call(ActionName::Goto, "car_7", None),
+            &city,
+            &[],
+            claimed,
+        ) {
+            Ok(Action::Goto { target }) => target,
+            other => panic!("not a goto: {other:?}"),
+        };
+        // Unclaimed: the point above the car. A claim far away changes nothing.
+        assert_eq!(goto(&[Vec3::new(0.0, 0.0, 10.0)]), above);
+        // Claimed by one drone: a point one spacing away, at the same altitude, clear of it.
+        let first = goto(&[above]);
+        assert!((first - above).norm() > spacing - 1e-9, "{first:?}");
+        assert!((first - above).norm() < spacing + 1e-9, "{first:?}");
+        assert_eq!(first.z, above.z);
+        // Claimed by two: a third point clear of both, and the world allows it.
+        let second = goto(&[above, first]);
+        assert!(scaled_distance(&second, &above) >= spacing);
+        assert!(scaled_distance(&second, &first) >= spacing);
+        assert!(
+            city.world
+                .check_point(&second, city.limits.drone_radius)
+                .is_ok()
+        );
+        // A drone 4 m below the point does not claim it: downwash counts vertical offsets half.
+        let below = above - Vec3::new(0.0, 0.0, 4.0);
+        assert_ne!(goto(&[below]), above);
+        let far_below = above - Vec3::new(0.0, 0.0, 2.0 * spacing);
+        assert_eq!(goto(&[far_below]), above);
+        // An explicit point is flown as given.
+        assert_eq!(
+            resolve(
+                &call(ActionName::Goto, "none", Some([1.0, 2.0, 3.0])),
+                &city,
+                &[],
+                &[Vec3::new(1.0, 2.0, 3.0)]
+            ),
+            Ok(Action::Goto {
+                target: Vec3::new(1.0, 2.0, 3.0)
+            })
+        );
     }
 }

@@ -102,7 +102,7 @@ impl PlannerConfig {
             // Covers how far the vehicle strays from its plan between solves (the autopilot's
             // tracking error), for each of the two drones.
             separation_margin: 0.5,
-            downwash_factor: 2.0,
+            downwash_factor: tacos_shared::scenario::DOWNWASH_FACTOR,
             // Two drones closing at full speed over one horizon, plus the safety distance,
             // plus room for stale paths.
             neighbour_range: 2.0 * limits.max_speed * horizon + 2.0 * limits.safety_distance,
