@@ -129,7 +129,7 @@ enum Cmd {
     /// Draw a mission's trajectories over the map, coloured by speed (SVG).
     Plot {
         log: PathBuf,
-        /// Output file (.svg).
+        /// Output file: .svg, or .png (the same picture rasterised at twice its size).
         #[arg(short, long, default_value = "mission.svg")]
         output: PathBuf,
         /// The map, when not the one the log names (city, lab or a scenario file).
@@ -375,11 +375,13 @@ fn plot(log: &std::path::Path, output: &std::path::Path, map: Option<&str>) -> a
         .or(named)
         .context("the log names no map: give --map")?;
     let scenario = tacos_bus::load_scenario(&map)?;
-    if output.extension().is_some_and(|e| e != "svg") {
-        bail!("only SVG output is supported: name the file *.svg");
-    }
-    std::fs::write(output, tacos_ground::plot::svg(&lines, &scenario))
-        .with_context(|| format!("writing {}", output.display()))?;
+    let svg = tacos_ground::plot::svg(&lines, &scenario);
+    let bytes = match output.extension().and_then(|e| e.to_str()) {
+        Some("svg") => svg.into_bytes(),
+        Some("png") => tacos_ground::plot::png(&svg, 2.0)?,
+        _ => bail!("name the output *.svg or *.png"),
+    };
+    std::fs::write(output, bytes).with_context(|| format!("writing {}", output.display()))?;
     println!("wrote {}", output.display());
     Ok(())
 }

@@ -210,6 +210,66 @@ fn nalgebra_2x2(m: [[f64; 2]; 2]) -> (f64, f64, f64) {
     (1.0 / l1.sqrt(), 1.0 / l2.sqrt(), angle)
 }
 
+/// Why an SVG could not be made a PNG.
+#[derive(Debug, thiserror::Error)]
+pub enum RasterError {
+    #[error("the SVG does not parse: {0}")]
+    Parse(String),
+    #[error("the picture has no pixels ({0}×{1})")]
+    Size(u32, u32),
+    #[error("PNG encoding failed: {0}")]
+    Encode(String),
+}
+
+/// The picture as PNG: `svg` rasterised by resvg at `scale` (1.0 = one pixel per SVG unit).
+/// Text uses the system's fonts; without any, the picture is drawn without its labels.
+pub fn png(svg: &str, scale: f32) -> Result<Vec<u8>, RasterError> {
+    use resvg::{tiny_skia, usvg};
+    let mut fonts = usvg::fontdb::Database::new();
+    fonts.load_system_fonts();
+    // The SVG asks for the generic "sans-serif", which fontdb maps to Arial unless told: name
+    // a sans family this machine has.
+    let has = |family: &str| {
+        fonts
+            .faces()
+            .any(|f| f.families.iter().any(|(name, _)| name == family))
+    };
+    let sans = ["DejaVu Sans", "Liberation Sans", "Noto Sans", "Arial"]
+        .into_iter()
+        .find(|f| has(f))
+        .map(str::to_owned)
+        .or_else(|| {
+            fonts
+                .faces()
+                .next()
+                .and_then(|f| f.families.first().map(|(n, _)| n.clone()))
+        });
+    if let Some(sans) = sans {
+        fonts.set_sans_serif_family(sans);
+    }
+    let options = usvg::Options {
+        fontdb: std::sync::Arc::new(fonts),
+        ..usvg::Options::default()
+    };
+    let tree =
+        usvg::Tree::from_str(svg, &options).map_err(|e| RasterError::Parse(e.to_string()))?;
+    let size = tree.size();
+    let (w, h) = (
+        (size.width() * scale).ceil() as u32,
+        (size.height() * scale).ceil() as u32,
+    );
+    let mut pixmap = tiny_skia::Pixmap::new(w, h).ok_or(RasterError::Size(w, h))?;
+    pixmap.fill(tiny_skia::Color::WHITE);
+    resvg::render(
+        &tree,
+        tiny_skia::Transform::from_scale(scale, scale),
+        &mut pixmap.as_mut(),
+    );
+    pixmap
+        .encode_png()
+        .map_err(|e| RasterError::Encode(e.to_string()))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -243,6 +303,56 @@ mod tests {
             svg.contains(&speed_colour(0.5 * (8.0 + 9.0) / 8.0)),
             "the fastest segment is red"
         );
+    }
+
+    #[test]
+    fn the_png_is_the_svg_rasterised() {
+        let city = Scenario::builtin("city").expect("city");
+        let lines: Vec<Line> = (0..10)
+            .map(|i| Line {
+                t: i as f64,
+                record: Record::Position {
+                    drone: "alfa".into(),
+                    x: -40.0 + 5.0 * i as f64,
+                    y: -130.0,
+                    z: 10.0,
+                    speed: 8.0,
+                },
+            })
+            .collect();
+        let bytes = png(&svg(&lines, &city), 1.0).expect("rasterised");
+        assert!(bytes.starts_with(b"\x89PNG\r\n\x1a\n"));
+        let image = resvg::tiny_skia::Pixmap::decode_png(&bytes).expect("decodes");
+        assert_eq!(image.width(), WIDTH as u32);
+        // The same frame as the SVG: the track's middle is red (fast), a tower's centre dark,
+        // the margin white.
+        let b = &city.world.bounds;
+        let f = Frame {
+            min_x: b.min.x,
+            max_y: b.max.y,
+            scale: (WIDTH - 2.0 * MARGIN) / (b.max.x - b.min.x),
+        };
+        let pixel = |x: f64, y: f64| {
+            let (px, py) = f.px(x, y);
+            let p = image
+                .pixel(px as u32, py as u32)
+                .expect("inside the picture");
+            (p.red(), p.green(), p.blue())
+        };
+        let (r, g, bl) = pixel(-17.5, -130.0);
+        assert!(
+            r > 180 && g < 120 && bl < 120,
+            "track pixel {:?}",
+            (r, g, bl)
+        );
+        let (r, g, bl) = pixel(18.0, 18.0);
+        assert!(
+            r < 120 && g < 120 && bl < 140,
+            "tower pixel {:?}",
+            (r, g, bl)
+        );
+        assert_eq!(image.pixel(2, 2).map(|p| p.red()), Some(255));
+        assert!(matches!(png("<svg", 1.0), Err(RasterError::Parse(_))));
     }
 
     #[test]
