@@ -400,8 +400,12 @@ async fn the_monolithic_model_is_held_to_its_actions_not_its_claim() -> anyhow::
 }
 
 /// A stand-in model that plans `plan` and, as Supervisor, starts the first call its schema
-/// offers for each drone: it issues again whatever failed, while the engine offers it.
-fn offered_policy(plan: Value) -> impl Fn(&ChatRequest) -> Result<String, LlmError> + Send + Sync {
+/// offers for each drone: it issues again whatever failed, while the engine offers it. With
+/// `stutter` it names every call twice, as small models do.
+fn offered_policy(
+    plan: Value,
+    stutter: bool,
+) -> impl Fn(&ChatRequest) -> Result<String, LlmError> + Send + Sync {
     move |request: &ChatRequest| {
         let system = &request.messages[0].content;
         if system.starts_with("You are the Coordinator") {
@@ -421,6 +425,12 @@ fn offered_policy(plan: Value) -> impl Fn(&ChatRequest) -> Result<String, LlmErr
                 actions.push(json!({ "task": first(alt, "task"), "drone": first(alt, "drone"), "action": first(alt, "action"), "target": first(alt, "target"), "xyz": null }));
             }
         }
+        if stutter {
+            actions = actions
+                .iter()
+                .flat_map(|a| [a.clone(), a.clone()])
+                .collect();
+        }
         Ok(json!({ "reasoning": "Each drone does its next task.", "actions": actions, "plan_complete": false }).to_string())
     }
 }
@@ -429,6 +439,7 @@ async fn run_offered(
     run: &Running,
     tag: &str,
     plan: Value,
+    stutter: bool,
     say: &str,
 ) -> anyhow::Result<(
     mpsc::UnboundedReceiver<MissionUpdate>,
@@ -437,7 +448,7 @@ async fn run_offered(
     u32,
 )> {
     let log_path = std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm(tag)));
-    let backend = Arc::new(PolicyBackend::new(offered_policy(plan)));
+    let backend = Arc::new(PolicyBackend::new(offered_policy(plan, stutter)));
     let (tx, updates) = mpsc::unbounded_channel();
     let cfg = MissionConfig {
         cycle_timeout: Duration::from_secs(3),
@@ -460,7 +471,8 @@ async fn run_offered(
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn three_drones_sent_to_one_car_each_get_a_point_of_their_own() -> anyhow::Result<()> {
+async fn three_drones_sent_to_one_car_each_get_a_point_of_their_own_even_when_every_call_comes_twice()
+-> anyhow::Result<()> {
     let run = start("onecar").await?;
     let result = async {
         let plan = json!([
@@ -472,7 +484,7 @@ async fn three_drones_sent_to_one_car_each_get_a_point_of_their_own() -> anyhow:
             call("T6", "charlie", "goto", "car_1"),
         ]);
         let (mut updates, lines, log_path, _) =
-            run_offered(&run, "onecarlog", plan, "everyone to car_1").await?;
+            run_offered(&run, "onecarlog", plan, true, "everyone to car_1").await?;
         until(&mut updates, Duration::from_secs(150), |u| {
             matches!(u, MissionUpdate::PlanComplete { .. })
         })
@@ -493,6 +505,16 @@ async fn three_drones_sent_to_one_car_each_get_a_point_of_their_own() -> anyhow:
             })
             .collect();
         assert_eq!(goals.len(), 3, "{goals:?}");
+        // Every call came twice in each reply; each was sent once and none was rejected.
+        let rejected: Vec<&String> = lines
+            .iter()
+            .filter_map(|l| match &l.record {
+                Record::GateRejected { call, .. } => Some(call),
+                _ => None,
+            })
+            .collect();
+        assert!(rejected.is_empty(), "{rejected:?}");
+        assert_eq!(sent_tasks(&lines).len(), 6);
         let spacing = run.sim.scenario.limits.safety_distance;
         for (i, a) in goals.iter().enumerate() {
             for b in &goals[i + 1..] {
@@ -527,7 +549,7 @@ async fn a_task_that_keeps_failing_gives_the_plan_up_with_the_reason() -> anyhow
     let run = start("hopeless").await?;
     let result = async {
         let plan = json!([call("T1", "alfa", "arm_takeoff", "none"), call("T2", "alfa", "start_tracking", "suspect")]);
-        let (mut updates, lines, log_path, max) = run_offered(&run, "hopelog", plan, "alfa, take off and follow the suspect").await?;
+        let (mut updates, lines, log_path, max) = run_offered(&run, "hopelog", plan, false, "alfa, take off and follow the suspect").await?;
         let error = within("the plan to be given up", Duration::from_secs(120), async {
             while let Some(u) = updates.recv().await {
                 match u {

@@ -1703,6 +1703,14 @@ fn check_live(
     let view = link.view();
     let now = Instant::now();
     for call in calls {
+        // The same work for the same drone twice in one reply (small models repeat themselves,
+        // under one task id or two) is one call, not a conflict worth a repair round.
+        if accepted
+            .iter()
+            .any(|(c, _)| same_work(c) == same_work(call))
+        {
+            continue;
+        }
         if accepted.iter().any(|(c, _)| c.drone == call.drone) {
             rejections.push(format!(
                 "{call}: {} already gets an action this cycle",
