@@ -96,7 +96,16 @@ pub struct Engine {
     pub tokenizer: ModelTokenizer,
     factory: ParserFactory,
     device: Device,
+    /// See [`crate::EmbeddedOptions::repeat_penalty`].
+    pub repeat_penalty: f32,
 }
+
+/// How many of the model's own recent free-text choices the repetition penalty looks back over.
+const REPEAT_WINDOW: usize = 64;
+
+/// A grammar state that allows at least this many tokens is free text (a string's body); fewer
+/// is a choice among names, numbers or punctuation.
+const FREE_TEXT_TOKENS: usize = 4096;
 
 fn gen_err(context: &str) -> impl Fn(candle_core::Error) -> LlmError + '_ {
     move |e| LlmError::Generation(format!("{context}: {e}"))
@@ -164,6 +173,7 @@ impl Engine {
             tokenizer,
             factory,
             device,
+            repeat_penalty: 1.0,
         })
     }
 
@@ -215,6 +225,9 @@ impl Engine {
 
         let t1 = Instant::now();
         let mut out: Vec<u32> = Vec::new();
+        // The free-text tokens the model chose (not forced, not enum values): what the penalty
+        // counts.
+        let mut chosen: Vec<u32> = Vec::new();
         let mut forced = 0u32;
         let finished = loop {
             if cancel.load(Ordering::Relaxed) {
@@ -227,14 +240,31 @@ impl Engine {
                     None => false,
                 };
             }
+            let recent = &chosen[chosen.len().saturating_sub(REPEAT_WINDOW)..];
             let next = match &mut matcher {
                 Some(m) => {
                     let mask = m
                         .compute_mask()
                         .map_err(|e| LlmError::Generation(format!("grammar: {e}")))?;
-                    sample(&logits, Some(&mask), temperature, &mut rng)
+                    // Free text (the reasoning) only: where the grammar offers a handful of
+                    // names, choosing the same one again ("arm_takeoff" for every drone) is
+                    // right, not a loop.
+                    let free_text = mask.num_set() >= FREE_TEXT_TOKENS;
+                    if free_text {
+                        penalise_repeats(&mut logits, recent, self.repeat_penalty);
+                    }
+                    let next = sample(&logits, Some(&mask), temperature, &mut rng);
+                    if free_text {
+                        chosen.extend(next);
+                    }
+                    next
                 }
-                None => sample(&logits, None, temperature, &mut rng),
+                None => {
+                    penalise_repeats(&mut logits, recent, self.repeat_penalty);
+                    let next = sample(&logits, None, temperature, &mut rng);
+                    chosen.extend(next);
+                    next
+                }
             };
             let Some(next) = next else {
                 return Err(LlmError::Generation(
@@ -363,6 +393,24 @@ fn convert<R: Read + Seek>(
     Ok(buf)
 }
 
+/// The usual repetition penalty (as in llama.cpp and transformers): each token among `recent`
+/// has its logit divided by `penalty` when positive, multiplied when negative. Greedy decoding
+/// of a small model otherwise falls into loops ("so it's a new day, so it's a new day, …").
+fn penalise_repeats(logits: &mut [f32], recent: &[u32], penalty: f32) {
+    if penalty <= 1.0 || !penalty.is_finite() {
+        return;
+    }
+    let mut seen = std::collections::HashSet::new();
+    for &t in recent {
+        if !seen.insert(t) {
+            continue;
+        }
+        if let Some(l) = logits.get_mut(t as usize) {
+            *l = if *l > 0.0 { *l / penalty } else { *l * penalty };
+        }
+    }
+}
+
 /// The next token: argmax at temperature ≤ 0.01, otherwise a draw from the softmax at that
 /// temperature, over the tokens the mask allows (all when no mask).
 fn sample(
@@ -446,6 +494,18 @@ mod tests {
         assert_eq!(sample(&logits, Some(&mask), 0.0, &mut rng), Some(3));
         let empty = SimpleVob::alloc(4);
         assert_eq!(sample(&logits, Some(&empty), 0.0, &mut rng), None);
+    }
+
+    #[test]
+    fn repeats_are_penalised_once_each_and_only_above_one() {
+        let mut logits = vec![2.0, -2.0, 1.0];
+        penalise_repeats(&mut logits, &[0, 1, 0], 2.0);
+        assert_eq!(logits, vec![1.0, -4.0, 1.0]);
+        penalise_repeats(&mut logits, &[0, 1], 1.0);
+        assert_eq!(logits, vec![1.0, -4.0, 1.0]);
+        // A token id beyond the vocabulary is ignored.
+        penalise_repeats(&mut logits, &[7], 2.0);
+        assert_eq!(logits, vec![1.0, -4.0, 1.0]);
     }
 
     #[test]

@@ -46,6 +46,9 @@ use engine::Engine;
 /// The model name reported in `ChatReply::model`.
 pub const MODEL_NAME: &str = "SmolLM2-135M-Instruct-Q4_1";
 
+/// The default repetition penalty (see [`EmbeddedOptions::repeat_penalty`]).
+pub const DEFAULT_REPEAT_PENALTY: f32 = 1.2;
+
 /// How to find and hold the model.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EmbeddedOptions {
@@ -59,6 +62,9 @@ pub struct EmbeddedOptions {
     /// How the weights are held in memory (`$TACOS_EMBEDDED_WEIGHTS`: `auto`, `q4_1`, `q8_0`,
     /// `f32`); default `auto`.
     pub weights: WeightFormat,
+    /// The repetition penalty over the model's last choices (`$TACOS_EMBEDDED_REPEAT_PENALTY`;
+    /// 1.0 turns it off).
+    pub repeat_penalty: f32,
 }
 
 impl Default for EmbeddedOptions {
@@ -68,6 +74,7 @@ impl Default for EmbeddedOptions {
             allow_fetch: true,
             python: "python3".to_string(),
             weights: WeightFormat::Auto,
+            repeat_penalty: DEFAULT_REPEAT_PENALTY,
         }
     }
 }
@@ -88,6 +95,14 @@ impl EmbeddedOptions {
                 Some(f) => o.weights = f,
                 None => {
                     tracing::warn!(value = %w, "TACOS_EMBEDDED_WEIGHTS is not auto, q4_1, q8_0 or f32; ignored")
+                }
+            }
+        }
+        if let Ok(p) = std::env::var("TACOS_EMBEDDED_REPEAT_PENALTY") {
+            match p.parse::<f32>() {
+                Ok(v) if v.is_finite() && v >= 1.0 => o.repeat_penalty = v,
+                _ => {
+                    tracing::warn!(value = %p, "TACOS_EMBEDDED_REPEAT_PENALTY is not a number ≥ 1; ignored")
                 }
             }
         }
@@ -152,7 +167,9 @@ impl Inner {
             );
         }
         let path = self.options.ensure_model()?;
-        let e = Arc::new(Engine::load(&path, self.options.weights)?);
+        let mut engine = Engine::load(&path, self.options.weights)?;
+        engine.repeat_penalty = self.options.repeat_penalty;
+        let e = Arc::new(engine);
         *slot = Some(e.clone());
         Ok(e)
     }
