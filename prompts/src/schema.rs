@@ -74,6 +74,20 @@ pub fn build(output: Output, drones: &[String], targets: &[String]) -> Value {
     schema
 }
 
+/// The most tokens a reply can take under [`build`]'s bounds for `drones` drones: its reasoning
+/// at full length (a token is at least one character) and its list full, each call at its
+/// longest (a point in "xyz", about 40 tokens). A smaller limit cuts off a well-formed reply of
+/// a long plan, as the embedded model's 6-drone take-off plans were at 600.
+pub fn token_budget(output: Output, drones: usize) -> u32 {
+    let n = drones.max(1) as u32;
+    let (reasoning, items) = match output {
+        Output::Coordinator => (300, (3 * n).clamp(3, 40)),
+        Output::Supervisor => (200, n.min(20)),
+        Output::Monolithic => (400, n.min(20)),
+    };
+    reasoning + 40 + 40 * items
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -108,6 +122,7 @@ mod tests {
             );
         }
         assert_eq!(s["properties"]["plan"]["maxItems"], 6);
+        assert_eq!(token_budget(Output::Coordinator, 2), 300 + 40 + 40 * 6);
         let s = build(Output::Supervisor, &["alfa".into()], &[]);
         assert_eq!(s["properties"]["actions"]["maxItems"], 1);
         assert_eq!(

@@ -80,6 +80,9 @@ pub struct TargetSpec {
     /// `world/targets`.
     pub hidden_at: Option<String>,
     pub motion: TargetMotion,
+    /// Seconds of simulation after which a visible target is no longer observed (it drove into
+    /// a tunnel): how a tracker's loss of its target is exercised. `None`: always observed.
+    pub observed_until_s: Option<f64>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -211,6 +214,7 @@ struct FileTarget {
     hidden_at: Option<String>,
     #[serde(default = "static_motion")]
     motion: TargetMotion,
+    observed_until_s: Option<f64>,
 }
 
 fn default_target_kind() -> String {
@@ -363,6 +367,7 @@ impl Scenario {
                 start,
                 hidden_at: t.hidden_at,
                 motion: t.motion,
+                observed_until_s: t.observed_until_s,
             });
         }
 

@@ -579,21 +579,28 @@ impl Mission {
                 .iter_mut()
                 .flat_map(|p| p.tasks.iter_mut())
                 .chain(self.mnl.tasks.iter_mut());
-            for task in tasks.filter(|t| t.status == TaskStatus::Running) {
+            // Running tasks, and tracking that is done (the drone reached its station) but goes
+            // on: a target lost later fails the task, so the Supervisor can give it again.
+            let watched = |t: &PlanTask| {
+                t.status == TaskStatus::Running
+                    || (t.status == TaskStatus::Done && t.call.action == ActionName::StartTracking)
+            };
+            for task in tasks.filter(|t| watched(t)) {
                 let Some((drone, seq)) = &task.sent else {
                     continue;
                 };
+                let running = task.status == TaskStatus::Running;
                 let progress = view
                     .get(drone)
                     .and_then(|e| e.status.as_ref())
                     .and_then(|s| s.action.as_ref());
                 let new = match progress {
                     Some(p) if p.seq == *seq => match &p.state {
-                        ActionState::Done => Some(TaskStatus::Done),
+                        ActionState::Done if running => Some(TaskStatus::Done),
                         ActionState::Failed(why) => Some(TaskStatus::Failed(why.to_string())),
-                        ActionState::Running { .. } => None,
+                        _ => None,
                     },
-                    Some(p) if p.seq > *seq => {
+                    Some(p) if p.seq > *seq && running => {
                         Some(TaskStatus::Failed("replaced by a newer action".into()))
                     }
                     _ => None,
@@ -904,7 +911,9 @@ impl Mission {
                 messages,
                 Output::Coordinator,
                 schema,
-                self.cfg.coordinator_max_tokens,
+                self.cfg
+                    .coordinator_max_tokens
+                    .max(schema::token_budget(Output::Coordinator, drones.len())),
                 CoordinatorReply::parse,
                 |reply: &CoordinatorReply| {
                     let mut rejections = Vec::new();
@@ -1130,6 +1139,10 @@ impl Mission {
     ) -> Result<CycleOutcome, MissionError> {
         self.tell(MissionUpdate::Thinking { layer: ask.layer });
         self.stats.supervisor_calls += 1;
+        let max_tokens = self
+            .cfg
+            .supervisor_max_tokens
+            .max(schema::token_budget(ask.output, self.swarm_ids().len()));
         let (reasoning, claim, all_passed, accepted) = {
             let (gate, link) = (&self.gate, &self.link);
             let visible = self.targets.borrow().clone();
@@ -1141,7 +1154,7 @@ impl Mission {
                     ask.messages,
                     ask.output,
                     ask.schema,
-                    self.cfg.supervisor_max_tokens,
+                    max_tokens,
                     ask.parse,
                     |reply: &CycleReply| {
                         let (calls, mut rejections) = match only {

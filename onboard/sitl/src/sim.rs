@@ -225,7 +225,7 @@ impl Simulation {
             targets: self
                 .targets
                 .iter()
-                .filter(|t| !t.is_hidden())
+                .filter(|t| t.is_observed(self.time))
                 .map(Target::observation)
                 .collect(),
         }

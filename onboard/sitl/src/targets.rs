@@ -16,6 +16,7 @@ pub struct Target {
     pub position: Vec3,
     pub velocity: Vec3,
     motion: TargetMotion,
+    observed_until_s: Option<f64>,
     /// Waypoint motion: the route (start, then the scenario's points) and the index of the
     /// point being headed for; `None` once a one-way route is finished.
     route: Vec<Vec3>,
@@ -43,6 +44,7 @@ impl Target {
             position: spec.start,
             velocity,
             motion: spec.motion.clone(),
+            observed_until_s: spec.observed_until_s,
             route,
             next,
         }
@@ -50,6 +52,11 @@ impl Target {
 
     pub fn is_hidden(&self) -> bool {
         self.hidden_at.is_some()
+    }
+
+    /// Whether `world/targets` reports this target at simulation time `t`.
+    pub fn is_observed(&self, t: f64) -> bool {
+        !self.is_hidden() && self.observed_until_s.is_none_or(|until| t < until)
     }
 
     pub fn observation(&self) -> TargetObservation {
@@ -179,7 +186,19 @@ mod tests {
             start,
             hidden_at: None,
             motion,
+            observed_until_s: None,
         }
+    }
+
+    #[test]
+    fn a_target_is_observed_until_its_time() {
+        let mut s = spec(Vec3::zeros(), TargetMotion::Static);
+        assert!(Target::new(&s).is_observed(1e6));
+        s.observed_until_s = Some(10.0);
+        let t = Target::new(&s);
+        assert!(t.is_observed(9.9) && !t.is_observed(10.0));
+        s.hidden_at = Some("car_1".into());
+        assert!(!Target::new(&s).is_observed(0.0), "hidden targets never are");
     }
 
     fn run(t: &mut Target, seconds: f64, drones: &[Vec3]) {
