@@ -573,3 +573,84 @@ async fn a_task_that_keeps_failing_gives_the_plan_up_with_the_reason() -> anyhow
     run.sim.stop().await;
     result
 }
+
+/// A tracked target that stops being observed after its tracker reached it: the done
+/// start_tracking fails with the loss, and the Supervisor is offered it again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_target_lost_after_tracking_was_done_fails_the_task_and_it_is_given_again()
+-> anyhow::Result<()> {
+    let city = include_str!("../../shared/scenarios/city.toml");
+    let rover = "\n[[targets]]\nname = \"rover\"\nkind = \"vehicle\"\nstart = [-40.0, -120.0, 0.0]\nobserved_until_s = 45.0\n";
+    let path = std::env::temp_dir().join(format!("{}.toml", tacos_tests::unique_swarm("tunnel")));
+    std::fs::write(&path, format!("{city}{rover}"))?;
+    let sim = SimSwarm::start("tunnel", &path.display().to_string(), 3).await?;
+    let run = Running {
+        sim,
+        updates: mpsc::unbounded_channel().1,
+        lines: mpsc::channel(1).0,
+        log_path: Default::default(),
+    };
+    let result = async {
+        run.sim
+            .wait_on_the_ground(&["alfa", "bravo", "charlie"])
+            .await?;
+        // Bravo's goto can never start (bravo stays on the ground): the plan stays open.
+        let plan = json!([
+            call("T1", "alfa", "arm_takeoff", "none"),
+            call("T2", "alfa", "start_tracking", "rover"),
+            call("T3", "bravo", "goto", "car_1"),
+        ]);
+        let (mut updates, lines, log_path, max) =
+            run_offered(&run, "tunnellog", plan, false, "alfa, follow the rover").await?;
+        let error = within("the plan to be given up", Duration::from_secs(150), async {
+            while let Some(u) = updates.recv().await {
+                if let MissionUpdate::Error(e) = u {
+                    return e;
+                }
+            }
+            String::new()
+        })
+        .await?;
+        drop(lines);
+        let lines = log::read(&log_path)?;
+        let t2: Vec<(u64, String)> = lines
+            .iter()
+            .filter_map(|l| match &l.record {
+                Record::ActionOutcome {
+                    task: Some(t),
+                    seq,
+                    outcome,
+                    ..
+                } if t == "T2" => Some((*seq, outcome.clone())),
+                _ => None,
+            })
+            .collect();
+        // The first tracking reached its station, then lost the rover: two outcomes, one seq.
+        let first = t2.first().map(|(s, _)| *s);
+        let of_first: Vec<&str> = t2
+            .iter()
+            .filter(|(s, _)| Some(*s) == first)
+            .map(|(_, o)| o.as_str())
+            .collect();
+        assert_eq!(of_first.len(), 2, "{t2:?}");
+        assert_eq!(of_first[0], "done", "{t2:?}");
+        assert!(
+            of_first[1].starts_with("failed") && of_first[1].contains("lost"),
+            "{t2:?}"
+        );
+        // Given again (the rover is gone, so it fails again) until the plan was given up.
+        assert_eq!(
+            sent_tasks(&lines).iter().filter(|(t, _)| t == "T2").count(),
+            max as usize
+        );
+        assert!(
+            error.contains("T2") && error.contains(&format!("failed {max} times")),
+            "{error}"
+        );
+        anyhow::Ok(())
+    }
+    .await;
+    run.sim.stop().await;
+    let _ = std::fs::remove_file(&path);
+    result
+}

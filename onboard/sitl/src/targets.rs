@@ -198,7 +198,10 @@ mod tests {
         let t = Target::new(&s);
         assert!(t.is_observed(9.9) && !t.is_observed(10.0));
         s.hidden_at = Some("car_1".into());
-        assert!(!Target::new(&s).is_observed(0.0), "hidden targets never are");
+        assert!(
+            !Target::new(&s).is_observed(0.0),
+            "hidden targets never are"
+        );
     }
 
     fn run(t: &mut Target, seconds: f64, drones: &[Vec3]) {
