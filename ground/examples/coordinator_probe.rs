@@ -2,6 +2,7 @@
 //! flying above its home, and prints the plan it makes: a quick way to see how the small model
 //! reads a pilot line before writing it into a mission script.
 //! Run: `cargo run -p tacos-ground --example coordinator_probe -- lab "alfa, check small_park"`
+//! (`PROBE_ON_THE_GROUND=1` for a swarm that has not taken off).
 
 use tacos_embedded::{EmbeddedBackend, EmbeddedOptions};
 use tacos_ground::mission::engine::coordinator_messages;
@@ -16,17 +17,32 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let map = args.next().unwrap_or_else(|| "lab".into());
     let scenario = Scenario::builtin(&map)?;
     let model = EmbeddedBackend::load(EmbeddedOptions::from_env())?;
+    // `PROBE_ON_THE_GROUND=1`: every drone idle at its home instead of flying above it.
+    let grounded = std::env::var_os("PROBE_ON_THE_GROUND").is_some();
     let drones: Vec<DroneLine> = scenario
         .drones
         .iter()
         .take(6)
         .map(|d| DroneLine {
             id: d.id.to_string(),
-            mode: DroneMode::Flying,
-            position: d.home + tacos_shared::Vec3::new(0.0, 0.0, scenario.limits.takeoff_altitude),
+            mode: if grounded {
+                DroneMode::Idle
+            } else {
+                DroneMode::Flying
+            },
+            position: d.home
+                + tacos_shared::Vec3::new(
+                    0.0,
+                    0.0,
+                    if grounded {
+                        0.0
+                    } else {
+                        scenario.limits.takeoff_altitude
+                    },
+                ),
             speed: 0.0,
-            action: Some(format!("T1 {} arm_takeoff()", d.id)),
-            state: Some("done".into()),
+            action: (!grounded).then(|| format!("T1 {} arm_takeoff()", d.id)),
+            state: (!grounded).then(|| "done".into()),
         })
         .collect();
     let ids: Vec<String> = drones.iter().map(|d| d.id.clone()).collect();
@@ -54,6 +70,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             &render::plan(&[]),
             &history,
             &instruction,
+            &render::named_in(&instruction, &ids.iter().chain(&places).cloned().collect::<Vec<_>>()),
         ));
         let request = ChatRequest {
             messages,

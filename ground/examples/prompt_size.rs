@@ -47,6 +47,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             &render::plan(&plan),
             "(mission start)\n",
             "find the suspect hiding in one of the cars",
+            &[],
         ));
         let supervisor = vec![
             ChatMessage::system(texts::SUPERVISOR),

@@ -171,10 +171,34 @@ pub fn coordinator_request(
     pending: &str,
     history_text: &str,
     instruction: &str,
+    named: &[String],
 ) -> String {
+    let named = if named.is_empty() {
+        "(none)".to_owned()
+    } else {
+        named.join(", ")
+    };
     format!(
-        "## Swarm state\n{swarm_text}\n## World\n{world_text}\n## Pending plan\n{pending}\n## History\n{history_text}\n## Instruction\n{instruction}\n"
+        "## Swarm state\n{swarm_text}\n## World\n{world_text}\n## Pending plan\n{pending}\n## History\n{history_text}\n## Instruction\n{instruction}\n## Named in the instruction\n{named}\n"
     )
+}
+
+/// The drones, landmarks and targets among `names` that `instruction` names, as whole words in
+/// any case, in the order given: the entities a plan must be about, spelled as the API wants
+/// them (a small model copies a name from a short list more reliably than from the prose).
+pub fn named_in(instruction: &str, names: &[String]) -> Vec<String> {
+    let words: Vec<String> = instruction
+        .split(|c: char| !(c.is_alphanumeric() || c == '_'))
+        .filter(|w| !w.is_empty())
+        .map(str::to_lowercase)
+        .collect();
+    let mut out: Vec<String> = Vec::new();
+    for name in names {
+        if words.iter().any(|w| *w == name.to_lowercase()) && !out.contains(name) {
+            out.push(name.clone());
+        }
+    }
+    out
 }
 
 /// The Supervisor's user message. `reasoning` is `None` in the `wor` ablation.
@@ -245,6 +269,20 @@ mod tests {
         }
         assert!(text.contains("Event: suspect seen at car_7"));
         assert!(text.contains("skyscraper_1 at (-18, -18) radius 8 m"));
+    }
+
+    #[test]
+    fn names_in_an_instruction_are_whole_words() {
+        let names: Vec<String> = ["alfa", "car_1", "car_12", "small_park", "van"]
+            .map(String::from)
+            .to_vec();
+        assert_eq!(
+            named_in("Alfa, check car_12 and the Small_Park; vanish", &names),
+            ["alfa", "car_12", "small_park"]
+        );
+        assert!(named_in("all drones take off", &names).is_empty());
+        let text = coordinator_request("s", "w", "p", "h", "i", &[]);
+        assert!(text.ends_with("## Named in the instruction\n(none)\n"));
     }
 
     #[test]

@@ -887,15 +887,17 @@ impl Mission {
             .into_iter()
             .filter(|(_, s)| *s != TaskStatus::Done)
             .collect();
+        let (drones, places) = self.enums();
+        let names: Vec<String> = drones.iter().chain(&places).cloned().collect();
         let user = render::coordinator_request(
             &render::swarm(&self.drone_lines()),
             &self.world_text(),
             &render::plan(&pending),
             &render::history(&self.history),
             instruction,
+            &render::named_in(instruction, &names),
         );
         let messages = coordinator_messages(user);
-        let (drones, places) = self.enums();
         let schema = schema::build(Output::Coordinator, &drones, &places);
         self.tell(MissionUpdate::Thinking {
             layer: "coordinator",
@@ -1583,8 +1585,25 @@ fn callable_schema(
 pub fn coordinator_messages(user: String) -> Vec<ChatMessage> {
     let mut messages = vec![ChatMessage::system(texts::COORDINATOR)];
     for example in texts::coordinator_examples().unwrap_or_default() {
+        // "Named in the instruction" as a real request shows it: the example plan's drones and
+        // places that its instruction names.
+        let names: Vec<String> = CoordinatorReply::parse(&example.reply.to_string())
+            .map(|r| {
+                r.plan
+                    .iter()
+                    .flat_map(|c| [Some(c.drone.clone()), c.target_name().map(str::to_owned)])
+                    .flatten()
+                    .collect()
+            })
+            .unwrap_or_default();
+        let named = render::named_in(&example.instruction, &names);
+        let named = if named.is_empty() {
+            "(none)".to_owned()
+        } else {
+            named.join(", ")
+        };
         messages.push(ChatMessage::user(format!(
-            "## Context\n{}\n## Instruction\n{}",
+            "## Context\n{}\n## Instruction\n{}\n## Named in the instruction\n{named}",
             example.context, example.instruction
         )));
         messages.push(ChatMessage::assistant(example.reply.to_string()));
