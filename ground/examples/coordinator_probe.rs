@@ -70,7 +70,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             &render::plan(&[]),
             &history,
             &instruction,
-            &render::named_in(&instruction, &ids.iter().chain(&places).cloned().collect::<Vec<_>>()),
+            &render::named_in(
+                &instruction,
+                &ids.iter().chain(&places).cloned().collect::<Vec<_>>(),
+            ),
         ));
         let request = ChatRequest {
             messages,
