@@ -571,7 +571,6 @@ impl Mission {
     /// Looks for finished actions; true when any task changed state.
     fn poll_outcomes(&mut self) -> bool {
         let mut finished: Vec<(String, String, String)> = Vec::new();
-        self.mark_satisfied_tasks(&mut finished);
         {
             let view = self.link.view();
             let tasks = self
@@ -625,6 +624,8 @@ impl Mission {
                 }
             }
         }
+        // After the outcomes: a task that just finished may make the next one's effect hold.
+        self.mark_satisfied_tasks(&mut finished);
         for (drone, action, outcome) in &finished {
             self.tell(MissionUpdate::Outcome {
                 drone: drone.clone(),
@@ -730,7 +731,8 @@ impl Mission {
     }
 
     /// A task whose effect already holds is done without flying it: a take-off for a drone that
-    /// is airborne and idle in the air, a landing or hold for a drone resting on the ground.
+    /// is airborne and idle in the air, a landing or hold for a drone resting on the ground, a
+    /// goto for a drone hovering at its point.
     /// Plans from models repeat such calls; sending them would only be refused by the drone.
     fn mark_satisfied_tasks(&mut self, finished: &mut Vec<(String, String, String)>) {
         let Some(plan) = self.plan.as_mut() else {
@@ -738,6 +740,9 @@ impl Mission {
         };
         let view = self.link.view();
         let now = Instant::now();
+        let visible = self.targets.borrow().clone();
+        // As close as the drone itself calls a goto done.
+        let arrive = (2.0 * self.gate.scenario().limits.drone_radius).max(0.2);
         // Only a task whose earlier tasks for the same drone are all done: "take off, then land"
         // must not count the landing as done before the take-off.
         let mut open_before: std::collections::HashSet<String> = std::collections::HashSet::new();
@@ -756,9 +761,22 @@ impl Mission {
                 continue;
             };
             let mode = entry.effective_mode(now);
-            if effect_holds(task.call.action, mode) && !entry.busy() {
+            let already_there = task.call.action == ActionName::Goto
+                && mode == DroneMode::Flying
+                && entry.status.as_ref().is_some_and(|status| {
+                    let claimed = claimed_points(&view, &task.call.drone, now);
+                    matches!(
+                        resolve(&task.call, self.gate.scenario(), &visible, &claimed),
+                        Ok(Action::Goto { target }) if (status.position - target).norm() <= arrive
+                    )
+                });
+            if (effect_holds(task.call.action, mode) || already_there) && !entry.busy() {
                 task.status = TaskStatus::Done;
-                let what = format!("already {mode}: nothing to do");
+                let what = if already_there {
+                    "already there: nothing to do".to_owned()
+                } else {
+                    format!("already {mode}: nothing to do")
+                };
                 self.log.note(Record::Event {
                     text: format!("{}: {what}", task.call),
                 });
@@ -1741,6 +1759,13 @@ fn check_live(
             .iter()
             .any(|(c, _)| same_work(c) == same_work(call))
         {
+            continue;
+        }
+        if let Some((other, _)) = accepted.iter().find(|(c, _)| c.task == call.task) {
+            rejections.push(format!(
+                "{call}: task {} already goes to {} this cycle",
+                call.task, other.drone
+            ));
             continue;
         }
         if accepted.iter().any(|(c, _)| c.drone == call.drone) {

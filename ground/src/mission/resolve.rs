@@ -41,10 +41,13 @@ pub fn claimed_points(view: &SwarmView, drone: &str, now: Instant) -> Vec<Vec3> 
         .collect()
 }
 
-/// How far apart two goal points must be: the safety distance plus the planner's margin on
-/// each side, in the downwash-scaled metric (vertical offsets count half).
+/// How far apart two goal points must be, in the downwash-scaled metric (vertical offsets
+/// count half): the safety distance, the planner's margin of 0.5 m on each side, and 1 m of
+/// slack. Without the slack the goals sit on the planner's boundary, where a neighbour's stale
+/// path margin makes the last metre unreachable (seen: a goto timing out 4.0 m from its
+/// neighbour's goal).
 pub fn goal_spacing(scenario: &Scenario) -> f64 {
-    scenario.limits.safety_distance + 1.0
+    scenario.limits.safety_distance + 2.0
 }
 
 fn scaled_distance(a: &Vec3, b: &Vec3) -> f64 {
