@@ -679,3 +679,42 @@ async fn a_goto_to_where_the_drone_already_hovers_is_done_without_flying() -> an
     run.sim.stop().await;
     result
 }
+
+/// A plan that can never go on (a goto for a drone it never takes off) is given up with the
+/// reason, instead of waiting for ever.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_plan_that_cannot_go_on_is_given_up() -> anyhow::Result<()> {
+    let run = start("stuck").await?;
+    let result = async {
+        let plan = json!([call("T1", "alfa", "goto", "car_1")]);
+        let (mut updates, lines, log_path, _) =
+            run_offered(&run, "stucklog", plan, false, "alfa, to car_1").await?;
+        let started = std::time::Instant::now();
+        let error = within("the plan to be given up", Duration::from_secs(60), async {
+            while let Some(u) = updates.recv().await {
+                if let MissionUpdate::Error(e) = u {
+                    return e;
+                }
+            }
+            String::new()
+        })
+        .await?;
+        drop(lines);
+        assert!(
+            started.elapsed() >= Duration::from_secs(20),
+            "given up after {:?}",
+            started.elapsed()
+        );
+        assert!(
+            error.contains("nothing has run or could start")
+                && error.contains("T1 alfa goto(car_1)"),
+            "{error}"
+        );
+        let lines = log::read(&log_path)?;
+        assert!(sent_tasks(&lines).is_empty());
+        anyhow::Ok(())
+    }
+    .await;
+    run.sim.stop().await;
+    result
+}

@@ -186,7 +186,13 @@ struct ActivePlan {
     /// The Supervisor's memory for this plan; cleared with it.
     memory: Vec<String>,
     cycles: u32,
+    /// Since when nothing of the plan has been running and nothing could start.
+    stuck_since: Option<Instant>,
 }
+
+/// How long a plan may have nothing running and nothing that can start before it is given up
+/// (long enough for a drone's link to come back, or an outcome to arrive).
+const STUCK_AFTER: Duration = Duration::from_secs(20);
 
 /// The monolithic variant's state. The model's prompt holds the instructions and the executed
 /// actions only; `tasks` is the engine's own bookkeeping of what it issued for them.
@@ -998,8 +1004,44 @@ impl Mission {
             tasks,
             memory: Vec::new(),
             cycles: 0,
+            stuck_since: None,
         });
         Ok(())
+    }
+
+    /// Gives the plan up when, for `STUCK_AFTER`, none of its tasks has been running and none
+    /// could start: e.g. a goto for a drone whose plan never takes it off. Without this the
+    /// plan would wait for ever.
+    fn give_up_if_stuck(&mut self) {
+        let now = Instant::now();
+        let Some(plan) = self.plan.as_mut() else {
+            return;
+        };
+        if plan.tasks.iter().any(|t| t.status == TaskStatus::Running) {
+            plan.stuck_since = None;
+            return;
+        }
+        let since = *plan.stuck_since.get_or_insert(now);
+        if now.duration_since(since) < STUCK_AFTER {
+            return;
+        }
+        let waiting: Vec<String> = plan
+            .tasks
+            .iter()
+            .filter(|t| t.status != TaskStatus::Done)
+            .map(|t| t.call.to_string())
+            .collect();
+        let why = format!(
+            "nothing has run or could start for {} s; waiting: {}",
+            STUCK_AFTER.as_secs(),
+            waiting.join(", ")
+        );
+        if let Some(plan) = self.plan.take() {
+            self.finish_plan(plan, &format!("abandoned: {why}"));
+            self.tell(MissionUpdate::Error(format!(
+                "the plan was given up: {why}"
+            )));
+        }
     }
 
     /// One Supervisor (or monolithic) cycle.
@@ -1028,6 +1070,7 @@ impl Mission {
         // for the swarm (an outcome, a membership change or the cycle timeout wakes us again).
         let startable = self.startable_calls();
         if startable.is_empty() {
+            self.give_up_if_stuck();
             return Ok(());
         }
         let reasoning = (self.cfg.mode == Mode::Tacos).then(|| plan.reasoning.clone());
@@ -1038,6 +1081,9 @@ impl Mission {
             &self.world_text(),
             &plan.memory,
         );
+        if let Some(plan) = self.plan.as_mut() {
+            plan.stuck_since = None;
+        }
         let ask = CycleAsk {
             layer: "supervisor",
             output: Output::Supervisor,
