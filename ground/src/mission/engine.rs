@@ -1073,6 +1073,8 @@ impl Mission {
             self.give_up_if_stuck();
             return Ok(());
         }
+        // With nothing of the plan running, waiting cannot be right: nothing would change.
+        let idle = !plan.tasks.iter().any(|t| t.status == TaskStatus::Running);
         let reasoning = (self.cfg.mode == Mode::Tacos).then(|| plan.reasoning.clone());
         let user = render::supervisor_request(
             reasoning.as_deref(),
@@ -1088,7 +1090,7 @@ impl Mission {
             layer: "supervisor",
             output: Output::Supervisor,
             messages: supervisor_messages(user),
-            schema: startable_schema(&startable),
+            schema: startable_schema(&startable, idle),
             parse: |text| SupervisorReply::parse(text).map(CycleReply::from),
             only: Some(startable),
             tasks: self.plan_lines(),
@@ -1690,7 +1692,9 @@ fn same_work(call: &Call) -> (String, String) {
 /// The Supervisor's output schema for this cycle: its calls can only name tasks, drones,
 /// actions and targets of the calls that could start now, so a constrained model cannot pick
 /// anything else (it still chooses which, and may choose none).
-fn startable_schema(startable: &[Call]) -> serde_json::Value {
+/// With `must_act` (nothing of the plan is running) the reply must start at least one call: an
+/// empty choice would only wait for a change that cannot come, one model call at a time.
+fn startable_schema(startable: &[Call], must_act: bool) -> serde_json::Value {
     let mut drones: Vec<String> = startable.iter().map(|c| c.drone.clone()).collect();
     drones.sort();
     drones.dedup();
@@ -1724,6 +1728,9 @@ fn startable_schema(startable: &[Call]) -> serde_json::Value {
     }
     if let Some(actions) = schema.pointer_mut("/properties/actions") {
         actions["maxItems"] = serde_json::Value::from(drones.len().max(1));
+        if must_act && !startable.is_empty() {
+            actions["minItems"] = serde_json::Value::from(1);
+        }
     }
     schema
 }
@@ -1965,5 +1972,37 @@ mod tests {
         assert!(effect_holds(ActionName::StopTracking, DroneMode::Flying));
         assert!(!effect_holds(ActionName::StopTracking, DroneMode::Tracking));
         assert!(!effect_holds(ActionName::Goto, DroneMode::Flying));
+    }
+
+    #[test]
+    fn an_idle_plan_must_start_something() {
+        let startable = vec![Call {
+            task: "T1".into(),
+            drone: "alfa".into(),
+            action: ActionName::ArmTakeoff,
+            target: "none".into(),
+            xyz: None,
+        }];
+        let waiting_allowed = startable_schema(&startable, false);
+        assert!(
+            waiting_allowed
+                .pointer("/properties/actions/minItems")
+                .is_none()
+        );
+        let must_act = startable_schema(&startable, true);
+        assert_eq!(
+            must_act.pointer("/properties/actions/minItems"),
+            Some(&serde_json::json!(1))
+        );
+        assert_eq!(
+            must_act.pointer("/properties/actions/maxItems"),
+            Some(&serde_json::json!(1))
+        );
+        // Nothing startable: no call can be required.
+        assert!(
+            startable_schema(&[], true)
+                .pointer("/properties/actions/minItems")
+                .is_none()
+        );
     }
 }
