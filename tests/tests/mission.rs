@@ -680,15 +680,29 @@ async fn a_goto_to_where_the_drone_already_hovers_is_done_without_flying() -> an
     result
 }
 
-/// A plan that can never go on (a goto for a drone it never takes off) is given up with the
-/// reason, instead of waiting for ever.
+/// A plan that can never go on (a take-off for a drone whose onboard is gone) is given up with
+/// the reason, instead of waiting for ever.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_plan_that_cannot_go_on_is_given_up() -> anyhow::Result<()> {
-    let run = start("stuck").await?;
+    let mut run = start("stuck").await?;
     let result = async {
-        let plan = json!([call("T1", "alfa", "goto", "car_1")]);
+        let bravo = DroneId::new("bravo")?;
+        run.sim
+            .stack
+            .crash(Role::Onboard, Some(&bravo))
+            .await
+            .ok_or_else(|| anyhow::anyhow!("bravo's onboard was not running"))?;
+        within("bravo to be seen gone", Duration::from_secs(10), async {
+            while run.sim.link.view().get(&bravo).is_some_and(|e| {
+                e.effective_mode(std::time::Instant::now()) != tacos_shared::DroneMode::Unavailable
+            }) {
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+        })
+        .await?;
+        let plan = json!([call("T1", "bravo", "arm_takeoff", "none")]);
         let (mut updates, lines, log_path, _) =
-            run_offered(&run, "stucklog", plan, false, "alfa, to car_1").await?;
+            run_offered(&run, "stucklog", plan, false, "bravo, take off").await?;
         let started = std::time::Instant::now();
         let error = within("the plan to be given up", Duration::from_secs(60), async {
             while let Some(u) = updates.recv().await {
@@ -707,11 +721,34 @@ async fn a_plan_that_cannot_go_on_is_given_up() -> anyhow::Result<()> {
         );
         assert!(
             error.contains("nothing has run or could start")
-                && error.contains("T1 alfa goto(car_1)"),
+                && error.contains("T1 bravo arm_takeoff()"),
             "{error}"
         );
         let lines = log::read(&log_path)?;
         assert!(sent_tasks(&lines).is_empty());
+        anyhow::Ok(())
+    }
+    .await;
+    run.sim.stop().await;
+    result
+}
+
+/// A goto for a drone on the ground in a plan that never takes it off: the take-off the
+/// Coordinator's rules require is added before it, and the plan completes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_grounded_drone_sent_somewhere_gets_the_take_off_its_plan_forgot() -> anyhow::Result<()> {
+    let run = start("forgot").await?;
+    let result = async {
+        let plan = json!([call("T1", "alfa", "goto", "car_11"), call("T2", "bravo", "arm_takeoff", "none")]);
+        let (mut updates, lines, log_path, _) = run_offered(&run, "forgotlog", plan, false, "alfa, to car_11").await?;
+        until(&mut updates, Duration::from_secs(90), |u| matches!(u, MissionUpdate::PlanComplete { .. })).await?;
+        drop(lines);
+        let lines = log::read(&log_path)?;
+        let sent = sent_tasks(&lines);
+        assert_eq!(sent.iter().filter(|(_, d)| d == "alfa").map(|(t, _)| t.as_str()).collect::<Vec<_>>(), ["T3", "T1"], "{sent:?}");
+        assert!(lines.iter().any(|l| matches!(&l.record, Record::Event { text } if text.contains("added T3 alfa arm_takeoff()"))));
+        // Bravo had its own take-off: nothing was added for it.
+        assert_eq!(sent.iter().filter(|(_, d)| d == "bravo").count(), 1, "{sent:?}");
         anyhow::Ok(())
     }
     .await;

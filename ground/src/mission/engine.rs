@@ -961,6 +961,7 @@ impl Mission {
             )
             .await?;
         let (reasoning, calls) = checked;
+        let calls = self.with_implied_takeoffs(calls);
         self.log.note(Record::Plan {
             reasoning: reasoning.clone(),
             plan: serde_json::to_value(&calls).unwrap_or_default(),
@@ -1007,6 +1008,54 @@ impl Mission {
             stuck_since: None,
         });
         Ok(())
+    }
+
+    /// The plan with a take-off added before the first goto or start_tracking of each drone that
+    /// is on the ground and has no take-off anywhere in the plan: the Coordinator's own rule ("a
+    /// drone on the ground must take off before goto"), which a small model forgets. Without it
+    /// such a task can never start. Each addition is logged; the gate still checks every action.
+    fn with_implied_takeoffs(&mut self, calls: Vec<Call>) -> Vec<Call> {
+        let grounded: Vec<String> = {
+            let view = self.link.view();
+            let now = Instant::now();
+            view.drones()
+                .filter(|e| e.effective_mode(now) == DroneMode::Idle)
+                .map(|e| e.id.to_string())
+                .collect()
+        };
+        let mut next_id = calls
+            .iter()
+            .filter_map(|c| c.task.strip_prefix('T')?.parse::<u32>().ok())
+            .max()
+            .unwrap_or(0);
+        let mut out: Vec<Call> = Vec::with_capacity(calls.len());
+        for call in &calls {
+            let needs_air = matches!(call.action, ActionName::Goto | ActionName::StartTracking);
+            let takes_off = |c: &Call| c.drone == call.drone && c.action == ActionName::ArmTakeoff;
+            if needs_air
+                && grounded.contains(&call.drone)
+                && !calls.iter().any(takes_off)
+                && !out.iter().any(takes_off)
+            {
+                next_id += 1;
+                let takeoff = Call {
+                    task: format!("T{next_id}"),
+                    drone: call.drone.clone(),
+                    action: ActionName::ArmTakeoff,
+                    target: schema::NO_TARGET.to_owned(),
+                    xyz: None,
+                };
+                let text = format!(
+                    "{call}: {} is on the ground and the plan never takes it off: added {takeoff}",
+                    call.drone
+                );
+                self.log.note(Record::Event { text: text.clone() });
+                self.tell(MissionUpdate::Event(text));
+                out.push(takeoff);
+            }
+            out.push(call.clone());
+        }
+        out
     }
 
     /// Gives the plan up when, for `STUCK_AFTER`, none of its tasks has been running and none
