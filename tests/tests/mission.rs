@@ -584,7 +584,7 @@ async fn a_target_lost_after_tracking_was_done_fails_the_task_and_it_is_given_ag
     let path = std::env::temp_dir().join(format!("{}.toml", tacos_tests::unique_swarm("tunnel")));
     std::fs::write(&path, format!("{city}{rover}"))?;
     let sim = SimSwarm::start("tunnel", &path.display().to_string(), 3).await?;
-    let run = Running {
+    let mut run = Running {
         sim,
         updates: mpsc::unbounded_channel().1,
         lines: mpsc::channel(1).0,
@@ -594,11 +594,18 @@ async fn a_target_lost_after_tracking_was_done_fails_the_task_and_it_is_given_ag
         run.sim
             .wait_on_the_ground(&["alfa", "bravo", "charlie"])
             .await?;
-        // Bravo's goto can never start (bravo stays on the ground): the plan stays open.
+        // Bravo's take-off can never start (its onboard is gone): the plan stays open while
+        // alfa tracks, and it is not stuck, since alfa is at work.
+        let bravo = DroneId::new("bravo")?;
+        run.sim
+            .stack
+            .crash(Role::Onboard, Some(&bravo))
+            .await
+            .ok_or_else(|| anyhow::anyhow!("bravo's onboard was not running"))?;
         let plan = json!([
             call("T1", "alfa", "arm_takeoff", "none"),
             call("T2", "alfa", "start_tracking", "rover"),
-            call("T3", "bravo", "goto", "car_1"),
+            call("T3", "bravo", "arm_takeoff", "none"),
         ]);
         let (mut updates, lines, log_path, max) =
             run_offered(&run, "tunnellog", plan, false, "alfa, follow the rover").await?;

@@ -1058,15 +1058,29 @@ impl Mission {
         out
     }
 
-    /// Gives the plan up when, for `STUCK_AFTER`, none of its tasks has been running and none
-    /// could start: e.g. a goto for a drone whose plan never takes it off. Without this the
+    /// Gives the plan up when, for `STUCK_AFTER`, none of its tasks has been running (or tracking,
+    /// for a done start_tracking) and none could start: e.g. a goto for a drone whose plan never takes it off. Without this the
     /// plan would wait for ever.
     fn give_up_if_stuck(&mut self) {
         let now = Instant::now();
+        // Drones following a target for a done start_tracking: the plan is at work, not stuck.
+        let tracking: Vec<String> = {
+            let view = self.link.view();
+            view.drones()
+                .filter(|e| e.effective_mode(now) == DroneMode::Tracking)
+                .map(|e| e.id.to_string())
+                .collect()
+        };
         let Some(plan) = self.plan.as_mut() else {
             return;
         };
-        if plan.tasks.iter().any(|t| t.status == TaskStatus::Running) {
+        let at_work = |t: &PlanTask| {
+            t.status == TaskStatus::Running
+                || (t.status == TaskStatus::Done
+                    && t.call.action == ActionName::StartTracking
+                    && tracking.contains(&t.call.drone))
+        };
+        if plan.tasks.iter().any(at_work) {
             plan.stuck_since = None;
             return;
         }
