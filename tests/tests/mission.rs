@@ -470,6 +470,24 @@ async fn run_offered(
     Ok((updates, lines, log_path, max))
 }
 
+/// The mission's error once it gives its plan up; a plan that completes instead is a failure.
+async fn given_up(
+    updates: &mut mpsc::UnboundedReceiver<MissionUpdate>,
+    limit: Duration,
+) -> anyhow::Result<String> {
+    within("the plan to be given up", limit, async {
+        while let Some(u) = updates.recv().await {
+            match u {
+                MissionUpdate::Error(e) => return Ok(e),
+                MissionUpdate::PlanComplete { .. } => anyhow::bail!("the plan completed"),
+                _ => {}
+            }
+        }
+        anyhow::bail!("the mission ended without an error")
+    })
+    .await?
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn three_drones_sent_to_one_car_each_get_a_point_of_their_own_even_when_every_call_comes_twice()
 -> anyhow::Result<()> {
@@ -550,17 +568,7 @@ async fn a_task_that_keeps_failing_gives_the_plan_up_with_the_reason() -> anyhow
     let result = async {
         let plan = json!([call("T1", "alfa", "arm_takeoff", "none"), call("T2", "alfa", "start_tracking", "suspect")]);
         let (mut updates, lines, log_path, max) = run_offered(&run, "hopelog", plan, false, "alfa, take off and follow the suspect").await?;
-        let error = within("the plan to be given up", Duration::from_secs(120), async {
-            while let Some(u) = updates.recv().await {
-                match u {
-                    MissionUpdate::Error(e) => return Ok(e),
-                    MissionUpdate::PlanComplete { .. } => anyhow::bail!("a plan with a hopeless task completed"),
-                    _ => {}
-                }
-            }
-            anyhow::bail!("the mission ended without an error")
-        })
-        .await??;
+        let error = given_up(&mut updates, Duration::from_secs(120)).await?;
         drop(lines);
         assert!(error.contains("T2 alfa start_tracking(suspect)") && error.contains(&format!("failed {max} times")), "{error}");
         let lines = log::read(&log_path)?;
@@ -609,15 +617,7 @@ async fn a_target_lost_after_tracking_was_done_fails_the_task_and_it_is_given_ag
         ]);
         let (mut updates, lines, log_path, max) =
             run_offered(&run, "tunnellog", plan, false, "alfa, follow the rover").await?;
-        let error = within("the plan to be given up", Duration::from_secs(150), async {
-            while let Some(u) = updates.recv().await {
-                if let MissionUpdate::Error(e) = u {
-                    return e;
-                }
-            }
-            String::new()
-        })
-        .await?;
+        let error = given_up(&mut updates, Duration::from_secs(150)).await?;
         drop(lines);
         let lines = log::read(&log_path)?;
         let t2: Vec<(u64, String)> = lines
@@ -711,15 +711,7 @@ async fn a_plan_that_cannot_go_on_is_given_up() -> anyhow::Result<()> {
         let (mut updates, lines, log_path, _) =
             run_offered(&run, "stucklog", plan, false, "bravo, take off").await?;
         let started = std::time::Instant::now();
-        let error = within("the plan to be given up", Duration::from_secs(60), async {
-            while let Some(u) = updates.recv().await {
-                if let MissionUpdate::Error(e) = u {
-                    return e;
-                }
-            }
-            String::new()
-        })
-        .await?;
+        let error = given_up(&mut updates, Duration::from_secs(60)).await?;
         drop(lines);
         assert!(
             started.elapsed() >= Duration::from_secs(20),
