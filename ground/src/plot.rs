@@ -62,18 +62,30 @@ pub fn speed_colour(t: f64) -> String {
     format!("#{:02x}{:02x}{:02x}", out.0 as u8, out.1 as u8, out.2 as u8)
 }
 
+impl Frame {
+    /// The map's frame in the picture, and the picture's height.
+    fn of(scenario: &Scenario) -> (Frame, f64) {
+        let b = &scenario.world.bounds;
+        let span_x = (b.max.x - b.min.x).max(1e-6);
+        let span_y = (b.max.y - b.min.y).max(1e-6);
+        let scale = (WIDTH - 2.0 * MARGIN) / span_x;
+        let height = span_y * scale + 2.0 * MARGIN + 40.0;
+        let frame = Frame {
+            min_x: b.min.x,
+            max_y: b.max.y,
+            scale,
+        };
+        (frame, height)
+    }
+}
+
 /// The SVG picture of a mission log over its scenario's map.
 pub fn svg(lines: &[Line], scenario: &Scenario) -> String {
     let b = &scenario.world.bounds;
     let span_x = (b.max.x - b.min.x).max(1e-6);
     let span_y = (b.max.y - b.min.y).max(1e-6);
-    let scale = (WIDTH - 2.0 * MARGIN) / span_x;
-    let height = span_y * scale + 2.0 * MARGIN + 40.0;
-    let f = Frame {
-        min_x: b.min.x,
-        max_y: b.max.y,
-        scale,
-    };
+    let (f, height) = Frame::of(scenario);
+    let scale = f.scale;
     let mut out = String::new();
     let _ = writeln!(
         out,
@@ -275,21 +287,29 @@ mod tests {
     use super::*;
     use crate::mission::log::Line;
 
+    /// Ten positions of alfa at 10 m, one a second: `at(i)` gives x, y and speed.
+    fn track(at: impl Fn(f64) -> (f64, f64, f64)) -> Vec<Line> {
+        (0..10)
+            .map(|i| {
+                let (x, y, speed) = at(i as f64);
+                Line {
+                    t: i as f64,
+                    record: Record::Position {
+                        drone: "alfa".into(),
+                        x,
+                        y,
+                        z: 10.0,
+                        speed,
+                    },
+                }
+            })
+            .collect()
+    }
+
     #[test]
     fn draws_the_map_and_speed_coloured_tracks() {
         let city = Scenario::builtin("city").expect("city");
-        let lines: Vec<Line> = (0..10)
-            .map(|i| Line {
-                t: i as f64,
-                record: Record::Position {
-                    drone: "alfa".into(),
-                    x: -40.0,
-                    y: -130.0 + 5.0 * i as f64,
-                    z: 10.0,
-                    speed: i as f64,
-                },
-            })
-            .collect();
+        let lines = track(|i| (-40.0, -130.0 + 5.0 * i, i));
         let svg = svg(&lines, &city);
         assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
         assert_eq!(svg.matches("<ellipse").count(), 4, "four skyscrapers");
@@ -308,30 +328,14 @@ mod tests {
     #[test]
     fn the_png_is_the_svg_rasterised() {
         let city = Scenario::builtin("city").expect("city");
-        let lines: Vec<Line> = (0..10)
-            .map(|i| Line {
-                t: i as f64,
-                record: Record::Position {
-                    drone: "alfa".into(),
-                    x: -40.0 + 5.0 * i as f64,
-                    y: -130.0,
-                    z: 10.0,
-                    speed: 8.0,
-                },
-            })
-            .collect();
+        let lines = track(|i| (-40.0 + 5.0 * i, -130.0, 8.0));
         let bytes = png(&svg(&lines, &city), 1.0).expect("rasterised");
         assert!(bytes.starts_with(b"\x89PNG\r\n\x1a\n"));
         let image = resvg::tiny_skia::Pixmap::decode_png(&bytes).expect("decodes");
         assert_eq!(image.width(), WIDTH as u32);
         // The same frame as the SVG: the track's middle is red (fast), a tower's centre dark,
         // the margin white.
-        let b = &city.world.bounds;
-        let f = Frame {
-            min_x: b.min.x,
-            max_y: b.max.y,
-            scale: (WIDTH - 2.0 * MARGIN) / (b.max.x - b.min.x),
-        };
+        let (f, _) = Frame::of(&city);
         let pixel = |x: f64, y: f64| {
             let (px, py) = f.px(x, y);
             let p = image

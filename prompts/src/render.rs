@@ -173,14 +173,21 @@ pub fn coordinator_request(
     instruction: &str,
     named: &[String],
 ) -> String {
-    let named = if named.is_empty() {
+    format!(
+        "## Swarm state\n{swarm_text}\n## World\n{world_text}\n## Pending plan\n{pending}\n## History\n{history_text}\n## Instruction\n{instruction}\n{}\n",
+        named_section(named)
+    )
+}
+
+/// The "Named in the instruction" section (see [`named_in`]), as requests and few-shot examples
+/// both show it.
+pub fn named_section(named: &[String]) -> String {
+    let list = if named.is_empty() {
         "(none)".to_owned()
     } else {
         named.join(", ")
     };
-    format!(
-        "## Swarm state\n{swarm_text}\n## World\n{world_text}\n## Pending plan\n{pending}\n## History\n{history_text}\n## Instruction\n{instruction}\n## Named in the instruction\n{named}\n"
-    )
+    format!("## Named in the instruction\n{list}")
 }
 
 /// The drones, landmarks and targets among `names` that `instruction` names, as whole words in

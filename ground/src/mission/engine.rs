@@ -1725,14 +1725,9 @@ pub fn coordinator_messages(user: String) -> Vec<ChatMessage> {
                     .collect()
             })
             .unwrap_or_default();
-        let named = render::named_in(&example.instruction, &names);
-        let named = if named.is_empty() {
-            "(none)".to_owned()
-        } else {
-            named.join(", ")
-        };
+        let named = render::named_section(&render::named_in(&example.instruction, &names));
         messages.push(ChatMessage::user(format!(
-            "## Context\n{}\n## Instruction\n{}\n## Named in the instruction\n{named}",
+            "## Context\n{}\n## Instruction\n{}\n{named}",
             example.context, example.instruction
         )));
         messages.push(ChatMessage::assistant(example.reply.to_string()));
