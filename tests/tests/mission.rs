@@ -662,8 +662,9 @@ async fn a_target_lost_after_tracking_was_done_fails_the_task_and_it_is_given_ag
     result
 }
 
-/// A plan that repeats a goto (small models do): the second finds the drone already there and
-/// is done without a model cycle or a flight.
+/// A plan that repeats a goto (small models do): the repeat straight after is dropped from the
+/// plan; a goto back to car_11 after a hold finds the drone already there and is done without a
+/// model cycle or a flight.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_goto_to_where_the_drone_already_hovers_is_done_without_flying() -> anyhow::Result<()> {
     let run = start("there").await?;
@@ -672,14 +673,28 @@ async fn a_goto_to_where_the_drone_already_hovers_is_done_without_flying() -> an
             call("T1", "alfa", "arm_takeoff", "none"),
             call("T2", "alfa", "goto", "car_11"),
             call("T3", "alfa", "goto", "car_11"),
+            call("T4", "alfa", "hold", "none"),
+            call("T5", "alfa", "goto", "car_11"),
         ]);
-        let (mut updates, lines, log_path, _) = run_offered(&run, "therelog", plan, false, "alfa, to car_11, twice").await?;
-        until(&mut updates, Duration::from_secs(120), |u| matches!(u, MissionUpdate::PlanComplete { .. })).await?;
+        let (mut updates, lines, log_path, _) =
+            run_offered(&run, "therelog", plan, false, "alfa, to car_11, twice").await?;
+        until(&mut updates, Duration::from_secs(120), |u| {
+            matches!(u, MissionUpdate::PlanComplete { .. })
+        })
+        .await?;
         drop(lines);
         let lines = log::read(&log_path)?;
         let sent: Vec<String> = sent_tasks(&lines).into_iter().map(|(t, _)| t).collect();
-        assert_eq!(sent, ["T1", "T2"]);
-        assert!(lines.iter().any(|l| matches!(&l.record, Record::Event { text } if text == "T3 alfa goto(car_11): already there: nothing to do")));
+        assert_eq!(sent, ["T1", "T2", "T4"]);
+        let event = |wanted: &str| {
+            lines
+                .iter()
+                .any(|l| matches!(&l.record, Record::Event { text } if text == wanted))
+        };
+        assert!(event(
+            "T3 alfa goto(car_11): repeats alfa's previous task: dropped"
+        ));
+        assert!(event("T5 alfa goto(car_11): already there: nothing to do"));
         anyhow::Ok(())
     }
     .await;

@@ -2,6 +2,7 @@
 //! pending plan, the two memories, automatic replans, and the bookkeeping of what was sent.
 
 use super::directives::{self, Directive};
+use super::grounding;
 use super::input::MissionInputs;
 use super::log::{MissionLog, Record};
 use super::resolve::{claimed_points, resolve};
@@ -913,16 +914,26 @@ impl Mission {
             .collect();
         let (drones, places) = self.enums();
         let names: Vec<String> = drones.iter().chain(&places).cloned().collect();
+        let named = render::named_in(instruction, &names);
+        let pending_places: Vec<String> = pending
+            .iter()
+            .filter_map(|(c, _)| c.target_name().map(str::to_owned))
+            .collect();
+        let scope = grounding::places_in_scope(&places, &named, &pending_places);
         let user = render::coordinator_request(
             &render::swarm(&self.drone_lines()),
             &self.world_text(),
             &render::plan(&pending),
             &render::history(&self.history),
             instruction,
-            &render::named_in(instruction, &names),
+            &named,
         );
         let messages = coordinator_messages(user);
-        let schema = schema::build(Output::Coordinator, &drones, &places);
+        let schema = schema::build(
+            Output::Coordinator,
+            &drones,
+            scope.as_ref().unwrap_or(&places),
+        );
         self.tell(MissionUpdate::Thinking {
             layer: "coordinator",
         });
@@ -945,7 +956,14 @@ impl Mission {
                     let mut rejections = Vec::new();
                     let mut plan = Vec::new();
                     for call in &reply.plan {
-                        match check_static(call, &scenario, &visible) {
+                        let off = scope
+                            .as_ref()
+                            .and_then(|s| grounding::off_scope(call, &places, s));
+                        let checked = match off {
+                            Some(why) => Err(why),
+                            None => check_static(call, &scenario, &visible),
+                        };
+                        match checked {
                             Ok(()) => plan.push(call.clone()),
                             Err(why) => rejections.push(format!("{call}: {why}")),
                         }
@@ -961,6 +979,12 @@ impl Mission {
             )
             .await?;
         let (reasoning, calls) = checked;
+        let (calls, repeats) = without_repeated_work(calls);
+        for call in repeats {
+            let text = format!("{call}: repeats {}'s previous task: dropped", call.drone);
+            self.log.note(Record::Event { text: text.clone() });
+            self.tell(MissionUpdate::Event(text));
+        }
         let calls = self.with_implied_takeoffs(calls);
         self.log.note(Record::Plan {
             reasoning: reasoning.clone(),
@@ -1738,6 +1762,24 @@ pub fn coordinator_messages(user: String) -> Vec<ChatMessage> {
 
 /// What a call asks of which drone, whatever its task id: a replan that repeats a running call
 /// keeps it running instead of starting it again.
+/// The plan without calls that repeat their drone's previous call in the plan (the 135M model
+/// lists `alfa goto(villa)` six times in a row), and the calls dropped. Doing the same work
+/// twice in a row changes nothing, and each repeat would cost a Supervisor cycle. Work repeated
+/// after other work for that drone (out and back) is kept.
+fn without_repeated_work(calls: Vec<Call>) -> (Vec<Call>, Vec<Call>) {
+    let mut kept: Vec<Call> = Vec::with_capacity(calls.len());
+    let mut dropped = Vec::new();
+    for call in calls {
+        let previous = kept.iter().rev().find(|c| c.drone == call.drone);
+        if previous.is_some_and(|p| same_work(p) == same_work(&call)) {
+            dropped.push(call);
+        } else {
+            kept.push(call);
+        }
+    }
+    (kept, dropped)
+}
+
 fn same_work(call: &Call) -> (String, String) {
     let text = call.to_string();
     let without_task = text
@@ -2062,5 +2104,29 @@ mod tests {
                 .pointer("/properties/actions/minItems")
                 .is_none()
         );
+    }
+
+    #[test]
+    fn work_repeated_in_a_row_is_one_task() {
+        let call = |task: &str, drone: &str, action: ActionName, target: &str| Call {
+            task: task.into(),
+            drone: drone.into(),
+            action,
+            target: target.into(),
+            xyz: None,
+        };
+        let plan = vec![
+            call("T1", "alfa", ActionName::Goto, "villa"),
+            call("T2", "bravo", ActionName::Goto, "villa"),
+            call("T3", "alfa", ActionName::Goto, "villa"),
+            call("T4", "alfa", ActionName::Goto, "small_park"),
+            call("T5", "alfa", ActionName::Goto, "villa"),
+            call("T6", "alfa", ActionName::Goto, "villa"),
+        ];
+        let (kept, dropped) = without_repeated_work(plan);
+        let tasks = |calls: &[Call]| calls.iter().map(|c| c.task.clone()).collect::<Vec<_>>();
+        // Bravo's goto between alfa's two does not separate them; small_park does (out and back).
+        assert_eq!(tasks(&kept), ["T1", "T2", "T4", "T5"]);
+        assert_eq!(tasks(&dropped), ["T3", "T6"]);
     }
 }

@@ -9,6 +9,7 @@
 
 pub mod directives;
 pub mod engine;
+pub mod grounding;
 pub mod input;
 pub mod log;
 pub mod resolve;
