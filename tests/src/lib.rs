@@ -142,6 +142,8 @@ pub async fn within<T>(
 /// returns the reply text, or an error as a server would. It records every request.
 pub struct PolicyBackend<F> {
     policy: F,
+    /// How long each answer takes (20 ms unless [`PolicyBackend::thinking`] says otherwise).
+    think: Duration,
     pub requests: std::sync::Mutex<Vec<tacos_llm::ChatRequest>>,
 }
 
@@ -152,8 +154,16 @@ where
     pub fn new(policy: F) -> Self {
         PolicyBackend {
             policy,
+            // A model takes a moment; the engine must not depend on instant answers.
+            think: Duration::from_millis(20),
             requests: std::sync::Mutex::new(Vec::new()),
         }
+    }
+
+    /// Every answer takes `think`, as the embedded model's take tens of seconds.
+    pub fn thinking(mut self, think: Duration) -> Self {
+        self.think = think;
+        self
     }
 }
 
@@ -170,8 +180,7 @@ where
             if let Ok(mut log) = self.requests.lock() {
                 log.push(request.clone());
             }
-            // A model takes a moment; the engine must not depend on instant answers.
-            tokio::time::sleep(Duration::from_millis(20)).await;
+            tokio::time::sleep(self.think).await;
             let content = (self.policy)(request)?;
             let words = |t: &str| t.split_whitespace().count() as u32;
             Ok(tacos_llm::ChatReply {

@@ -447,8 +447,24 @@ async fn run_offered(
     std::path::PathBuf,
     u32,
 )> {
+    let backend = PolicyBackend::new(offered_policy(plan, stutter));
+    run_with_backend(run, tag, backend, say).await
+}
+
+/// [`run_offered`] with the stand-in model given.
+async fn run_with_backend(
+    run: &Running,
+    tag: &str,
+    backend: impl tacos_llm::LlmBackend + 'static,
+    say: &str,
+) -> anyhow::Result<(
+    mpsc::UnboundedReceiver<MissionUpdate>,
+    mpsc::Sender<String>,
+    std::path::PathBuf,
+    u32,
+)> {
     let log_path = std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm(tag)));
-    let backend = Arc::new(PolicyBackend::new(offered_policy(plan, stutter)));
+    let backend = Arc::new(backend);
     let (tx, updates) = mpsc::unbounded_channel();
     let cfg = MissionConfig {
         cycle_timeout: Duration::from_secs(3),
@@ -763,6 +779,75 @@ async fn a_grounded_drone_sent_somewhere_gets_the_take_off_its_plan_forgot() -> 
         assert!(lines.iter().any(|l| matches!(&l.record, Record::Event { text } if text.contains("added T3 alfa arm_takeoff()"))));
         // Bravo had its own take-off: nothing was added for it.
         assert_eq!(sent.iter().filter(|(_, d)| d == "bravo").count(), 1, "{sent:?}");
+        anyhow::Ok(())
+    }
+    .await;
+    run.sim.stop().await;
+    result
+}
+
+/// The drones fly on while a model thinks, and the mission log keeps their positions for the
+/// plot: twice a second, each at the time it was taken, not in a burst once the call returns.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn positions_are_logged_while_a_model_thinks() -> anyhow::Result<()> {
+    let run = start("think").await?;
+    let result = async {
+        let plan = json!([
+            call("T1", "alfa", "arm_takeoff", "none"),
+            call("T2", "alfa", "goto", "car_11")
+        ]);
+        let think = Duration::from_secs(4);
+        let backend = PolicyBackend::new(offered_policy(plan, false)).thinking(think);
+        let (mut updates, lines, log_path, _) =
+            run_with_backend(&run, "thinklog", backend, "alfa, to car_11").await?;
+        until(
+            &mut updates,
+            Duration::from_secs(60),
+            |u| matches!(u, MissionUpdate::Sent { action, .. } if action.starts_with("goto")),
+        )
+        .await?;
+        // A second instruction: the Coordinator thinks for 4 s while alfa flies to car_11.
+        lines.send("alfa, to car_11 again".into()).await?;
+        until(&mut updates, Duration::from_secs(60), |u| {
+            matches!(u, MissionUpdate::Plan { .. })
+        })
+        .await?;
+        drop(lines);
+        let records = log::read(&log_path)?;
+        let asked = records
+            .iter()
+            .filter(
+                |l| matches!(&l.record, Record::LlmRequest { layer, .. } if layer == "coordinator"),
+            )
+            .map(|l| l.t)
+            .nth(1)
+            .ok_or_else(|| anyhow::anyhow!("no second coordinator request"))?;
+        let alfa: Vec<(f64, f64)> = records
+            .iter()
+            .filter_map(|l| match &l.record {
+                Record::Position { drone, speed, .. } if drone == "alfa" => Some((l.t, *speed)),
+                _ => None,
+            })
+            .collect();
+        let during: Vec<&(f64, f64)> = alfa
+            .iter()
+            .filter(|(t, _)| *t > asked && *t < asked + think.as_secs_f64())
+            .collect();
+        assert!(
+            during.len() >= 6,
+            "{} positions of alfa in the 4 s the model thought: {during:?}",
+            during.len()
+        );
+        assert!(
+            during.iter().any(|(_, speed)| *speed > 0.5),
+            "alfa was not seen moving: {during:?}"
+        );
+        for pair in alfa.windows(2) {
+            assert!(
+                pair[1].0 - pair[0].0 > 0.3,
+                "positions logged in a burst: {pair:?}"
+            );
+        }
         anyhow::Ok(())
     }
     .await;

@@ -252,6 +252,43 @@ pub struct Mission {
     overrides: watch::Receiver<u64>,
 }
 
+/// Logs where every live drone is, twice a second, for `tacos-ground plot`, until aborted.
+async fn log_positions(link: Arc<GroundLink>, log: Arc<MissionLog>) {
+    let mut tick = tokio::time::interval(Duration::from_millis(500));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    loop {
+        tick.tick().await;
+        let records: Vec<Record> = {
+            let view = link.view();
+            view.drones()
+                .filter(|e| e.alive)
+                .filter_map(|entry| {
+                    let s = entry.status.as_ref()?;
+                    Some(Record::Position {
+                        drone: entry.id.to_string(),
+                        x: s.position.x,
+                        y: s.position.y,
+                        z: s.position.z,
+                        speed: s.velocity.norm(),
+                    })
+                })
+                .collect()
+        };
+        for record in records {
+            log.note(record);
+        }
+    }
+}
+
+/// Aborts a spawned task when dropped, so it ends with the future that owns it.
+struct AbortOnDrop<T>(tokio::task::JoinHandle<T>);
+
+impl<T> Drop for AbortOnDrop<T> {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
 /// The result of checking one reply: what may be done, and why the rest may not.
 struct Checked<U> {
     accepted: U,
@@ -351,9 +388,16 @@ impl Mission {
                 return self.stats;
             }
         };
+        // Positions are sampled beside the engine, which waits minutes on a model call while
+        // the drones fly on; the guard stops the sampler with the mission.
+        let _positions = AbortOnDrop(tokio::spawn(log_positions(
+            self.link.clone(),
+            self.log.clone(),
+        )));
         let mut tick = tokio::time::interval(Duration::from_millis(250));
+        // After a model call, one tick, not a burst of the ones missed.
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
         let mut last_cycle = Instant::now();
-        let mut ticks: u64 = 0;
         loop {
             let mut cycle_due = false;
             tokio::select! {
@@ -386,10 +430,6 @@ impl Mission {
                     cycle_due = self.busy();
                 },
                 _ = tick.tick() => {
-                    ticks += 1;
-                    if ticks.is_multiple_of(2) {
-                        self.log_positions();
-                    }
                     cycle_due = self.poll_outcomes() || (self.busy() && last_cycle.elapsed() >= self.cfg.cycle_timeout);
                 }
             }
@@ -419,22 +459,6 @@ impl Mission {
         }
         self.mnl.active = false;
         true
-    }
-
-    /// Where every drone is, for `tacos-ground plot` (twice a second).
-    fn log_positions(&self) {
-        let view = self.link.view();
-        for entry in view.drones().filter(|e| e.alive) {
-            if let Some(s) = &entry.status {
-                self.log.note(Record::Position {
-                    drone: entry.id.to_string(),
-                    x: s.position.x,
-                    y: s.position.y,
-                    z: s.position.z,
-                    speed: s.velocity.norm(),
-                });
-            }
-        }
     }
 
     /// A line from the pilot: a direct command, or an instruction for the models.
