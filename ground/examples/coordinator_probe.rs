@@ -6,6 +6,7 @@
 
 use tacos_embedded::{EmbeddedBackend, EmbeddedOptions};
 use tacos_ground::mission::engine::coordinator_messages;
+use tacos_ground::mission::grounding;
 use tacos_llm::{ChatRequest, LlmBackend, ResponseSchema};
 use tacos_prompts::render::{self, DroneLine, HistoryEntry};
 use tacos_prompts::schema::{self, Output};
@@ -64,22 +65,25 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .build()?;
     for instruction in args {
         let history = render::history(&[HistoryEntry::Pilot(instruction.clone())]);
+        let named = render::named_in(
+            &instruction,
+            &ids.iter().chain(&places).cloned().collect::<Vec<_>>(),
+        );
+        // As the engine limits it: the places the instruction names, if it names any.
+        let scope = grounding::places_in_scope(&places, &named, &[]);
         let messages = coordinator_messages(render::coordinator_request(
             &render::swarm(&drones),
             &render::world(&scenario.world, &[], &[]),
             &render::plan(&[]),
             &history,
             &instruction,
-            &render::named_in(
-                &instruction,
-                &ids.iter().chain(&places).cloned().collect::<Vec<_>>(),
-            ),
+            &named,
         ));
         let request = ChatRequest {
             messages,
             schema: Some(ResponseSchema {
                 name: Output::Coordinator.name().into(),
-                schema: schema::build(Output::Coordinator, &ids, &places),
+                schema: schema::build(Output::Coordinator, &ids, scope.as_ref().unwrap_or(&places)),
             }),
             max_tokens: 600,
             temperature: 0.0,

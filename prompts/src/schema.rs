@@ -1,6 +1,10 @@
 //! JSON schemas of the model outputs, built from the files in `prompts/schemas/` with the enums
 //! of this mission filled in (the drones and places that exist), so a server with
 //! `response_format: json_schema` or a grammar-constrained model cannot name anything else.
+//! A call is one of three shapes (`call.schema.json`): an action without argument, whose target
+//! is "none" and xyz null; a goto (a place or a point); a start_tracking (a target). Before that
+//! split the embedded model filled a take-off's unused target with a landmark, and went on to
+//! plan gotos to it that nobody asked for.
 
 use serde_json::Value;
 
@@ -106,15 +110,45 @@ mod tests {
             &["alfa".into(), "bravo".into()],
             &["car_1".into()],
         );
-        let call = &s["properties"]["plan"]["items"];
+        let variants = s["properties"]["plan"]["items"]["anyOf"]
+            .as_array()
+            .expect("a call is one of its variants");
+        assert_eq!(variants.len(), 3);
+        for call in variants {
+            assert_eq!(
+                call["properties"]["drone"]["enum"],
+                serde_json::json!(["alfa", "bravo"])
+            );
+        }
+        let variant = |action: &str| {
+            variants
+                .iter()
+                .find(|v| {
+                    v["properties"]["action"]["enum"]
+                        .as_array()
+                        .is_some_and(|a| a.contains(&action.into()))
+                })
+                .unwrap_or_else(|| panic!("no variant for {action}"))
+        };
+        // Only goto and start_tracking take a target; only goto a point.
+        for action in ["goto", "start_tracking"] {
+            assert_eq!(
+                variant(action)["properties"]["target"]["enum"],
+                serde_json::json!(["none", "car_1"])
+            );
+        }
+        for action in ["arm_takeoff", "land", "hold", "stop_tracking"] {
+            assert_eq!(
+                variant(action)["properties"]["target"]["enum"],
+                serde_json::json!(["none"])
+            );
+            assert_eq!(variant(action)["properties"]["xyz"]["type"], "null");
+        }
         assert_eq!(
-            call["properties"]["drone"]["enum"],
-            serde_json::json!(["alfa", "bravo"])
+            variant("start_tracking")["properties"]["xyz"]["type"],
+            "null"
         );
-        assert_eq!(
-            call["properties"]["target"]["enum"],
-            serde_json::json!(["none", "car_1"])
-        );
+        assert!(variant("goto")["properties"]["xyz"]["anyOf"].is_array());
         for placeholder in ["$DRONES", "$TARGETS", "$CALL"] {
             assert!(
                 !s.to_string().contains(placeholder),
@@ -126,7 +160,7 @@ mod tests {
         let s = build(Output::Supervisor, &["alfa".into()], &[]);
         assert_eq!(s["properties"]["actions"]["maxItems"], 1);
         assert_eq!(
-            s["properties"]["actions"]["items"]["properties"]["drone"]["enum"],
+            s["properties"]["actions"]["items"]["anyOf"][0]["properties"]["drone"]["enum"],
             serde_json::json!(["alfa"])
         );
     }
