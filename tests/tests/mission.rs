@@ -854,3 +854,44 @@ async fn positions_are_logged_while_a_model_thinks() -> anyhow::Result<()> {
     run.sim.stop().await;
     result
 }
+
+/// A plan that sends a drone to a place the instruction does not name, while it names another,
+/// is rejected with the places it may use (for a server that ignores the schema's narrowed
+/// target list), and the repaired plan is the one flown.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_plan_off_the_places_the_pilot_named_is_sent_back() -> anyhow::Result<()> {
+    let run = start("scope").await?;
+    let result = async {
+        let supervisor = offered_policy(json!([]), false);
+        let schemas = Arc::new(std::sync::Mutex::new(Vec::new()));
+        let seen = schemas.clone();
+        let policy = move |request: &ChatRequest| {
+            if !request.messages[0].content.starts_with("You are the Coordinator") {
+                return supervisor(request);
+            }
+            if let (Ok(mut seen), Some(s)) = (seen.lock(), &request.schema) {
+                seen.push(s.schema.clone());
+            }
+            let goal = if repairs(request) == 0 { "car_2" } else { "car_11" };
+            Ok(json!({ "reasoning": "Alfa goes.", "plan": [call("T1", "alfa", "arm_takeoff", "none"), call("T2", "alfa", "goto", goal)] }).to_string())
+        };
+        let (mut updates, lines, log_path, _) = run_with_backend(&run, "scopelog", PolicyBackend::new(policy), "alfa, check car_11").await?;
+        until(&mut updates, Duration::from_secs(120), |u| matches!(u, MissionUpdate::PlanComplete { .. })).await?;
+        drop(lines);
+        let records = log::read(&log_path)?;
+        let rejected: Vec<&String> = records.iter().filter_map(|l| match &l.record { Record::GateRejected { call, .. } => Some(call), _ => None }).collect();
+        assert_eq!(rejected.len(), 1, "{rejected:?}");
+        assert!(rejected[0].contains("T2 alfa goto(car_2): car_2 is neither named in the instruction nor in the pending plan; the places for this plan are: car_11"), "{rejected:?}");
+        let gotos: Vec<&String> = records.iter().filter_map(|l| match &l.record { Record::ActionSent { action, .. } if action.starts_with("goto") => Some(action), _ => None }).collect();
+        assert_eq!(gotos.len(), 1, "{gotos:?}");
+        // The schema offered the Coordinator only the named place for a goto's target.
+        let schemas = schemas.lock().map_err(|_| anyhow::anyhow!("poisoned"))?;
+        let goto = schemas[0]["properties"]["plan"]["items"]["anyOf"][1].clone();
+        assert_eq!(goto["properties"]["action"]["enum"], json!(["goto"]));
+        assert_eq!(goto["properties"]["target"]["enum"], json!(["none", "car_11"]));
+        anyhow::Ok(())
+    }
+    .await;
+    run.sim.stop().await;
+    result
+}
