@@ -85,7 +85,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 name: Output::Coordinator.name().into(),
                 schema: schema::build(Output::Coordinator, &ids, scope.as_ref().unwrap_or(&places)),
             }),
-            max_tokens: 600,
+            max_tokens: schema::token_budget(Output::Coordinator, ids.len()),
             temperature: 0.0,
             seed: Some(7),
             reasoning_effort: None,

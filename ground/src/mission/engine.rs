@@ -1784,8 +1784,6 @@ pub fn coordinator_messages(user: String) -> Vec<ChatMessage> {
     messages
 }
 
-/// What a call asks of which drone, whatever its task id: a replan that repeats a running call
-/// keeps it running instead of starting it again.
 /// The plan without calls that repeat their drone's previous call in the plan (the 135M model
 /// lists `alfa goto(villa)` six times in a row), and the calls dropped. Doing the same work
 /// twice in a row changes nothing, and each repeat would cost a Supervisor cycle. Work repeated
@@ -1804,6 +1802,8 @@ fn without_repeated_work(calls: Vec<Call>) -> (Vec<Call>, Vec<Call>) {
     (kept, dropped)
 }
 
+/// What a call asks of which drone, whatever its task id: a replan that repeats a running call
+/// keeps it running instead of starting it again.
 fn same_work(call: &Call) -> (String, String) {
     let text = call.to_string();
     let without_task = text
