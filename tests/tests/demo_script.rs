@@ -10,50 +10,10 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 use tacos_ground::mission::log::{self, Line as LogLine, Record};
 use tacos_tests::chat_server::{ChatServer, PolicyResult};
+use tacos_tests::prompt_text::{plan_lines, section, swarm_lines};
 
 fn call(task: &str, drone: &str, action: &str, target: &str) -> Value {
     json!({ "task": task, "drone": drone, "action": action, "target": target, "xyz": null })
-}
-
-fn section<'a>(text: &'a str, title: &str) -> &'a str {
-    let Some(start) = text.find(&format!("## {title}\n")) else {
-        return "";
-    };
-    let rest = &text[start + title.len() + 4..];
-    &rest[..rest.find("\n## ").unwrap_or(rest.len())]
-}
-
-/// `- alfa: idle at (…); …` → (drone, mode, busy).
-fn swarm(user: &str) -> Vec<(String, String, bool)> {
-    section(user, "Swarm state")
-        .lines()
-        .filter_map(|l| {
-            let (drone, rest) = l.strip_prefix("- ")?.split_once(": ")?;
-            let mode = rest.split(' ').next()?.to_owned();
-            Some((drone.to_owned(), mode, rest.contains("running")))
-        })
-        .collect()
-}
-
-/// `- T4 alfa goto(car_11): not started` → (task, drone, action, target, status).
-fn plan(user: &str) -> Vec<(String, String, String, String, String)> {
-    section(user, "Plan")
-        .lines()
-        .filter_map(|l| {
-            let (call, status) = l.strip_prefix("- ")?.rsplit_once("): ")?;
-            let mut words = call.splitn(3, ' ');
-            let (task, drone, rest) = (words.next()?, words.next()?, words.next()?);
-            let (action, target) = rest.split_once('(')?;
-            let target = if target.is_empty() { "none" } else { target };
-            Some((
-                task.into(),
-                drone.into(),
-                action.into(),
-                target.into(),
-                status.into(),
-            ))
-        })
-        .collect()
 }
 
 /// The stand-in model: it plans what the pilot's instruction says, for the drones the prompt
@@ -75,13 +35,13 @@ fn policy(index: usize, request: &Value) -> PolicyResult {
     };
     if system.starts_with("You are the Coordinator") {
         let instruction = section(&user, "Instruction").trim().to_lowercase();
-        let drones = swarm(&user);
+        let drones = swarm_lines(&user);
         let calls: Vec<Value> = if instruction.contains("take off") {
             drones
                 .iter()
-                .filter(|(_, mode, _)| mode == "idle")
+                .filter(|(_, mode, _, _)| mode == "idle")
                 .enumerate()
-                .map(|(i, (d, _, _))| call(&format!("T{}", i + 1), d, "arm_takeoff", "none"))
+                .map(|(i, (d, _, _, _))| call(&format!("T{}", i + 1), d, "arm_takeoff", "none"))
                 .collect()
         } else {
             // "<drone>, go to <place>"
@@ -91,7 +51,7 @@ fn policy(index: usize, request: &Value) -> PolicyResult {
                 .map(str::to_owned)
                 .collect();
             match (words.first(), words.last()) {
-                (Some(d), Some(place)) if drones.iter().any(|(x, _, _)| x == d) => {
+                (Some(d), Some(place)) if drones.iter().any(|(x, _, _, _)| x == d) => {
                     vec![call("T1", d, "goto", place)]
                 }
                 _ => Vec::new(),
@@ -100,14 +60,14 @@ fn policy(index: usize, request: &Value) -> PolicyResult {
         return Ok(json!({ "reasoning": format!("Doing what the pilot asked: {instruction}."), "plan": calls }).to_string());
     }
     // The Supervisor: start every task whose drone can do it now, one per drone.
-    let drones = swarm(&user);
-    let tasks = plan(&user);
+    let drones = swarm_lines(&user);
+    let tasks = plan_lines(&user);
     let mut actions: Vec<Value> = Vec::new();
     for (task, drone, action, target, status) in &tasks {
         if status != "not started" {
             continue;
         }
-        let Some((_, mode, busy)) = drones.iter().find(|(d, _, _)| d == drone) else {
+        let Some((_, mode, busy, _)) = drones.iter().find(|(d, _, _, _)| d == drone) else {
             continue;
         };
         let ready = !busy

@@ -14,54 +14,11 @@ use tacos_ground::mission::log::{self, Record};
 use tacos_llm::{ChatRequest, LlmError, Role as ChatRole};
 use tacos_shared::scenario::Scenario;
 use tacos_shared::world::LandmarkKind;
+use tacos_tests::prompt_text::{plan_lines, swarm_lines};
 use tacos_tests::{PolicyBackend, within};
 
 fn call(task: &str, drone: &str, target: &str) -> Value {
     json!({ "task": task, "drone": drone, "action": "goto", "target": target, "xyz": null })
-}
-
-fn section<'a>(text: &'a str, title: &str) -> &'a str {
-    let start = text
-        .find(&format!("## {title}\n"))
-        .map(|i| i + title.len() + 4)
-        .unwrap_or(text.len());
-    let rest = &text[start..];
-    &rest[..rest.find("\n## ").unwrap_or(rest.len())]
-}
-
-/// Plan lines: `- T4 alfa goto(car_11): not started` → (task, drone, action, target, status).
-fn plan_lines(text: &str) -> Vec<(String, String, String, String, String)> {
-    section(text, "Plan")
-        .lines()
-        .chain(section(text, "Pending plan").lines())
-        .filter_map(|l| {
-            let l = l.strip_prefix("- ")?;
-            let (call, status) = l.rsplit_once("): ")?;
-            let mut words = call.splitn(3, ' ');
-            let (task, drone, rest) = (words.next()?, words.next()?, words.next()?);
-            let (action, target) = rest.split_once('(')?;
-            Some((
-                task.into(),
-                drone.into(),
-                action.into(),
-                target.into(),
-                status.into(),
-            ))
-        })
-        .collect()
-}
-
-/// Swarm lines: `- alfa: flying at (…) …` → (drone, mode, busy).
-fn swarm_lines(text: &str) -> Vec<(String, String, bool)> {
-    section(text, "Swarm state")
-        .lines()
-        .filter_map(|l| {
-            let l = l.strip_prefix("- ")?;
-            let (drone, rest) = l.split_once(": ")?;
-            let mode = rest.split(' ').next()?.to_owned();
-            Some((drone.into(), mode, rest.contains("running")))
-        })
-        .collect()
 }
 
 /// A stand-in model. The Coordinator spreads `places` over the flying drones (round robin) and,
@@ -79,8 +36,8 @@ fn policy(places: Vec<String>) -> impl Fn(&ChatRequest) -> Result<String, LlmErr
         let swarm = swarm_lines(user);
         let flying: Vec<&String> = swarm
             .iter()
-            .filter(|(_, m, _)| m == "flying")
-            .map(|(d, _, _)| d)
+            .filter(|(_, m, _, _)| m == "flying")
+            .map(|(d, _, _, _)| d)
             .collect();
         if system.starts_with("You are the Coordinator") {
             if user.contains("(automatic replan)") {
@@ -116,7 +73,7 @@ fn policy(places: Vec<String>) -> impl Fn(&ChatRequest) -> Result<String, LlmErr
             }
             let free = swarm
                 .iter()
-                .any(|(d, m, busy)| *d == drone && m == "flying" && !busy);
+                .any(|(d, m, busy, _)| *d == drone && m == "flying" && !busy);
             if free && !actions.iter().any(|a| a["drone"] == drone.as_str()) {
                 actions.push(call(&task, &drone, &target));
             }

@@ -13,6 +13,7 @@ use tacos_ground::mission::{Mission, MissionConfig, MissionUpdate, Mode};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{ChatRequest, LlmError, Role as ChatRole};
 use tacos_shared::DroneId;
+use tacos_tests::prompt_text::{plan_lines, swarm_lines};
 use tacos_tests::{PolicyBackend, SimSwarm, within};
 use tokio::sync::mpsc;
 
@@ -33,51 +34,6 @@ fn good_plan() -> Value {
             call("T6", "charlie", "goto", "car_12"),
         ]
     })
-}
-
-fn section<'a>(text: &'a str, title: &str) -> &'a str {
-    let start = text
-        .find(&format!("## {title}\n"))
-        .map(|i| i + title.len() + 4)
-        .unwrap_or(text.len());
-    let rest = &text[start..];
-    &rest[..rest.find("\n## ").unwrap_or(rest.len())]
-}
-
-/// Plan lines: `- T4 alfa goto(car_11): not started` → (task, drone, action, target, status).
-fn plan_lines(text: &str) -> Vec<(String, String, String, String, String)> {
-    section(text, "Plan")
-        .lines()
-        .chain(section(text, "Pending plan").lines())
-        .filter_map(|l| {
-            let l = l.strip_prefix("- ")?;
-            let (call, status) = l.rsplit_once("): ")?;
-            let mut words = call.splitn(3, ' ');
-            let (task, drone, rest) = (words.next()?, words.next()?, words.next()?);
-            let (action, target) = rest.split_once('(')?;
-            let target = if target.is_empty() { "none" } else { target };
-            Some((
-                task.into(),
-                drone.into(),
-                action.into(),
-                target.into(),
-                status.into(),
-            ))
-        })
-        .collect()
-}
-
-/// Swarm lines: `- alfa: flying at (…); last action T1 arm_takeoff(): done` → (drone, mode, busy, last).
-fn swarm_lines(text: &str) -> Vec<(String, String, bool, String)> {
-    section(text, "Swarm state")
-        .lines()
-        .filter_map(|l| {
-            let l = l.strip_prefix("- ")?;
-            let (drone, rest) = l.split_once(": ")?;
-            let mode = rest.split(' ').next()?.to_owned();
-            Some((drone.into(), mode, rest.contains("running"), rest.into()))
-        })
-        .collect()
 }
 
 fn repairs(request: &ChatRequest) -> usize {

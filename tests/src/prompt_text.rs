@@ -1,0 +1,58 @@
+//! Reading the engine's requests the way the stand-in models of the tests do: the sections of a
+//! rendered prompt (`## Title`), its plan lines and its swarm lines.
+
+/// The body of the `## title` section of `text`, up to the next section; empty if there is none.
+pub fn section<'a>(text: &'a str, title: &str) -> &'a str {
+    let Some(start) = text.find(&format!("## {title}\n")) else {
+        return "";
+    };
+    let rest = &text[start + title.len() + 4..];
+    &rest[..rest.find("\n## ").unwrap_or(rest.len())]
+}
+
+/// One plan line, `- T4 alfa goto(car_11): not started`.
+pub type PlanLine = (String, String, String, String, String);
+
+/// The lines of the "Plan" (Supervisor) and "Pending plan" (Coordinator) sections as (task,
+/// drone, action, target, status); an action without argument has target "none".
+pub fn plan_lines(text: &str) -> Vec<PlanLine> {
+    section(text, "Plan")
+        .lines()
+        .chain(section(text, "Pending plan").lines())
+        .filter_map(|l| {
+            let (call, status) = l.strip_prefix("- ")?.rsplit_once("): ")?;
+            let mut words = call.splitn(3, ' ');
+            let (task, drone, rest) = (words.next()?, words.next()?, words.next()?);
+            let (action, target) = rest.split_once('(')?;
+            let target = if target.is_empty() { "none" } else { target };
+            Some((
+                task.into(),
+                drone.into(),
+                action.into(),
+                target.into(),
+                status.into(),
+            ))
+        })
+        .collect()
+}
+
+/// One swarm line, `- alfa: flying at (…); last action T1 arm_takeoff(): done`, as (drone, mode
+/// (the first word after the name), busy (its action is running), everything after the name).
+pub type SwarmLine = (String, String, bool, String);
+
+/// The lines of the "Swarm state" section.
+pub fn swarm_lines(text: &str) -> Vec<SwarmLine> {
+    section(text, "Swarm state")
+        .lines()
+        .filter_map(|l| {
+            let (drone, rest) = l.strip_prefix("- ")?.split_once(": ")?;
+            let mode = rest.split(' ').next()?.to_owned();
+            Some((
+                drone.to_owned(),
+                mode,
+                rest.contains("running"),
+                rest.to_owned(),
+            ))
+        })
+        .collect()
+}
