@@ -1,8 +1,11 @@
 //! Starts and supervises a simulated swarm on this machine: `tacos-sitl`, and per drone a
 //! `tacos-px4` writer and a `tacos-onboard` process, all joined to one zenoh hub on loopback.
 //!
-//! Children die with us: each is started with the parent-death signal set, kept in the
+//! Children die with us: each is started with the parent-death signal set (forked from one
+//! long-lived thread, `forker`, since the signal follows the forking thread), kept in the
 //! supervisor (which kills on drop), and shut down with SIGTERM then SIGKILL.
+
+mod forker;
 
 use std::net::{TcpListener, UdpSocket};
 use std::path::{Path, PathBuf};
@@ -303,7 +306,7 @@ impl Stack {
                 Ok(())
             });
         }
-        let mut child = command.spawn().map_err(|e| LaunchError::Spawn {
+        let mut child = forker::spawn(command).map_err(|e| LaunchError::Spawn {
             name: name.clone(),
             reason: e.to_string(),
         })?;

@@ -184,12 +184,21 @@ fn the_lab_swarm_flies_the_fixed_pattern() -> anyhow::Result<()> {
         .stdout
         .take()
         .ok_or_else(|| anyhow::anyhow!("no stdout"))?;
-    let reader = std::thread::spawn(move || {
-        BufReader::new(stdout)
-            .lines()
-            .map_while(Result::ok)
-            .collect::<Vec<String>>()
-    });
+    let stderr = child
+        .stderr
+        .take()
+        .ok_or_else(|| anyhow::anyhow!("no stderr"))?;
+    // Both pipes are drained as the demo runs, so neither can fill up and stall it.
+    let collect = |pipe: Box<dyn std::io::Read + Send>| {
+        std::thread::spawn(move || {
+            BufReader::new(pipe)
+                .lines()
+                .map_while(Result::ok)
+                .collect::<Vec<String>>()
+        })
+    };
+    let reader = collect(Box::new(stdout));
+    let errors = collect(Box::new(stderr));
     let mut status = None;
     wait_until(Duration::from_secs(120), || {
         status = child.try_wait().ok().flatten();
@@ -202,7 +211,10 @@ fn the_lab_swarm_flies_the_fixed_pattern() -> anyhow::Result<()> {
     let lines = reader
         .join()
         .map_err(|_| anyhow::anyhow!("stdout reader panicked"))?;
-    assert!(status.success(), "exit {status}: {lines:#?}");
+    let errors = errors
+        .join()
+        .map_err(|_| anyhow::anyhow!("stderr reader panicked"))?;
+    assert!(status.success(), "exit {status}: {lines:#?} {errors:#?}");
     let done = lines
         .iter()
         .find(|l| l.contains("done: min pair distance"))
