@@ -40,14 +40,16 @@ fn wait_until(limit: Duration, mut ok: impl FnMut() -> bool) -> bool {
     ok()
 }
 
-/// Starts the demo and returns it once its drones are up and it has started flying.
-fn start_demo() -> anyhow::Result<(Child, String, std::sync::mpsc::Receiver<String>)> {
+/// `tacos-ground demo ARGS` with its stdout and stderr piped to the test.
+fn spawn_demo(
+    args: &[&str],
+) -> anyhow::Result<(Child, std::process::ChildStdout, std::process::ChildStderr)> {
     let mut child = Command::new(ground_binary())
-        .args(["demo", "--drones", "2", "--no-llm"])
+        .arg("demo")
+        .args(args)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()?;
-    let swarm = format!("demo{}", child.id());
     let stdout = child
         .stdout
         .take()
@@ -56,6 +58,13 @@ fn start_demo() -> anyhow::Result<(Child, String, std::sync::mpsc::Receiver<Stri
         .stderr
         .take()
         .ok_or_else(|| anyhow::anyhow!("no stderr"))?;
+    Ok((child, stdout, stderr))
+}
+
+/// Starts the demo and returns it once its drones are up and it has started flying.
+fn start_demo() -> anyhow::Result<(Child, String, std::sync::mpsc::Receiver<String>)> {
+    let (mut child, stdout, stderr) = spawn_demo(&["--drones", "2", "--no-llm"])?;
+    let swarm = format!("demo{}", child.id());
     let (tx, rx) = std::sync::mpsc::channel();
     let tx2 = tx.clone();
     std::thread::spawn(move || {
@@ -175,19 +184,7 @@ fn killing_the_ground_station_takes_its_children_with_it() -> anyhow::Result<()>
 /// they flew, and the pattern's first goto timed out.)
 #[test]
 fn the_lab_swarm_flies_the_fixed_pattern() -> anyhow::Result<()> {
-    let mut child = Command::new(ground_binary())
-        .args(["demo", "--map", "lab", "--no-llm"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()?;
-    let stdout = child
-        .stdout
-        .take()
-        .ok_or_else(|| anyhow::anyhow!("no stdout"))?;
-    let stderr = child
-        .stderr
-        .take()
-        .ok_or_else(|| anyhow::anyhow!("no stderr"))?;
+    let (mut child, stdout, stderr) = spawn_demo(&["--map", "lab", "--no-llm"])?;
     // Both pipes are drained as the demo runs, so neither can fill up and stall it.
     let collect = |pipe: Box<dyn std::io::Read + Send>| {
         std::thread::spawn(move || {
