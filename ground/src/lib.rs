@@ -17,4 +17,5 @@ pub mod safety;
 pub mod script;
 pub mod swarm;
 pub mod table;
+pub mod task_guard;
 pub mod tui;

@@ -12,6 +12,7 @@ use crate::link::GroundLink;
 use crate::mission::log::{self, MissionLog};
 use crate::mission::{Mission, MissionConfig, MissionUpdate, Mode};
 use crate::safety::SafetyGate;
+use crate::task_guard::AbortOnDrop;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -173,16 +174,6 @@ async fn carry_out(
     Ok(verdict.with_audit(figures.rejected_sent, plan))
 }
 
-/// Stops the mission's task when the run ends, however it ends. Every log record is written
-/// and flushed synchronously, so stopping at an await point never cuts one short.
-struct AbortOnDrop<T>(tokio::task::JoinHandle<T>);
-
-impl<T> Drop for AbortOnDrop<T> {
-    fn drop(&mut self) {
-        self.0.abort();
-    }
-}
-
 /// What `fly` saw, before the log audit is added.
 struct Seen {
     observed: Observed,
@@ -253,6 +244,8 @@ async fn fly(
     .await
     .map_err(infra)?;
     let (lines_tx, lines_rx) = mpsc::channel(8);
+    // Stops the mission's task when the run ends, however it ends. Every log record is written
+    // and flushed synchronously, so stopping at an await point never cuts one short.
     let _mission = AbortOnDrop(tokio::spawn(mission.run(lines_rx)));
 
     let mut pilot = plan.task.pilot.iter().filter(|l| !l.trim().is_empty());

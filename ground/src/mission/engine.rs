@@ -9,6 +9,7 @@ use super::resolve::{claimed_points, resolve};
 use crate::link::GroundLink;
 use crate::safety::{CheckedAction, SafetyGate};
 use crate::swarm::SwarmChange;
+use crate::task_guard::AbortOnDrop;
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -277,15 +278,6 @@ async fn log_positions(link: Arc<GroundLink>, log: Arc<MissionLog>) {
         for record in records {
             log.note(record);
         }
-    }
-}
-
-/// Aborts a spawned task when dropped, so it ends with the future that owns it.
-struct AbortOnDrop<T>(tokio::task::JoinHandle<T>);
-
-impl<T> Drop for AbortOnDrop<T> {
-    fn drop(&mut self) {
-        self.0.abort();
     }
 }
 

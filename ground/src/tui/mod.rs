@@ -16,6 +16,7 @@ pub use state::{Command, TerminalState};
 
 use crate::link::GroundLink;
 use crate::mission::{MissionUpdate, PilotInput};
+use crate::task_guard::AbortOnDrop;
 use crossterm::event::{Event, EventStream, KeyEventKind};
 use crossterm::{cursor, execute, terminal};
 use futures_util::StreamExt;
@@ -107,15 +108,6 @@ impl Drop for TerminalGuard {
     }
 }
 
-/// Aborts the task when the terminal closes.
-struct AbortOnDrop(tokio::task::JoinHandle<()>);
-
-impl Drop for AbortOnDrop {
-    fn drop(&mut self) {
-        self.0.abort();
-    }
-}
-
 /// Runs the pilot's terminal until the pilot quits (Ctrl-C, Esc, `:q`) or the terminal fails.
 ///
 /// The mission runs elsewhere: `updates` brings what it does, submitted lines go to `input`
@@ -173,6 +165,7 @@ async fn event_loop(
             }
         }
     });
+    // The forwarder stops when the terminal closes.
     let _stop_forwarder = AbortOnDrop(forwarder);
     let (mut updates_open, mut targets_open) = (true, true);
     loop {
