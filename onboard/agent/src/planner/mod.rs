@@ -8,7 +8,9 @@
 //!   the previous plan's acceleration now).
 //! - Limits: speed and acceleration as exact second-order cones (`‖v_k‖ ≤ v̄`, `‖a_k‖ ≤ ā`;
 //!   no polyhedral approximation is needed, clarabel takes the cones natively), the workspace
-//!   box shrunk by the drone radius on every control point.
+//!   box shrunk by the drone radius on every control point, its floor raised by
+//!   `floor_clearance` (unless the goal or the drone is lower) and priced far above any other
+//!   constraint, so that a crowd cannot press a drone into the ground.
 //! - Obstacles: each ellipsoid inflated by the drone radius (plus `obstacle_margin`) is kept out
 //!   by, per segment, its tangent half-space at the point where the ray from its centre through
 //!   the previous plan (or the current position, on the first solve) meets its surface. All
@@ -73,8 +75,17 @@ pub struct PlannerConfig {
     pub neighbour_range: f64,
     /// Extra margin per second of a neighbour path's age, metres per second.
     pub stale_margin_rate: f64,
-    /// L1 penalty per metre of violated obstacle, neighbour or workspace constraint.
+    /// L1 penalty per metre of violated obstacle or neighbour constraint, per segment. The
+    /// workspace's walls and ceiling share one slack over the whole horizon, so they cost
+    /// `horizon_steps` times this; the floor costs `floor_weight_factor` times that again.
     pub slack_weight: f64,
+    /// How many times the walls' price a metre into the floor costs. A crowd presses on a
+    /// drone from many sides at once; with the floor priced like one neighbour, the drones at
+    /// the bottom of a 20-drone swap were pushed into the ground.
+    pub floor_weight_factor: f64,
+    /// Height above the workspace floor that a drone's centre is kept at, unless its goal or
+    /// the drone itself is lower (a low goal is flown to on purpose).
+    pub floor_clearance: f64,
     /// Rotation (radians, counter-clockwise about z) of separating half-spaces: both drones of a
     /// head-on pair veer to their right.
     pub right_hand_angle: f64,
@@ -111,6 +122,9 @@ impl PlannerConfig {
             neighbour_range: 2.0 * limits.max_speed * horizon + 2.0 * limits.safety_distance,
             stale_margin_rate: 1.0,
             slack_weight: 2e4,
+            floor_weight_factor: 10.0,
+            // The ground is kept a safety distance away, like another drone.
+            floor_clearance: limits.safety_distance,
             right_hand_angle: 0.25,
             detour_margin: 2.0,
             weights: CostWeights {
@@ -130,6 +144,7 @@ impl PlannerConfig {
             ("max_speed", self.max_speed),
             ("max_accel", self.max_accel),
             ("slack_weight", self.slack_weight),
+            ("floor_weight_factor", self.floor_weight_factor),
             ("downwash_factor", self.downwash_factor),
         ];
         for (name, v) in positive {
@@ -147,6 +162,7 @@ impl PlannerConfig {
             ("neighbour_range", self.neighbour_range),
             ("stale_margin_rate", self.stale_margin_rate),
             ("detour_margin", self.detour_margin),
+            ("floor_clearance", self.floor_clearance),
             ("weights.position", self.weights.position),
             ("weights.terminal_position", self.weights.terminal_position),
             ("weights.velocity", self.weights.velocity),
@@ -527,7 +543,14 @@ impl Planner {
             }
         }
 
-        let shrunk = cfg.shrunk_workspace();
+        let mut shrunk = cfg.shrunk_workspace();
+        let ground = cfg.workspace.min.z;
+        let lowest_wanted = goal.position.z.min(goal_end.z).min(position.z) - ground;
+        shrunk.min.z = shrunk
+            .min
+            .z
+            .max(ground + cfg.floor_clearance.min(lowest_wanted));
+        let workspace_slack_weight = cfg.slack_weight * k as f64;
         let input = QpInput {
             dt,
             p0: position,
@@ -543,6 +566,8 @@ impl Planner {
             constraints: &self.constraints,
             weights: cfg.weights,
             slack_weight: cfg.slack_weight,
+            workspace_slack_weight,
+            floor_slack_weight: workspace_slack_weight * cfg.floor_weight_factor,
         };
         let out = match self.qp.solve(&input) {
             Ok(out) => out,
@@ -556,7 +581,7 @@ impl Planner {
             .slacks
             .iter()
             .copied()
-            .fold(out.workspace_slack, f64::max);
+            .fold(out.workspace_slack.max(out.floor_slack), f64::max);
         let status = if max_slack <= SLACK_TOLERANCE {
             PlanStatus::Solved
         } else {

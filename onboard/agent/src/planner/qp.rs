@@ -2,11 +2,13 @@
 //! `min ½ xᵀPx + qᵀx  s.t.  Ax + s = b, s ∈ K`, built as sparse CSC matrices.
 //!
 //! Variables, for K steps and G slack groups:
-//! `[p_1..p_K | v_1..v_K | a_0..a_{K-1} | σ_1..σ_G | σ_ws]` (3K + 3K + 3K + G + 1).
+//! `[p_1..p_K | v_1..v_K | a_0..a_{K-1} | σ_1..σ_G | σ_ws | σ_floor]` (3K + 3K + 3K + G + 2).
 //! `p_0`, `v_0` are the current state (constants). Rows:
 //! - zero cone: the double-integrator dynamics (6K rows);
 //! - non-negative cone: σ ≥ 0, the half-spaces (each group: every non-constant control point of
-//!   its segment, relaxed by its own σ), the shrunk workspace box (relaxed by one σ_ws);
+//!   its segment, relaxed by its own σ), the shrunk workspace box's walls and ceiling (relaxed
+//!   by one σ_ws) and its floor (relaxed by σ_floor, priced far above the rest: see
+//!   `QpInput::floor_slack_weight`);
 //! - second-order cones: `‖v_k‖ ≤ v̄_k` (k = 1..K) and `‖a_k‖ ≤ ā` (k = 0..K-1). The norm
 //!   bounds are exact (clarabel takes second-order cones natively), not polyhedral.
 //!
@@ -71,7 +73,13 @@ pub(crate) struct QpInput<'a> {
     pub reach: &'a [f64],
     pub constraints: &'a [SegmentConstraint],
     pub weights: CostWeights,
+    /// Price per metre of each obstacle or neighbour constraint's slack (one per segment).
     pub slack_weight: f64,
+    /// Price per metre of the walls' and ceiling's slack, which is shared by every segment.
+    pub workspace_slack_weight: f64,
+    /// Price per metre of the floor's slack: the ground is the one obstacle that is always
+    /// there, and going into it is a crash, so it must cost more than giving up separation.
+    pub floor_slack_weight: f64,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -80,6 +88,7 @@ pub(crate) struct QpOutput {
     /// One per constraint, metres.
     pub slacks: Vec<f64>,
     pub workspace_slack: f64,
+    pub floor_slack: f64,
     pub iterations: u32,
 }
 
@@ -145,8 +154,11 @@ impl Layout {
     fn workspace_slack(&self) -> usize {
         9 * self.k + self.groups
     }
-    fn n(&self) -> usize {
+    fn floor_slack(&self) -> usize {
         9 * self.k + self.groups + 1
+    }
+    fn n(&self) -> usize {
+        9 * self.k + self.groups + 2
     }
 
     /// The control points of segment k as affine expressions (see `Plan::control_points`).
@@ -293,7 +305,8 @@ impl QpWorkspace {
         for g in 0..layout.groups {
             self.q[layout.slack(g)] = input.slack_weight;
         }
-        self.q[layout.workspace_slack()] = input.slack_weight;
+        self.q[layout.workspace_slack()] = input.workspace_slack_weight;
+        self.q[layout.floor_slack()] = input.floor_slack_weight;
 
         // ---- zero cone: dynamics ----
         let mut row = 0;
@@ -325,7 +338,8 @@ impl QpWorkspace {
         let zero_rows = row;
 
         // ---- non-negative cone ----
-        for g in 0..=layout.groups {
+        // Every σ: the groups', then σ_ws and σ_floor, which follow them.
+        for g in 0..layout.groups + 2 {
             // σ ≥ 0  ⇔  −σ ≤ 0
             self.entry(row, layout.slack(g), -1.0);
             self.b.push(0.0);
@@ -348,6 +362,7 @@ impl QpWorkspace {
             }
         }
         let ws = layout.workspace_slack();
+        let floor = layout.floor_slack();
         for seg in 0..k {
             let reach = input.reach.get(seg).copied().unwrap_or(f64::INFINITY);
             let points = layout.control_points(seg, &input.p0, &input.v0, dt);
@@ -363,7 +378,14 @@ impl QpWorkspace {
                         self.le_row(&mut row, &e, point, input.box_hi[axis], &[(ws, -1.0)]);
                     }
                     if input.p0[axis] - reach < input.box_lo[axis] {
-                        self.le_row(&mut row, &(-e), point, -input.box_lo[axis], &[(ws, -1.0)]);
+                        let slack = if axis == 2 { floor } else { ws };
+                        self.le_row(
+                            &mut row,
+                            &(-e),
+                            point,
+                            -input.box_lo[axis],
+                            &[(slack, -1.0)],
+                        );
                     }
                 }
             }
@@ -448,6 +470,7 @@ impl QpWorkspace {
             accelerations,
             slacks,
             workspace_slack: x[ws].max(0.0),
+            floor_slack: x[layout.floor_slack()].max(0.0),
             iterations: sol.iterations,
         })
     }

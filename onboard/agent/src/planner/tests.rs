@@ -528,3 +528,57 @@ fn a_neighbour_that_cannot_give_way_is_kept_at_the_whole_distance() {
         "came within {closest:.2} m of a drone that cannot give way (safety {d} m)"
     );
 }
+
+/// Flies `goal` in closed loop for `seconds` beside neighbours that hold still (and do not give
+/// way); returns the lowest altitude of the flown path, densely sampled.
+fn lowest_flown(cfg: &PlannerConfig, start: Vec3, goal: Vec3, still: &[Vec3], seconds: f64) -> f64 {
+    let mut p = planner(cfg);
+    let neighbours: Vec<NeighbourPath> = still
+        .iter()
+        .enumerate()
+        .map(|(i, at)| NeighbourPath {
+            id: id(&format!("n{i}")),
+            positions: vec![*at; 21],
+            dt: 0.1,
+            age_s: 0.0,
+            avoids: false,
+        })
+        .collect();
+    let (mut pos, mut vel, mut now) = (start, Vec3::zeros(), 0.0);
+    let mut lowest = f64::INFINITY;
+    let goal = Goal::fixed(goal);
+    while now < seconds {
+        let r = solve(&mut p, now, pos, vel, &goal, &neighbours);
+        for i in 0..=DENSE {
+            let t = now + REPLAN * i as f64 / DENSE as f64;
+            lowest = lowest.min(r.plan.sample(t).position.z);
+        }
+        now += REPLAN;
+        let s = r.plan.sample(now);
+        (pos, vel) = (s.position, s.velocity);
+    }
+    assert!(pos.z.is_finite());
+    lowest
+}
+
+#[test]
+fn a_crowd_overhead_does_not_press_a_drone_into_the_ground() {
+    let cfg = city_config();
+    // Four drones just above, all around: the separating planes point straight down. In a
+    // 20-drone swap the drones at the bottom of the crowd were pushed to the ground this way.
+    let here = Vec3::new(60.0, 60.0, 5.0);
+    let crowd: Vec<Vec3> = [(0.5, 0.0), (-0.5, 0.0), (0.0, 0.5), (0.0, -0.5)]
+        .iter()
+        .map(|(dx, dy)| here + Vec3::new(*dx, *dy, 1.5))
+        .collect();
+    let lowest = lowest_flown(&cfg, here, here, &crowd, 4.0);
+    assert!(
+        lowest >= cfg.floor_clearance - 0.01,
+        "pressed down to {lowest:.2} m (floor clearance {} m)",
+        cfg.floor_clearance
+    );
+    // A goal below the clearance is flown to on purpose: the floor gives way to it.
+    let low = Vec3::new(60.0, 60.0, 1.5);
+    let lowest = lowest_flown(&cfg, here, low, &[], 8.0);
+    assert!((lowest - low.z).abs() < 0.2, "went down to {lowest:.2} m");
+}
