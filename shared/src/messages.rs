@@ -221,7 +221,8 @@ pub struct SimTruth {
     pub min_obstacle_clearance: f64,
     /// Count of ticks on which two airborne vehicles were closer than the safety distance.
     pub separation_breaches: u64,
-    /// Count of ticks on which a vehicle was inside an obstacle inflated by the drone radius.
+    /// Count of ticks on which a vehicle was inside an obstacle inflated by the drone radius, or
+    /// flew into the ground under power (a touchdown faster than a landing).
     pub obstacle_breaches: u64,
 }
 

@@ -164,8 +164,13 @@ impl Simulation {
                 events.push(event);
             }
         }
+        let mut struck_ground = false;
         for v in &mut self.vehicles {
             v.vehicle.step(dt);
+            if v.vehicle.take_ground_strike() {
+                tracing::warn!(drone = %v.id, "flew into the ground under power: counted as an obstacle breach");
+                struck_ground = true;
+            }
         }
 
         let positions: Vec<Vec3> = self.vehicles.iter().map(SimVehicle::position_enu).collect();
@@ -186,7 +191,7 @@ impl Simulation {
         for t in &mut self.targets {
             t.step(dt, &self.bounds, &alive_airborne);
         }
-        self.stats.update(&airborne, &self.rules);
+        self.stats.update(&airborne, struck_ground, &self.rules);
 
         let observers: Vec<Observer<'_>> = self
             .vehicles

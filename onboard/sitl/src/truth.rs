@@ -45,10 +45,11 @@ impl SafetyRules {
 }
 
 impl SafetyStats {
-    /// Folds in one simulation step; `airborne` are the world positions of the vehicles in the air.
-    /// A step counts one separation breach however many pairs are too close, and likewise for
-    /// obstacles.
-    pub fn update(&mut self, airborne: &[Vec3], rules: &SafetyRules) {
+    /// Folds in one simulation step; `airborne` are the world positions of the vehicles in the air,
+    /// `struck_ground` whether a vehicle flew into the ground under power during the step (the
+    /// ground counts as an obstacle). A step counts one separation breach however many pairs are
+    /// too close, and likewise for obstacles.
+    pub fn update(&mut self, airborne: &[Vec3], struck_ground: bool, rules: &SafetyRules) {
         let mut too_close = false;
         for (i, a) in airborne.iter().enumerate() {
             for b in airborne.iter().skip(i + 1) {
@@ -68,7 +69,7 @@ impl SafetyStats {
             }
             inside |= rules.inflated.iter().any(|o| o.contains(p));
         }
-        if inside {
+        if inside || struck_ground {
             self.obstacle_breaches += 1;
         }
     }
@@ -88,7 +89,7 @@ mod tests {
     #[test]
     fn nothing_airborne_leaves_the_stats_untouched() {
         let mut s = SafetyStats::default();
-        s.update(&[], &rules());
+        s.update(&[], false, &rules());
         assert_eq!(s, SafetyStats::default());
     }
 
@@ -98,6 +99,7 @@ mod tests {
         let mut s = SafetyStats::default();
         s.update(
             &[Vec3::new(20.0, 0.0, 5.0), Vec3::new(23.0, 0.0, 5.0)],
+            false,
             &rules,
         );
         assert!((s.min_pair_distance - 3.0).abs() < 1e-12);
@@ -106,18 +108,23 @@ mod tests {
 
         s.update(
             &[Vec3::new(20.0, 0.0, 5.0), Vec3::new(21.0, 0.0, 5.0)],
+            false,
             &rules,
         );
         assert_eq!(s.separation_breaches, 1);
         // 5.3 m from the centre: outside the tower (5 m) but inside it grown by 0.5 m.
-        s.update(&[Vec3::new(5.3, 0.0, 0.0)], &rules);
+        s.update(&[Vec3::new(5.3, 0.0, 0.0)], false, &rules);
         assert_eq!(s.obstacle_breaches, 1);
         assert!(s.min_obstacle_clearance > 0.0 && s.min_obstacle_clearance <= 0.3 + 1e-9);
         // Running minima do not go back up.
         s.update(
             &[Vec3::new(40.0, 0.0, 5.0), Vec3::new(0.0, 40.0, 5.0)],
+            false,
             &rules,
         );
         assert!((s.min_pair_distance - 1.0).abs() < 1e-12);
+        // Flying into the ground is an obstacle breach, even with nothing airborne after it.
+        s.update(&[], true, &rules);
+        assert_eq!(s.obstacle_breaches, 2);
     }
 }

@@ -34,6 +34,9 @@ pub const TAKEOFF_ACCEPTANCE: f64 = 0.1;
 pub const LAND_SPEED: f64 = 0.7;
 /// Within this height above the ground, a vehicle that is not climbing has touched down.
 pub const GROUND_CONTACT: f64 = 0.02;
+/// A powered touchdown faster than this (m/s down, about twice `LAND_SPEED`) is a crash into
+/// the ground, not a landing.
+pub const HARD_TOUCHDOWN_SPEED: f64 = 1.5;
 
 const GRAVITY: f64 = 9.81;
 /// A falling vehicle's terminal speed (m/s).
@@ -91,6 +94,9 @@ pub struct Vehicle {
     setpoint: Option<Reference>,
     last_setpoint: Option<f64>,
     stream_since: Option<f64>,
+    /// Set by a powered touchdown faster than `HARD_TOUCHDOWN_SPEED`; read (and cleared) by
+    /// `take_ground_strike`.
+    struck_ground: bool,
 }
 
 impl Vehicle {
@@ -113,7 +119,15 @@ impl Vehicle {
             setpoint: None,
             last_setpoint: None,
             stream_since: None,
+            struck_ground: false,
         }
+    }
+
+    /// True once after the vehicle flew into the ground under power (see
+    /// `HARD_TOUCHDOWN_SPEED`). A vehicle that lost power and fell is not counted: its fall is
+    /// the fault that was injected, not something the flight software did.
+    pub fn take_ground_strike(&mut self) -> bool {
+        std::mem::take(&mut self.struck_ground)
     }
 
     pub fn time(&self) -> f64 {
@@ -386,6 +400,7 @@ impl Vehicle {
     fn check_ground_contact(&mut self) {
         let p = self.body.position;
         if !self.landed && p.z > -GROUND_CONTACT && self.body.velocity.z >= 0.0 {
+            self.struck_ground |= self.body.velocity.z > HARD_TOUCHDOWN_SPEED;
             self.body.position.z = 0.0;
             self.body.velocity = Vec3::zeros();
             self.landed = true;
@@ -720,6 +735,49 @@ mod tests {
         );
         assert_eq!(v.landed_state(), LandedState::OnGround);
         assert_eq!(v.position().z, 0.0);
+    }
+
+    #[test]
+    fn flying_into_the_ground_is_a_strike_and_a_landing_or_a_fall_is_not() {
+        // Offboard setpoints 20 m below the ground: the vehicle descends at full vertical speed
+        // and hits it.
+        let mut v = airborne(5.0);
+        let here = v.position();
+        stream(&mut v, here, 1.2);
+        assert_eq!(offboard(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+        let mut strikes = 0;
+        for i in 0..1000 {
+            if i % 5 == 0 {
+                v.handle_setpoint(Reference::hold(Vec3::new(here.x, here.y, 20.0)));
+            }
+            step_checked(&mut v);
+            strikes += usize::from(v.take_ground_strike());
+        }
+        assert!(v.landed());
+        assert_eq!(strikes, 1, "one strike, reported once");
+
+        // Setpoints that come down to the ground itself slow to a gentle touchdown.
+        let mut v = airborne(5.0);
+        let here = v.position();
+        stream(&mut v, here, 1.2);
+        assert_eq!(offboard(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+        stream(&mut v, Vec3::new(here.x, here.y, 0.0), 20.0);
+        assert!(v.landed() && !v.take_ground_strike());
+
+        let mut v = airborne(5.0);
+        v.handle_command(MavCmd::MAV_CMD_NAV_LAND, [0.0; 7]);
+        run(&mut v, 30.0);
+        assert!(v.landed() && !v.take_ground_strike(), "a landing");
+
+        let mut v = airborne(5.0);
+        v.kill();
+        for _ in 0..1000 {
+            v.step(DT);
+        }
+        assert!(
+            v.landed() && !v.take_ground_strike(),
+            "a fall without power"
+        );
     }
 
     #[test]
