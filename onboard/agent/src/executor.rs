@@ -607,6 +607,9 @@ impl Executor {
                 nearest,
                 closed_in_at,
             } => {
+                if !vehicle.armed {
+                    return self.fail(disarmed_in_flight());
+                }
                 if self.left_offboard(&vehicle, now) {
                     self.hold_point = Some(vehicle.position);
                     return self.fail(FailureReason::Rejected(format!(
@@ -647,7 +650,7 @@ impl Executor {
                     )));
                 }
                 if !vehicle.armed {
-                    self.task = Task::Idle;
+                    self.fail(disarmed_in_flight());
                 }
             }
             Task::Hold => {
@@ -673,6 +676,12 @@ impl Executor {
             }
         }
     }
+}
+
+/// A goto or a tracking whose vehicle disarmed under it: it came down (a crash, or PX4's land
+/// detector after the drone was pressed into the ground) and cannot go on.
+fn disarmed_in_flight() -> FailureReason {
+    FailureReason::InvalidForMode("the vehicle disarmed: it is on the ground".into())
 }
 
 #[cfg(test)]
@@ -892,6 +901,33 @@ mod tests {
             ex.tick(41.0).steering,
             Some(Steering::Toward(Goal::fixed(start)))
         );
+    }
+
+    #[test]
+    fn a_goto_fails_at_once_when_the_vehicle_disarms_under_it() {
+        let mut ex = lab();
+        let start = Vec3::new(-40.0, -100.0, 10.0);
+        ex.on_vehicle(&state(start, true, Px4Mode::Offboard));
+        ex.on_command(
+            &cmd(
+                5,
+                Action::Goto {
+                    target: Vec3::new(-40.0, -80.0, 10.0),
+                },
+            ),
+            0.0,
+        );
+        ex.tick(1.0);
+        assert!(matches!(state_of(&ex), ActionState::Running { .. }));
+        // Pressed into the ground: it touched down and PX4 disarmed it.
+        ex.on_vehicle(&state(
+            Vec3::new(-40.0, -95.0, 0.0),
+            false,
+            Px4Mode::Offboard,
+        ));
+        ex.tick(2.0);
+        assert_eq!(state_of(&ex), ActionState::Failed(disarmed_in_flight()));
+        assert_eq!(ex.mode(), DroneMode::Idle);
     }
 
     fn station(p: Vec3) -> Station {
