@@ -2,7 +2,8 @@
 //! becomes a point, at an altitude low enough for the perception stand-in to see what is there,
 //! and clear of the points other drones hold or are headed for (two drones sent to one car must
 //! not both be given the same point: the planner keeps them apart and the second would never
-//! arrive).
+//! arrive). An explicit point that another drone holds or is headed for is refused with the
+//! reason, for the same cause: the goto could only time out.
 
 use crate::swarm::SwarmView;
 use std::time::Instant;
@@ -83,7 +84,8 @@ fn free_spot(base: Vec3, scenario: &Scenario, claimed: &[Vec3]) -> Vec3 {
 }
 
 /// The action a call asks for, or why it names nothing that can be flown to. A goto to a named
-/// place keeps clear of the `claimed` points; a goto to an explicit point is taken as given.
+/// place keeps clear of the `claimed` points; a goto to an explicit point is flown as given, or
+/// refused when it is closer than `goal_spacing` to a claimed point.
 pub fn resolve(
     call: &Call,
     scenario: &Scenario,
@@ -99,9 +101,25 @@ pub fn resolve(
         // A named place wins over a point: the call reads (and is logged) as "goto(<name>)",
         // and small models fill "xyz" with filler beside a name.
         ActionName::Goto => match (call.target_name(), call.xyz) {
-            (None, Some([x, y, z])) => Ok(Action::Goto {
-                target: Vec3::new(x, y, z),
-            }),
+            (None, Some([x, y, z])) => {
+                let target = Vec3::new(x, y, z);
+                let spacing = goal_spacing(scenario);
+                match claimed
+                    .iter()
+                    .find(|c| scaled_distance(&target, c) < spacing)
+                {
+                    Some(c) => Err(format!(
+                        "goto({x}, {y}, {z}): another drone holds or is headed for \
+                         ({:.1}, {:.1}, {:.1}), {:.1} m from it; choose a point at least \
+                         {spacing:.1} m from every other drone (vertical offsets count half)",
+                        c.x,
+                        c.y,
+                        c.z,
+                        (target - c).norm()
+                    )),
+                    None => Ok(Action::Goto { target }),
+                }
+            }
             (Some(name), _) => {
                 let above = |p: &Vec3| Vec3::new(p.x, p.y, p.z + altitude);
                 if let Some(l) = scenario.world.landmark(name) {
@@ -241,17 +259,27 @@ mod tests {
         assert_ne!(goto(&[below]), above);
         let far_below = above - Vec3::new(0.0, 0.0, 2.0 * spacing);
         assert_eq!(goto(&[far_below]), above);
-        // An explicit point is flown as given.
-        assert_eq!(
+        // An explicit point is flown as given when it is clear, and refused with the reason
+        // when another drone holds it or is headed for it.
+        let point = |claimed: &[Vec3]| {
             resolve(
-                &call(ActionName::Goto, "none", Some([1.0, 2.0, 3.0])),
+                &call(ActionName::Goto, "none", Some([1.0, 2.0, 10.0])),
                 &city,
                 &[],
-                &[Vec3::new(1.0, 2.0, 3.0)]
-            ),
+                claimed,
+            )
+        };
+        let clear = Vec3::new(1.0, 2.0 + spacing, 10.0);
+        assert_eq!(
+            point(&[clear]),
             Ok(Action::Goto {
-                target: Vec3::new(1.0, 2.0, 3.0)
+                target: Vec3::new(1.0, 2.0, 10.0)
             })
         );
+        let held = Vec3::new(1.0, 3.0, 10.0);
+        match point(&[clear, held]) {
+            Err(why) => assert!(why.contains("(1.0, 3.0, 10.0), 1.0 m from it"), "{why}"),
+            other => panic!("a held point was accepted: {other:?}"),
+        }
     }
 }
