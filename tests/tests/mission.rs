@@ -146,6 +146,18 @@ async fn start(tag: &str) -> anyhow::Result<Running> {
     })
 }
 
+/// Runs `body` on a started swarm, then ends the mission's input and stops the simulator,
+/// however the body ended.
+async fn stopping_after(
+    mut run: Running,
+    body: impl AsyncFnOnce(&mut Running) -> anyhow::Result<()>,
+) -> anyhow::Result<()> {
+    let result = body(&mut run).await;
+    run.lines = mpsc::channel(1).0;
+    run.sim.stop().await;
+    result
+}
+
 async fn launch_mission(
     run: &mut Running,
     link: Arc<tacos_ground::link::GroundLink>,
@@ -216,10 +228,9 @@ fn sent_tasks(lines: &[log::Line]) -> Vec<(String, String)> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn broken_replies_are_repaired_and_the_plan_runs_over_several_cycles() -> anyhow::Result<()> {
-    let mut run = start("mission").await?;
-    let link = run.sim.link.clone();
-    let result = async {
-        launch_mission(&mut run, link.clone(), true).await?;
+    stopping_after(start("mission").await?, async |run| {
+        let link = run.sim.link.clone();
+        launch_mission(run, link.clone(), true).await?;
         run.lines.send("all drones take off, then inspect the cars near the pads".into()).await?;
         until(&mut run.updates, Duration::from_secs(120), |u| matches!(u, MissionUpdate::PlanComplete { .. })).await?;
         let lines = log::read(&run.log_path)?;
@@ -248,19 +259,15 @@ async fn broken_replies_are_repaired_and_the_plan_runs_over_several_cycles() -> 
         // The repair turns carried the reasons back to the model.
         assert!(lines.iter().any(|l| matches!(&l.record, Record::LlmRequest { layer, attempt: 3, .. } if layer == "coordinator")));
         anyhow::Ok(())
-    }
-    .await;
-    drop(run.lines);
-    run.sim.stop().await;
-    result
+    })
+    .await
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_drone_killed_mid_plan_has_its_subtask_reassigned() -> anyhow::Result<()> {
-    let mut run = start("replan").await?;
-    let link = run.sim.link.clone();
-    let result = async {
-        launch_mission(&mut run, link.clone(), false).await?;
+    stopping_after(start("replan").await?, async |run| {
+        let link = run.sim.link.clone();
+        launch_mission(run, link.clone(), false).await?;
         run.lines.send("all drones take off, then inspect the cars near the pads".into()).await?;
         until(&mut run.updates, Duration::from_secs(90), |u| matches!(u, MissionUpdate::Sent { drone, action, .. } if drone == "bravo" && action.starts_with("goto"))).await?;
         let bravo = DroneId::new("bravo")?;
@@ -274,11 +281,8 @@ async fn a_drone_killed_mid_plan_has_its_subtask_reassigned() -> anyhow::Result<
         let done = lines.iter().any(|l| matches!(&l.record, Record::ActionOutcome { drone, task: Some(t), outcome, .. } if *drone == reassigned.1 && t == "T5" && outcome == "done"));
         assert!(done, "{} did not finish bravo's T5", reassigned.1);
         anyhow::Ok(())
-    }
-    .await;
-    drop(run.lines);
-    run.sim.stop().await;
-    result
+    })
+    .await
 }
 
 /// The stand-in monolithic model: it takes off every drone its schema lets it, and claims the
@@ -313,9 +317,8 @@ fn monolithic_policy(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_monolithic_model_is_held_to_its_actions_not_its_claim() -> anyhow::Result<()> {
-    let run = start("mnl").await?;
-    let link = run.sim.link.clone();
-    let result = async {
+    stopping_after(start("mnl").await?, async |run| {
+        let link = run.sim.link.clone();
         let log_path = std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm("mnllog")));
         let backend = Arc::new(PolicyBackend::new(monolithic_policy(Arc::new(AtomicBool::new(true)))));
         let (tx, mut updates) = mpsc::unbounded_channel();
@@ -349,10 +352,8 @@ async fn the_monolithic_model_is_held_to_its_actions_not_its_claim() -> anyhow::
         let alfa_up = lines.iter().position(|l| matches!(&l.record, Record::ActionOutcome { drone, outcome, .. } if drone == "alfa" && outcome == "done"));
         assert!(alfa_up.is_some() && complete > alfa_up, "complete at {complete:?}, alfa up at {alfa_up:?}");
         anyhow::Ok(())
-    }
-    .await;
-    run.sim.stop().await;
-    result
+    })
+    .await
 }
 
 /// A stand-in model that plans `plan` and, as Supervisor, starts the first call its schema
@@ -463,8 +464,7 @@ async fn given_up(
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn three_drones_sent_to_one_car_each_get_a_point_of_their_own_even_when_every_call_comes_twice()
 -> anyhow::Result<()> {
-    let run = start("onecar").await?;
-    let result = async {
+    stopping_after(start("onecar").await?, async |run| {
         let plan = json!([
             call("T1", "alfa", "arm_takeoff", "none"),
             call("T2", "bravo", "arm_takeoff", "none"),
@@ -474,7 +474,7 @@ async fn three_drones_sent_to_one_car_each_get_a_point_of_their_own_even_when_ev
             call("T6", "charlie", "goto", "car_1"),
         ]);
         let (mut updates, lines, log_path, _) =
-            run_offered(&run, "onecarlog", plan, true, "everyone to car_1").await?;
+            run_offered(run, "onecarlog", plan, true, "everyone to car_1").await?;
         until(&mut updates, Duration::from_secs(150), |u| {
             matches!(u, MissionUpdate::PlanComplete { .. })
         })
@@ -528,18 +528,15 @@ async fn three_drones_sent_to_one_car_each_get_a_point_of_their_own_even_when_ev
             "none of {goals:?} is above car_1"
         );
         anyhow::Ok(())
-    }
-    .await;
-    run.sim.stop().await;
-    result
+    })
+    .await
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_task_that_keeps_failing_gives_the_plan_up_with_the_reason() -> anyhow::Result<()> {
-    let run = start("hopeless").await?;
-    let result = async {
+    stopping_after(start("hopeless").await?, async |run| {
         let plan = json!([call("T1", "alfa", "arm_takeoff", "none"), call("T2", "alfa", "start_tracking", "suspect")]);
-        let (mut updates, lines, log_path, max) = run_offered(&run, "hopelog", plan, false, "alfa, take off and follow the suspect").await?;
+        let (mut updates, lines, log_path, max) = run_offered(run, "hopelog", plan, false, "alfa, take off and follow the suspect").await?;
         let error = given_up(&mut updates, Duration::from_secs(120)).await?;
         drop(lines);
         assert!(error.contains("T2 alfa start_tracking(suspect)") && error.contains(&format!("failed {max} times")), "{error}");
@@ -548,10 +545,8 @@ async fn a_task_that_keeps_failing_gives_the_plan_up_with_the_reason() -> anyhow
         assert_eq!(tries, max as usize, "T2 was sent {tries} times");
         assert!(lines.iter().any(|l| matches!(&l.record, Record::Event { text } if text.starts_with("plan ended: abandoned"))));
         anyhow::Ok(())
-    }
-    .await;
-    run.sim.stop().await;
-    result
+    })
+    .await
 }
 
 /// A tracked target that stops being observed after its tracker reached it: the done
@@ -564,13 +559,13 @@ async fn a_target_lost_after_tracking_was_done_fails_the_task_and_it_is_given_ag
     let path = std::env::temp_dir().join(format!("{}.toml", tacos_tests::unique_swarm("tunnel")));
     std::fs::write(&path, format!("{city}{rover}"))?;
     let sim = SimSwarm::start("tunnel", &path.display().to_string(), 3).await?;
-    let mut run = Running {
+    let run = Running {
         sim,
         updates: mpsc::unbounded_channel().1,
         lines: mpsc::channel(1).0,
         log_path: Default::default(),
     };
-    let result = async {
+    let result = stopping_after(run, async |run| {
         run.sim
             .wait_on_the_ground(&["alfa", "bravo", "charlie"])
             .await?;
@@ -588,7 +583,7 @@ async fn a_target_lost_after_tracking_was_done_fails_the_task_and_it_is_given_ag
             call("T3", "bravo", "arm_takeoff", "none"),
         ]);
         let (mut updates, lines, log_path, max) =
-            run_offered(&run, "tunnellog", plan, false, "alfa, follow the rover").await?;
+            run_offered(run, "tunnellog", plan, false, "alfa, follow the rover").await?;
         let error = given_up(&mut updates, Duration::from_secs(150)).await?;
         drop(lines);
         let lines = log::read(&log_path)?;
@@ -627,9 +622,8 @@ async fn a_target_lost_after_tracking_was_done_fails_the_task_and_it_is_given_ag
             "{error}"
         );
         anyhow::Ok(())
-    }
+    })
     .await;
-    run.sim.stop().await;
     let _ = std::fs::remove_file(&path);
     result
 }
@@ -639,8 +633,7 @@ async fn a_target_lost_after_tracking_was_done_fails_the_task_and_it_is_given_ag
 /// model cycle or a flight.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_goto_to_where_the_drone_already_hovers_is_done_without_flying() -> anyhow::Result<()> {
-    let run = start("there").await?;
-    let result = async {
+    stopping_after(start("there").await?, async |run| {
         let plan = json!([
             call("T1", "alfa", "arm_takeoff", "none"),
             call("T2", "alfa", "goto", "car_11"),
@@ -649,7 +642,7 @@ async fn a_goto_to_where_the_drone_already_hovers_is_done_without_flying() -> an
             call("T5", "alfa", "goto", "car_11"),
         ]);
         let (mut updates, lines, log_path, _) =
-            run_offered(&run, "therelog", plan, false, "alfa, to car_11, twice").await?;
+            run_offered(run, "therelog", plan, false, "alfa, to car_11, twice").await?;
         until(&mut updates, Duration::from_secs(120), |u| {
             matches!(u, MissionUpdate::PlanComplete { .. })
         })
@@ -668,18 +661,15 @@ async fn a_goto_to_where_the_drone_already_hovers_is_done_without_flying() -> an
         ));
         assert!(event("T5 alfa goto(car_11): already there: nothing to do"));
         anyhow::Ok(())
-    }
-    .await;
-    run.sim.stop().await;
-    result
+    })
+    .await
 }
 
 /// A plan that can never go on (a take-off for a drone whose onboard is gone) is given up with
 /// the reason, instead of waiting for ever.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_plan_that_cannot_go_on_is_given_up() -> anyhow::Result<()> {
-    let mut run = start("stuck").await?;
-    let result = async {
+    stopping_after(start("stuck").await?, async |run| {
         let bravo = DroneId::new("bravo")?;
         run.sim
             .stack
@@ -696,7 +686,7 @@ async fn a_plan_that_cannot_go_on_is_given_up() -> anyhow::Result<()> {
         .await?;
         let plan = json!([call("T1", "bravo", "arm_takeoff", "none")]);
         let (mut updates, lines, log_path, _) =
-            run_offered(&run, "stucklog", plan, false, "bravo, take off").await?;
+            run_offered(run, "stucklog", plan, false, "bravo, take off").await?;
         let started = std::time::Instant::now();
         let error = given_up(&mut updates, Duration::from_secs(60)).await?;
         drop(lines);
@@ -713,20 +703,17 @@ async fn a_plan_that_cannot_go_on_is_given_up() -> anyhow::Result<()> {
         let lines = log::read(&log_path)?;
         assert!(sent_tasks(&lines).is_empty());
         anyhow::Ok(())
-    }
-    .await;
-    run.sim.stop().await;
-    result
+    })
+    .await
 }
 
 /// A goto for a drone on the ground in a plan that never takes it off: the take-off the
 /// Coordinator's rules require is added before it, and the plan completes.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_grounded_drone_sent_somewhere_gets_the_take_off_its_plan_forgot() -> anyhow::Result<()> {
-    let run = start("forgot").await?;
-    let result = async {
+    stopping_after(start("forgot").await?, async |run| {
         let plan = json!([call("T1", "alfa", "goto", "car_11"), call("T2", "bravo", "arm_takeoff", "none")]);
-        let (mut updates, lines, log_path, _) = run_offered(&run, "forgotlog", plan, false, "alfa, to car_11").await?;
+        let (mut updates, lines, log_path, _) = run_offered(run, "forgotlog", plan, false, "alfa, to car_11").await?;
         until(&mut updates, Duration::from_secs(90), |u| matches!(u, MissionUpdate::PlanComplete { .. })).await?;
         drop(lines);
         let lines = log::read(&log_path)?;
@@ -736,18 +723,15 @@ async fn a_grounded_drone_sent_somewhere_gets_the_take_off_its_plan_forgot() -> 
         // Bravo had its own take-off: nothing was added for it.
         assert_eq!(sent.iter().filter(|(_, d)| d == "bravo").count(), 1, "{sent:?}");
         anyhow::Ok(())
-    }
-    .await;
-    run.sim.stop().await;
-    result
+    })
+    .await
 }
 
 /// The drones fly on while a model thinks, and the mission log keeps their positions for the
 /// plot: twice a second, each at the time it was taken, not in a burst once the call returns.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn positions_are_logged_while_a_model_thinks() -> anyhow::Result<()> {
-    let run = start("think").await?;
-    let result = async {
+    stopping_after(start("think").await?, async |run| {
         let plan = json!([
             call("T1", "alfa", "arm_takeoff", "none"),
             call("T2", "alfa", "goto", "car_11")
@@ -755,7 +739,7 @@ async fn positions_are_logged_while_a_model_thinks() -> anyhow::Result<()> {
         let think = Duration::from_secs(4);
         let backend = PolicyBackend::new(offered_policy(plan, false)).thinking(think);
         let (mut updates, lines, log_path, _) =
-            run_with_backend(&run, "thinklog", backend, "alfa, to car_11").await?;
+            run_with_backend(run, "thinklog", backend, "alfa, to car_11").await?;
         until(
             &mut updates,
             Duration::from_secs(60),
@@ -805,10 +789,8 @@ async fn positions_are_logged_while_a_model_thinks() -> anyhow::Result<()> {
             );
         }
         anyhow::Ok(())
-    }
-    .await;
-    run.sim.stop().await;
-    result
+    })
+    .await
 }
 
 /// A plan that sends a drone to a place the instruction does not name, while it names another,
@@ -816,8 +798,7 @@ async fn positions_are_logged_while_a_model_thinks() -> anyhow::Result<()> {
 /// target list), and the repaired plan is the one flown.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_plan_off_the_places_the_pilot_named_is_sent_back() -> anyhow::Result<()> {
-    let run = start("scope").await?;
-    let result = async {
+    stopping_after(start("scope").await?, async |run| {
         let supervisor = offered_policy(json!([]), false);
         let schemas = Arc::new(std::sync::Mutex::new(Vec::new()));
         let seen = schemas.clone();
@@ -831,7 +812,7 @@ async fn a_plan_off_the_places_the_pilot_named_is_sent_back() -> anyhow::Result<
             let goal = if repairs(request) == 0 { "car_2" } else { "car_11" };
             Ok(json!({ "reasoning": "Alfa goes.", "plan": [call("T1", "alfa", "arm_takeoff", "none"), call("T2", "alfa", "goto", goal)] }).to_string())
         };
-        let (mut updates, lines, log_path, _) = run_with_backend(&run, "scopelog", PolicyBackend::new(policy), "alfa, check car_11").await?;
+        let (mut updates, lines, log_path, _) = run_with_backend(run, "scopelog", PolicyBackend::new(policy), "alfa, check car_11").await?;
         until(&mut updates, Duration::from_secs(120), |u| matches!(u, MissionUpdate::PlanComplete { .. })).await?;
         drop(lines);
         let records = log::read(&log_path)?;
@@ -846,8 +827,6 @@ async fn a_plan_off_the_places_the_pilot_named_is_sent_back() -> anyhow::Result<
         assert_eq!(goto["properties"]["action"]["enum"], json!(["goto"]));
         assert_eq!(goto["properties"]["target"]["enum"], json!(["none", "car_11"]));
         anyhow::Ok(())
-    }
-    .await;
-    run.sim.stop().await;
-    result
+    })
+    .await
 }
