@@ -524,6 +524,16 @@ mod tests {
         v
     }
 
+    /// Airborne at `altitude` and switched to offboard, setpoints streaming at where it hovers
+    /// (returned with it).
+    fn offboard_at(altitude: f32) -> (Vehicle, Vec3) {
+        let mut v = airborne(altitude);
+        let here = v.position();
+        stream(&mut v, here, 1.2);
+        assert_eq!(offboard(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+        (v, here)
+    }
+
     fn stream(v: &mut Vehicle, target: Vec3, seconds: f64) {
         let steps = (seconds / DT).round() as usize;
         for i in 0..steps {
@@ -639,10 +649,7 @@ mod tests {
 
     #[test]
     fn offboard_flies_the_setpoints_then_holds_when_they_stop() {
-        let mut v = airborne(5.0);
-        let here = v.position();
-        stream(&mut v, here, 1.2);
-        assert_eq!(offboard(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+        let (mut v, _) = offboard_at(5.0);
         let goal = Vec3::new(12.0, -6.0, -7.0);
         stream(&mut v, goal, 15.0);
         assert_eq!(v.mode(), Px4Mode::Offboard);
@@ -664,10 +671,7 @@ mod tests {
 
     #[test]
     fn hold_while_moving_brakes_and_returns_within_limits() {
-        let mut v = airborne(5.0);
-        let here = v.position();
-        stream(&mut v, here, 1.2);
-        assert_eq!(offboard(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+        let (mut v, _) = offboard_at(5.0);
         // Full speed, then a hold command mid-flight.
         let far = Vec3::new(200.0, 0.0, -5.0);
         stream(&mut v, far, 5.0);
@@ -741,10 +745,7 @@ mod tests {
     fn flying_into_the_ground_is_a_strike_and_a_landing_or_a_fall_is_not() {
         // Offboard setpoints 20 m below the ground: the vehicle descends at full vertical speed
         // and hits it.
-        let mut v = airborne(5.0);
-        let here = v.position();
-        stream(&mut v, here, 1.2);
-        assert_eq!(offboard(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+        let (mut v, here) = offboard_at(5.0);
         let mut strikes = 0;
         for i in 0..1000 {
             if i % 5 == 0 {
@@ -757,10 +758,7 @@ mod tests {
         assert_eq!(strikes, 1, "one strike, reported once");
 
         // Setpoints that come down to the ground itself slow to a gentle touchdown.
-        let mut v = airborne(5.0);
-        let here = v.position();
-        stream(&mut v, here, 1.2);
-        assert_eq!(offboard(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+        let (mut v, here) = offboard_at(5.0);
         stream(&mut v, Vec3::new(here.x, here.y, 0.0), 20.0);
         assert!(v.landed() && !v.take_ground_strike());
 
