@@ -11,7 +11,6 @@ use crate::safety::SafetyGate;
 use crate::script::{Script, ScriptOptions, ScriptReport, run_script};
 use std::sync::Arc;
 use std::time::Duration;
-use tacos_bus::BusArgs;
 use tacos_llm::LlmBackend;
 use tacos_shared::scenario::Scenario;
 use tacos_shared::{DroneMode, SwarmId};
@@ -39,6 +38,8 @@ pub struct DemoOptions {
     pub scenario_arg: String,
     pub scenario: Scenario,
     pub drones: usize,
+    /// Simulated seconds per wall second while no model call is in flight.
+    pub sim_speed: f64,
     /// Printed progress goes here (stdout in the binary).
     pub verbose: bool,
 }
@@ -80,20 +81,16 @@ pub async fn run_demo(
 ) -> Result<DemoReport, DemoError> {
     let swarm = SwarmId::new(format!("demo{}", std::process::id()))
         .map_err(|e| DemoError::Step(e.to_string()))?;
-    let config = StackConfig::on_loopback(
+    let mut config = StackConfig::on_loopback(
         swarm.clone(),
         &opts.scenario_arg,
         opts.scenario.clone(),
         opts.drones,
     )?;
+    config.sim_speed = opts.sim_speed;
     let logs = config.log_dir.display().to_string();
     let link = Arc::new(
-        GroundLink::connect(&BusArgs::loopback(
-            swarm,
-            Some(config.hub_endpoint.clone()),
-            vec![],
-        ))
-        .await?,
+        GroundLink::connect(&config.ground_bus()).await?,
     );
     let mut stack = Stack::start(config)?;
     let truth = link.watch_truth().await?;

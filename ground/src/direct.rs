@@ -3,7 +3,7 @@
 
 use crate::link::{GroundLink, LinkError};
 use crate::safety::{Rejection, SafetyGate};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use tacos_shared::DroneId;
 use tacos_shared::action::Action;
 use tacos_shared::messages::{ActionState, FailureReason};
@@ -33,7 +33,7 @@ pub async fn run_actions(
 ) -> Result<(), DirectError> {
     let checked = {
         let view = link.view();
-        let now = Instant::now();
+        let now = link.clock().instant();
         actions
             .iter()
             .map(|(drone, action)| gate.check(&view, drone.as_str(), action, now))

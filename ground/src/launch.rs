@@ -11,6 +11,7 @@ use std::net::{TcpListener, UdpSocket};
 use std::path::{Path, PathBuf};
 use std::process::{ExitStatus, Stdio};
 use std::time::Duration;
+use tacos_bus::BusArgs;
 use tacos_shared::scenario::Scenario;
 use tacos_shared::{DroneId, SwarmId};
 use tokio::process::Command;
@@ -31,6 +32,8 @@ pub enum LaunchError {
     NoFreePort { what: &'static str },
     #[error("{0}")]
     Scenario(String),
+    #[error("{0}")]
+    Config(String),
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -79,7 +82,11 @@ pub struct StackConfig {
     pub sitl_base_port: u16,
     pub bin_dir: PathBuf,
     pub log_dir: PathBuf,
-    /// Extra arguments for tacos-sitl (e.g. `--speed 2`).
+    /// Simulated seconds per wall second while no model call is in flight (`tacos-sitl
+    /// --speed`); every other process follows the simulator's clock, so any speed the machine
+    /// can compute flies the same mission.
+    pub sim_speed: f64,
+    /// Extra arguments for tacos-sitl.
     pub sitl_args: Vec<String>,
     /// Extra arguments for every tacos-onboard.
     pub onboard_args: Vec<String>,
@@ -109,9 +116,17 @@ impl StackConfig {
             sitl_base_port,
             bin_dir: bin_dir(),
             log_dir,
+            sim_speed: 1.0,
             sitl_args: Vec::new(),
             onboard_args: Vec::new(),
         })
+    }
+
+    /// How the ground joins this stack: it listens on the hub and follows the simulator's clock.
+    pub fn ground_bus(&self) -> BusArgs {
+        let mut bus = BusArgs::loopback(self.swarm.clone(), Some(self.hub_endpoint.clone()), vec![]);
+        bus.sim_clock = true;
+        bus
     }
 
     pub fn drone_ids(&self) -> Vec<DroneId> {
@@ -221,6 +236,12 @@ impl Stack {
                 c.hub_endpoint.clone(),
             ]);
         };
+        if !(c.sim_speed.is_finite() && c.sim_speed > 0.0) {
+            return Err(LaunchError::Config(format!(
+                "the simulation speed must be positive, got {}",
+                c.sim_speed
+            )));
+        }
 
         let mut sitl = vec![
             "--scenario".into(),
@@ -233,6 +254,7 @@ impl Stack {
             c.sitl_base_port.to_string(),
         ];
         bus(&mut sitl);
+        sitl.extend(["--speed".into(), c.sim_speed.to_string()]);
         sitl.extend(c.sitl_args.iter().cloned());
         stack.spawn(Role::Sitl, None, sitl)?;
 
@@ -256,6 +278,7 @@ impl Stack {
                 c.scenario_arg.clone(),
             ];
             bus(&mut onboard);
+            onboard.push("--sim-clock".into());
             onboard.extend(c.onboard_args.iter().cloned());
             stack.spawn(Role::Onboard, Some(slot.id.clone()), onboard)?;
         }

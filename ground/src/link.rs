@@ -1,15 +1,18 @@
 //! The ground's zenoh link: keeps the swarm view current, sends checked actions, waits for
-//! their outcome, and beats the ground heartbeat the drones' failsafe listens for.
+//! their outcome, and beats the ground heartbeat the drones' failsafe listens for. It also holds
+//! the ground's clock (the simulator's with `--sim-clock`) and tells a simulator when a model call
+//! is in flight (`sim/pace`), so that the simulation runs at real time while a model thinks.
 
 use crate::safety::CheckedAction;
 use crate::swarm::{SwarmChange, SwarmView};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use tacos_bus::clock::Clock;
 use tacos_bus::{BusArgs, BusError};
 use tacos_shared::keys::Keys;
 use tacos_shared::messages::{
-    ActionState, DroneStatus, FaultRequest, GroundHeartbeat, SimTruth, TargetObservation,
+    ActionState, DroneStatus, FaultRequest, GroundHeartbeat, SimPace, SimTruth, TargetObservation,
     TargetsMessage, WorldEvent,
 };
 use tacos_shared::scenario::FaultKind;
@@ -21,6 +24,9 @@ use zenoh::sample::SampleKind;
 
 /// How often the ground heartbeat is sent.
 pub const HEARTBEAT_PERIOD: Duration = Duration::from_millis(200);
+/// How often `sim/pace` is repeated when nothing changes (a simulator that missed a change, or
+/// started later, learns it within this).
+const PACE_REPEAT: Duration = Duration::from_secs(1);
 
 #[derive(Debug, thiserror::Error)]
 pub enum LinkError {
@@ -69,9 +75,25 @@ impl Shared {
     }
 }
 
+/// A model call in flight, from [`GroundLink::model_call`] until dropped.
+#[must_use = "the call counts as in flight only while the guard lives"]
+pub struct ModelCallGuard {
+    calls_in_flight: Arc<watch::Sender<u32>>,
+}
+
+impl Drop for ModelCallGuard {
+    fn drop(&mut self) {
+        self.calls_in_flight
+            .send_modify(|n| *n = n.saturating_sub(1));
+    }
+}
+
 pub struct GroundLink {
     session: zenoh::Session,
     keys: Keys,
+    clock: Clock,
+    /// Model calls in flight (see [`GroundLink::model_call`]).
+    calls_in_flight: Arc<watch::Sender<u32>>,
     shared: Arc<Shared>,
     next_seq: AtomicU64,
     tasks: Vec<JoinHandle<()>>,
@@ -90,6 +112,7 @@ impl GroundLink {
     pub async fn connect(bus: &BusArgs) -> Result<GroundLink, LinkError> {
         let session = bus.open().await?;
         let keys = bus.keys();
+        let clock = bus.clock(&session).await?;
         let (version, _) = watch::channel(0);
         let (changes, _) = broadcast::channel(256);
         let (membership, _) = broadcast::channel(64);
@@ -104,11 +127,12 @@ impl GroundLink {
 
         let statuses = tacos_bus::subscribe(&session, &keys.all_status()).await?;
         let s = shared.clone();
+        let c = clock.clone();
         tasks.push(tokio::spawn(async move {
             while let Ok(sample) = statuses.recv_async().await {
                 match tacos_bus::decode::<DroneStatus>(&sample) {
                     Ok(status) => {
-                        let change = s.lock().apply_status(status, Instant::now());
+                        let change = s.lock().apply_status(status, c.instant());
                         s.changed(change);
                     }
                     Err(e) => {
@@ -122,13 +146,14 @@ impl GroundLink {
         let alive = tacos_bus::watch_alive(&session, &keys.all_alive()).await?;
         let s = shared.clone();
         let k = keys.clone();
+        let c = clock.clone();
         tasks.push(tokio::spawn(async move {
             while let Ok(sample) = alive.recv_async().await {
                 let Some(id) = k.drone_of(sample.key_expr().as_str()) else {
                     continue;
                 };
                 let is_alive = sample.kind() == SampleKind::Put;
-                let change = s.lock().apply_liveliness(&id, is_alive, Instant::now());
+                let change = s.lock().apply_liveliness(&id, is_alive, c.instant());
                 if let Some(change) = change {
                     debug!(?change, "liveliness");
                     s.changed(change);
@@ -152,6 +177,27 @@ impl GroundLink {
             }
         }));
 
+        let (calls_in_flight, mut calls) = watch::channel(0u32);
+        if clock.is_simulated() {
+            let pace_session = session.clone();
+            let pace_key = keys.sim_pace();
+            tasks.push(tokio::spawn(async move {
+                loop {
+                    let pace = SimPace {
+                        model_call_in_flight: *calls.borrow_and_update() > 0,
+                    };
+                    if let Err(e) = tacos_bus::put(&pace_session, &pace_key, &pace, true).await {
+                        warn!(error = %e, "simulator pace not sent");
+                    }
+                    // Wakes at a change, or to repeat the current pace.
+                    match tokio::time::timeout(PACE_REPEAT, calls.changed()).await {
+                        Ok(Err(_)) => return,
+                        Ok(Ok(())) | Err(_) => {}
+                    }
+                }
+            }));
+        }
+
         // Sequence numbers grow across ground restarts: start from the wall clock.
         let start = SystemTime::now()
             .duration_since(UNIX_EPOCH)
@@ -160,6 +206,8 @@ impl GroundLink {
         Ok(GroundLink {
             session,
             keys,
+            clock,
+            calls_in_flight: Arc::new(calls_in_flight),
             shared,
             next_seq: AtomicU64::new(start),
             tasks,
@@ -172,6 +220,20 @@ impl GroundLink {
 
     pub fn keys(&self) -> &Keys {
         &self.keys
+    }
+
+    /// The ground's clock: the simulator's in a simulated run (`--sim-clock`), else the wall
+    /// clock. Every mission timer (cycles, stuck plans, link ages) reads it.
+    pub fn clock(&self) -> &Clock {
+        &self.clock
+    }
+
+    /// Marks a model call in flight until the guard drops; a simulator then runs at real time.
+    pub fn model_call(&self) -> ModelCallGuard {
+        self.calls_in_flight.send_modify(|n| *n += 1);
+        ModelCallGuard {
+            calls_in_flight: self.calls_in_flight.clone(),
+        }
     }
 
     /// A locked view of the swarm (hold it briefly).

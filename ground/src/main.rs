@@ -4,7 +4,7 @@ use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use tacos_bus::BusArgs;
 use tacos_embedded::{EmbeddedBackend, EmbeddedOptions};
 use tacos_ground::demo::{DemoOptions, DemoPlan, DemoReport, run_demo};
@@ -88,6 +88,11 @@ enum Cmd {
         /// The mission log (JSON lines); default: missions-out/<time>-<mode>.jsonl
         #[arg(long)]
         log: Option<PathBuf>,
+        /// Simulated seconds per wall second while no model call is in flight (a call in
+        /// flight always runs at real time). Above 1 needs spare CPU: the planners run that
+        /// much more often.
+        #[arg(long, default_value_t = 1.0, value_parser = sim_speed)]
+        sim_speed: f64,
     },
     /// Run the paper's ablation: every mode × swarm size × run of a task, on simulated swarms.
     ///
@@ -121,6 +126,10 @@ enum Cmd {
         /// Seconds per run, overriding the task file's time limit.
         #[arg(long)]
         time_limit: Option<f64>,
+        /// Simulated seconds per wall second while no model call is in flight; a call in flight
+        /// always runs at real time, so the models see what a real flight would show them.
+        #[arg(long, default_value_t = 2.0, value_parser = sim_speed)]
+        sim_speed: f64,
         #[command(flatten)]
         llm: LlmArgs,
     },
@@ -232,6 +241,7 @@ fn run() -> anyhow::Result<()> {
                 mode,
                 llm,
                 log,
+                sim_speed,
             } => {
                 demo(DemoArgs {
                     drones,
@@ -244,6 +254,7 @@ fn run() -> anyhow::Result<()> {
                     mode,
                     llm,
                     log,
+                    sim_speed,
                 })
                 .await
             }
@@ -258,6 +269,7 @@ fn run() -> anyhow::Result<()> {
                 temperature,
                 seed,
                 time_limit,
+                sim_speed,
                 llm,
             } => {
                 let task = tacos_ground::eval::TaskSpec::load(&task)?;
@@ -278,6 +290,7 @@ fn run() -> anyhow::Result<()> {
                     base_seed: seed,
                     time_limit,
                     cycle_timeout: MissionConfig::default().cycle_timeout,
+                    sim_speed,
                     backend: llm.backend()?,
                     verbose: true,
                 };
@@ -313,7 +326,7 @@ async fn swarm(bus: BusArgs, period_ms: u64, count: u64) -> anyhow::Result<()> {
             _ = tokio::signal::ctrl_c() => return Ok(()),
             _ = tick.tick() => {}
         }
-        let text = tacos_ground::table::render(&link.view(), Instant::now());
+        let text = tacos_ground::table::render(&link.view(), link.clock().instant());
         if interactive {
             // Clear the screen and home the cursor, like `watch`.
             print!("\x1b[2J\x1b[H");
@@ -345,7 +358,7 @@ async fn send(
     }
     let checked = {
         let view = link.view();
-        gate.check(&view, drone, &action, Instant::now())
+        gate.check(&view, drone, &action, link.clock().instant())
     }
     .map_err(|r| anyhow::anyhow!("refused by the safety gate: {r}"))?;
     let seq = link.send(&checked, None).await?;
@@ -397,6 +410,15 @@ struct DemoArgs {
     mode: Mode,
     llm: LlmArgs,
     log: Option<PathBuf>,
+    sim_speed: f64,
+}
+
+/// `--sim-speed`: a positive number no larger than 20.
+fn sim_speed(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(s) if s.is_finite() && s > 0.0 && s <= 20.0 => Ok(s),
+        _ => Err(format!("must be a number in (0, 20], got {text}")),
+    }
 }
 
 async fn demo(args: DemoArgs) -> anyhow::Result<()> {
@@ -426,6 +448,7 @@ async fn demo(args: DemoArgs) -> anyhow::Result<()> {
         scenario_arg: args.map.clone(),
         scenario,
         drones,
+        sim_speed: args.sim_speed,
         verbose: true,
     };
     let interrupt = async {

@@ -92,7 +92,7 @@ pub async fn run_session(
     backend: Arc<dyn LlmBackend>,
     opts: SessionOptions,
 ) -> Result<SessionReport, SessionError> {
-    let log = Arc::new(MissionLog::create(&opts.log_path)?);
+    let log = Arc::new(MissionLog::create(&opts.log_path)?.timed_by(link.clock()));
     let link_for_terminal = link.clone();
     let scenario = gate.scenario().clone();
     let description = backend.describe();

@@ -85,6 +85,17 @@ impl Keys {
         format!("{}/sim/truth", self.prefix)
     }
 
+    /// sitl → every process of a simulated run: `SimClock`, the simulator's time and rate.
+    pub fn sim_clock(&self) -> String {
+        format!("{}/sim/clock", self.prefix)
+    }
+
+    /// ground → sitl: `SimPace`, whether a model call is in flight (the simulation then runs at
+    /// real time).
+    pub fn sim_pace(&self) -> String {
+        format!("{}/sim/pace", self.prefix)
+    }
+
     /// The drone a `drone/<id>/...` key belongs to, if it is one of this swarm's.
     pub fn drone_of(&self, key: &str) -> Option<DroneId> {
         let rest = key.strip_prefix(&self.prefix)?.strip_prefix("/drone/")?;

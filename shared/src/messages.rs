@@ -226,6 +226,29 @@ pub struct SimTruth {
     pub obstacle_breaches: u64,
 }
 
+/// Published by the simulator on `sim/clock` at 20 Hz and whenever its rate changes: the
+/// simulated time as an anchor that every process of a simulated run extrapolates from, so
+/// that timers, deadlines and stamps follow the simulation when it runs faster than real time.
+/// The processes share a machine (loopback), so they share the wall clock the anchor names.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SimClock {
+    /// Simulated time on the Unix scale (seconds): the wall clock when the simulator started,
+    /// plus the simulated seconds since.
+    pub sim_unix_s: f64,
+    /// The wall clock (seconds since the Unix epoch) at which the simulation was at `sim_unix_s`.
+    pub wall_unix_s: f64,
+    /// Simulated seconds per wall second from then on.
+    pub rate: f64,
+}
+
+/// Sent by the ground on `sim/pace` when a model call starts or ends, and once a second: while
+/// a call is in flight the simulation runs at real time, so the models meet the same world they
+/// would in a real flight; between calls it may run at the simulator's `--speed`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SimPace {
+    pub model_call_in_flight: bool,
+}
+
 /// Sent by every ground station process on `ground/heartbeat` several times a second. A drone
 /// that hears none for its configured time holds, then lands.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

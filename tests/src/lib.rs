@@ -48,12 +48,7 @@ impl SimSwarm {
         let mut config =
             StackConfig::on_loopback(unique_swarm(tag), scenario_name, scenario.clone(), n)?;
         adjust(&mut config);
-        let bus = tacos_bus::BusArgs::loopback(
-            config.swarm.clone(),
-            Some(config.hub_endpoint.clone()),
-            vec![],
-        );
-        let link = std::sync::Arc::new(GroundLink::connect(&bus).await?);
+        let link = std::sync::Arc::new(GroundLink::connect(&config.ground_bus()).await?);
         let stack = Stack::start(config)?;
         Ok(SimSwarm {
             link,

@@ -111,6 +111,7 @@ fn plan(places: Vec<String>, tag: &str) -> anyhow::Result<RunPlan> {
         backend: Arc::new(PolicyBackend::new(policy(places))),
         log_path: std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm(tag))),
         cycle_timeout: Duration::from_secs(3),
+        sim_speed: 1.0,
     })
 }
 

@@ -31,6 +31,8 @@ pub struct EvalOptions {
     /// Overrides the task's time limit.
     pub time_limit: Option<Duration>,
     pub cycle_timeout: Duration,
+    /// Simulated seconds per wall second while no model call is in flight.
+    pub sim_speed: f64,
     pub backend: Arc<dyn LlmBackend>,
     /// Print progress on standard output.
     pub verbose: bool,
@@ -186,6 +188,7 @@ pub async fn evaluate(
                 mode.as_str()
             )),
             cycle_timeout: opts.cycle_timeout,
+            sim_speed: opts.sim_speed,
         };
         if opts.verbose {
             println!(

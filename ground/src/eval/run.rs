@@ -16,7 +16,6 @@ use crate::task_guard::AbortOnDrop;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-use tacos_bus::BusArgs;
 use tacos_llm::LlmBackend;
 use tacos_shared::action::Action;
 use tacos_shared::messages::{FaultRequest, SimTruth, WorldEvent};
@@ -42,6 +41,9 @@ pub struct RunPlan {
     /// How long the mission may go without any news while no drone is busy before the run is
     /// judged stalled (the Supervisor runs at least every `cycle_timeout` while a plan runs).
     pub cycle_timeout: Duration,
+    /// Simulated seconds per wall second while no model call is in flight. Time limits, fault
+    /// delays and the times recorded are simulated (mission) time.
+    pub sim_speed: f64,
 }
 
 /// Why a run could not be carried out (not a verdict on the model).
@@ -127,21 +129,18 @@ async fn carry_out(
     let swarm = run_swarm(plan)?;
     let (link, stack) = {
         let _one_at_a_time = start_lock.lock().await;
-        let config = StackConfig::on_loopback(
+        let mut config = StackConfig::on_loopback(
             swarm.clone(),
             &plan.task.scenario,
             plan.scenario.clone(),
             plan.drones,
         )
         .map_err(infra)?;
+        config.sim_speed = plan.sim_speed;
         let link = Arc::new(
-            GroundLink::connect(&BusArgs::loopback(
-                swarm,
-                Some(config.hub_endpoint.clone()),
-                vec![],
-            ))
-            .await
-            .map_err(infra)?,
+            GroundLink::connect(&config.ground_bus())
+                .await
+                .map_err(infra)?,
         );
         let stack = Stack::start(config).map_err(infra)?;
         let ids = stack.config.drone_ids();
@@ -224,7 +223,11 @@ async fn fly(
 
     // A resumed run starts its log afresh.
     let _ = std::fs::remove_file(&plan.log_path);
-    let log = Arc::new(MissionLog::create(&plan.log_path).map_err(infra)?);
+    let log = Arc::new(
+        MissionLog::create(&plan.log_path)
+            .map_err(infra)?
+            .timed_by(link.clock()),
+    );
     let (updates_tx, mut updates) = mpsc::unbounded_channel();
     let config = MissionConfig {
         mode: plan.mode,
@@ -249,8 +252,12 @@ async fn fly(
     let _mission = AbortOnDrop(tokio::spawn(mission.run(lines_rx)));
 
     let mut pilot = plan.task.pilot.iter().filter(|l| !l.trim().is_empty());
-    let start = Instant::now();
-    let deadline = tokio::time::Instant::now() + plan.time_limit;
+    // Mission time is the ground's clock: the simulator's, which runs faster than real time
+    // between model calls when the stack was started with a speed above 1.
+    let clock = link.clock().clone();
+    let start = clock.now();
+    let elapsed = || clock.now() - start;
+    let deadline = start + plan.time_limit.as_secs_f64();
     if let Some(first) = pilot.next()
         && lines_tx.send(first.clone()).await.is_err()
     {
@@ -258,27 +265,27 @@ async fn fly(
     }
 
     let mut seen = Observed::default();
-    let mut fault_at: Option<(tokio::time::Instant, DroneId)> = None;
+    let mut fault_at: Option<(f64, DroneId)> = None;
     let mut fault_armed = plan.task.fault.is_some();
     let mut failed: Option<DroneId> = None;
-    let mut last_news = Instant::now();
+    let mut last_news = clock.now();
     // A model call is under way (from the request until the engine acts on the reply): a
     // small model on a CPU may take minutes, which is not a stalled mission.
     let mut thinking = false;
-    let mut finished_at: Option<Instant> = None;
-    let stalled_after = 3 * plan.cycle_timeout;
+    let mut finished_at: Option<f64> = None;
+    let stalled_after = 3.0 * plan.cycle_timeout.as_secs_f64();
     let mut tick = tokio::time::interval(Duration::from_millis(500));
     let target = plan.task.success.detected.clone();
 
     let outcome: Result<(), Infra> = loop {
         let fault_due = async {
             match &fault_at {
-                Some((at, _)) => tokio::time::sleep_until(*at).await,
+                Some((at, _)) => clock.sleep_until(*at).await,
                 None => std::future::pending().await,
             }
         };
         tokio::select! {
-            _ = tokio::time::sleep_until(deadline) => break Ok(()),
+            () = clock.sleep_until(deadline) => break Ok(()),
             exit = stack.next_exit() => {
                 // The failed drone's processes may end with it; any other exit breaks the run.
                 if exit.as_ref().is_some_and(|e| e.drone.is_some() && e.drone == failed) {
@@ -293,11 +300,11 @@ async fn fly(
                 Some(WorldEvent::Detection { drone, target: t, landmark, .. }) => {
                     if target.as_deref() == Some(t.as_str()) && landmark == plan.hiding_place {
                         seen.detected_by = Some(drone.to_string());
-                        seen.goal_at_s.get_or_insert(start.elapsed().as_secs_f64());
+                        seen.goal_at_s.get_or_insert(elapsed());
                     }
                 }
                 Some(WorldEvent::FaultInjected { drone, fault }) => {
-                    record.fault.get_or_insert(format!("{drone}: {fault} at {:.1} s", start.elapsed().as_secs_f64()));
+                    record.fault.get_or_insert(format!("{drone}: {fault} at {:.1} s", elapsed()));
                 }
                 None => break Err(Infra("the world event stream closed".into())),
             },
@@ -312,13 +319,13 @@ async fn fly(
                     if airborne(&t, &ids, &plan.scenario) && !seen.all_airborne {
                         seen.all_airborne = true;
                         if plan.task.success.detected.is_none() {
-                            seen.goal_at_s.get_or_insert(start.elapsed().as_secs_f64());
+                            seen.goal_at_s.get_or_insert(elapsed());
                         }
                     }
                 }
             }
             update = updates.recv() => {
-                last_news = Instant::now();
+                last_news = clock.now();
                 match &update {
                     Some(MissionUpdate::Thinking { .. }) => thinking = true,
                     Some(MissionUpdate::Plan { .. } | MissionUpdate::Cycle { .. } | MissionUpdate::Error(_) | MissionUpdate::PlanComplete { .. }) => thinking = false,
@@ -330,7 +337,7 @@ async fn fly(
                             match fault.trigger {
                                 FaultTrigger::FirstGoto => {
                                     fault_armed = false;
-                                    fault_at = Some((tokio::time::Instant::now() + Duration::from_secs_f64(fault.delay_s), drone));
+                                    fault_at = Some((clock.now() + fault.delay_s, drone));
                                 }
                             }
                         }
@@ -342,7 +349,7 @@ async fn fly(
                             }
                         }
                         None => {
-                            finished_at.get_or_insert_with(Instant::now);
+                            finished_at.get_or_insert(clock.now());
                         }
                     },
                     Some(_) => {}
@@ -361,7 +368,7 @@ async fn fly(
                         // two processes, so their exits are not taken for a broken run.
                         stack.crash(Role::Onboard, Some(&drone)).await;
                         stack.crash(Role::Writer, Some(&drone)).await;
-                        record.fault = Some(format!("{drone}: power loss at {:.1} s", start.elapsed().as_secs_f64()));
+                        record.fault = Some(format!("{drone}: power loss at {:.1} s", elapsed()));
                     }
                 }
             }
@@ -370,8 +377,9 @@ async fn fly(
                 // may still be in flight: give it a moment), or nothing has happened for a long
                 // time while no drone has anything to do.
                 let idle = !link.view().drones().any(|e| e.alive && e.busy());
-                if finished_at.is_some_and(|t| t.elapsed() >= Duration::from_secs(2))
-                    || (idle && !thinking && last_news.elapsed() >= stalled_after)
+                let now = clock.now();
+                if finished_at.is_some_and(|t| now - t >= 2.0)
+                    || (idle && !thinking && now - last_news >= stalled_after)
                 {
                     break Ok(());
                 }

@@ -219,6 +219,8 @@ struct Monolithic {
 /// Asks models: the backend, the repair loop's bounds, and where calls are recorded.
 struct Caller {
     backend: Arc<dyn LlmBackend>,
+    /// Told of every call in flight, so a simulation holds real time meanwhile.
+    link: Arc<GroundLink>,
     log: Arc<MissionLog>,
     updates: mpsc::UnboundedSender<MissionUpdate>,
     max_repairs: u32,
@@ -314,6 +316,7 @@ impl Mission {
         });
         let caller = Caller {
             backend,
+            link: link.clone(),
             log: log.clone(),
             updates: updates.clone(),
             max_repairs: cfg.max_repairs,
@@ -389,7 +392,7 @@ impl Mission {
         let mut tick = tokio::time::interval(Duration::from_millis(250));
         // After a model call, one tick, not a burst of the ones missed.
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-        let mut last_cycle = Instant::now();
+        let mut last_cycle = self.link.clock().instant();
         loop {
             let mut cycle_due = false;
             tokio::select! {
@@ -422,12 +425,12 @@ impl Mission {
                     cycle_due = self.busy();
                 },
                 _ = tick.tick() => {
-                    cycle_due = self.poll_outcomes() || (self.busy() && last_cycle.elapsed() >= self.cfg.cycle_timeout);
+                    cycle_due = self.poll_outcomes() || (self.busy() && self.link.clock().instant().duration_since(last_cycle) >= self.cfg.cycle_timeout);
                 }
             }
             self.take_override();
             if cycle_due && self.busy() {
-                last_cycle = Instant::now();
+                last_cycle = self.link.clock().instant();
                 if let Err(e) = self.cycle().await {
                     self.tell(MissionUpdate::Error(e.to_string()));
                 }
@@ -510,7 +513,7 @@ impl Mission {
         for drone in targets {
             let checked = {
                 let view = self.link.view();
-                self.gate.check(&view, &drone, &action, Instant::now())
+                self.gate.check(&view, &drone, &action, self.link.clock().instant())
             };
             match checked {
                 Ok(c) => match self.send(&c, None).await {
@@ -706,7 +709,7 @@ impl Mission {
         let swarm = self.swarm_ids();
         let pending = self.drones_with_pending_actions();
         let view = self.link.view();
-        let now = Instant::now();
+        let now = self.link.clock().instant();
         let visible = self.targets.borrow().clone();
         let ready = |drone: &str| {
             DroneId::new(drone)
@@ -762,7 +765,7 @@ impl Mission {
             return;
         };
         let view = self.link.view();
-        let now = Instant::now();
+        let now = self.link.clock().instant();
         let visible = self.targets.borrow().clone();
         // As close as the drone itself calls a goto done.
         let arrive = (2.0 * self.gate.scenario().limits.drone_radius).max(0.2);
@@ -835,7 +838,7 @@ impl Mission {
 
     fn drone_lines(&self) -> Vec<DroneLine> {
         let view = self.link.view();
-        let now = Instant::now();
+        let now = self.link.clock().instant();
         self.gate
             .scenario()
             .drones
@@ -1057,7 +1060,7 @@ impl Mission {
     fn with_implied_takeoffs(&mut self, calls: Vec<Call>) -> Vec<Call> {
         let grounded: Vec<String> = {
             let view = self.link.view();
-            let now = Instant::now();
+            let now = self.link.clock().instant();
             view.drones()
                 .filter(|e| e.effective_mode(now) == DroneMode::Idle)
                 .map(|e| e.id.to_string())
@@ -1102,7 +1105,7 @@ impl Mission {
     /// for a done start_tracking) and none could start: e.g. a goto for a drone whose plan never takes it off. Without this the
     /// plan would wait for ever.
     fn give_up_if_stuck(&mut self) {
-        let now = Instant::now();
+        let now = self.link.clock().instant();
         // Drones following a target for a done start_tracking: the plan is at work, not stuck.
         let tracking: Vec<String> = {
             let view = self.link.view();
@@ -1398,7 +1401,7 @@ impl Mission {
         let swarm = self.swarm_ids();
         let pending = self.drones_with_pending_actions();
         let view = self.link.view();
-        let now = Instant::now();
+        let now = self.link.clock().instant();
         let mut out = Vec::new();
         for drone in swarm {
             let Some(entry) = DroneId::new(&drone).ok().and_then(|id| view.get(&id)) else {
@@ -1499,7 +1502,10 @@ impl Caller {
                 messages: serde_json::to_value(&messages).unwrap_or_default(),
             });
             stats.model_calls += 1;
-            let reply = match self.backend.chat(&request).await {
+            let in_flight = self.link.model_call();
+            let reply = self.backend.chat(&request).await;
+            drop(in_flight);
+            let reply = match reply {
                 Ok(reply) => reply,
                 Err(LlmError::Truncated(n)) => {
                     self.log.note(Record::LlmError {
@@ -1920,7 +1926,7 @@ fn check_live(
     let mut accepted: Vec<(Call, CheckedAction)> = Vec::new();
     let mut rejections = Vec::new();
     let view = link.view();
-    let now = Instant::now();
+    let now = link.clock().instant();
     for call in calls {
         // The same work for the same drone twice in one reply (small models repeat themselves,
         // under one task id or two) is one call, not a conflict worth a repair round.

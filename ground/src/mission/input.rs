@@ -11,7 +11,7 @@ use super::log::{MissionLog, Record};
 use crate::link::GroundLink;
 use crate::safety::SafetyGate;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use tacos_shared::DroneId;
 use tacos_shared::action::Action;
 use tacos_shared::messages::ActionState;
@@ -131,7 +131,7 @@ impl PilotInput {
         for drone in targets {
             let checked = {
                 let view = self.link.view();
-                self.gate.check(&view, &drone, &action, Instant::now())
+                self.gate.check(&view, &drone, &action, self.link.clock().instant())
             };
             let checked = match checked {
                 Ok(c) => c,

@@ -7,7 +7,7 @@ use std::fs::{File, OpenOptions};
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
-use std::time::Instant;
+use tacos_bus::clock::Clock;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
@@ -115,7 +115,10 @@ pub enum LogError {
 pub struct MissionLog {
     file: Mutex<File>,
     path: PathBuf,
-    start: Instant,
+    /// Times in the log are seconds of this clock since `start_s`: the simulator's in a
+    /// simulated run, so that speeds drawn from the positions stay true at any pace.
+    clock: Clock,
+    start_s: f64,
 }
 
 impl MissionLog {
@@ -135,11 +138,20 @@ impl MissionLog {
                 path: path.display().to_string(),
                 reason: e.to_string(),
             })?;
+        let clock = Clock::wall();
         Ok(MissionLog {
             file: Mutex::new(file),
             path: path.to_owned(),
-            start: Instant::now(),
+            start_s: clock.now(),
+            clock,
         })
+    }
+
+    /// The same log, timed by `clock` from now on (the ground link's clock).
+    pub fn timed_by(mut self, clock: &Clock) -> MissionLog {
+        self.start_s = clock.now();
+        self.clock = clock.clone();
+        self
     }
 
     pub fn path(&self) -> &Path {
@@ -147,7 +159,7 @@ impl MissionLog {
     }
 
     pub fn elapsed(&self) -> f64 {
-        self.start.elapsed().as_secs_f64()
+        self.clock.now() - self.start_s
     }
 
     /// Appends one record and flushes it. A failing disk is reported, never a panic.

@@ -255,7 +255,7 @@ impl Runner {
         let view = self.link.view();
         Facts {
             view: &view,
-            now: Instant::now(),
+            now: self.link.clock().instant(),
             scenario: &self.scenario,
             drones: &self.drones,
             targets: &targets,
@@ -265,26 +265,29 @@ impl Runner {
         .check(condition)
     }
 
-    /// Follows the mission until `deadline`, or until `done` says stop.
+    /// Follows the mission for `span` of the ground's clock (the simulator's in a simulated
+    /// run), or until `done` says stop.
     async fn follow_until(
         &mut self,
-        deadline: tokio::time::Instant,
+        span: Duration,
         mut done: impl FnMut(&Runner) -> bool,
     ) -> bool {
+        let deadline = self.link.clock().instant() + span;
         loop {
             self.drain();
             if done(self) {
                 return true;
             }
-            let now = tokio::time::Instant::now();
+            let now = self.link.clock().instant();
             if now >= deadline {
                 return false;
             }
-            let wake = deadline.min(now + POLL);
+            // Polls on the wall clock; the deadline is read on the ground's clock.
+            let wake = POLL.min(deadline.duration_since(now));
             tokio::select! {
                 Some(u) = self.updates.recv() => self.update(&u),
                 Some(e) = self.events.recv() => self.event(&e),
-                _ = tokio::time::sleep_until(wake) => {}
+                _ = tokio::time::sleep(wake) => {}
             }
         }
     }
@@ -297,14 +300,12 @@ impl Runner {
                 Ok(())
             }
             StepKind::Wait(d) => {
-                let deadline = tokio::time::Instant::now() + *d;
-                self.follow_until(deadline, |_| false).await;
+                self.follow_until(*d, |_| false).await;
                 Ok(())
             }
             StepKind::WaitUntil { condition, within } => {
-                let deadline = tokio::time::Instant::now() + *within;
                 if self
-                    .follow_until(deadline, |r| r.check(condition).is_ok())
+                    .follow_until(*within, |r| r.check(condition).is_ok())
                     .await
                 {
                     Ok(())
@@ -341,7 +342,7 @@ impl Runner {
                 let view = self.link.view();
                 let facts = Facts {
                     view: &view,
-                    now: Instant::now(),
+                    now: self.link.clock().instant(),
                     scenario: &self.scenario,
                     drones: &self.drones,
                     targets: &targets,
@@ -366,7 +367,7 @@ pub async fn run_script(
     script: &Script,
     opts: ScriptOptions,
 ) -> Result<ScriptReport, ScriptError> {
-    let log = Arc::new(MissionLog::create(&opts.log_path)?);
+    let log = Arc::new(MissionLog::create(&opts.log_path)?.timed_by(link.clock()));
     let scenario = gate.scenario().clone();
     let drones: Vec<DroneId> = {
         let view = link.view();

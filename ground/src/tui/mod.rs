@@ -25,7 +25,7 @@ use ratatui::backend::CrosstermBackend;
 use std::io::Stdout;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use tacos_shared::messages::TargetObservation;
 use tacos_shared::scenario::Scenario;
 use tokio::sync::{mpsc, watch};
@@ -151,7 +151,7 @@ async fn event_loop(
     input: &PilotInput,
     targets: &mut watch::Receiver<Vec<TargetObservation>>,
 ) -> Result<(), TuiError> {
-    let mut state = TerminalState::new(scenario, backend_description, Instant::now());
+    let mut state = TerminalState::new(scenario, backend_description, link.clock().instant());
     let mut keys = EventStream::new();
     let mut frame = tokio::time::interval(FRAME);
     frame.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
@@ -173,7 +173,7 @@ async fn event_loop(
             _ = frame.tick() => {}
             update = updates.recv(), if updates_open => match update {
                 Some(update) => {
-                    let now = Instant::now();
+                    let now = link.clock().instant();
                     state.apply_update(&update, now);
                     // Take a burst in one frame.
                     while let Ok(update) = updates.try_recv() {
@@ -218,7 +218,7 @@ async fn event_loop(
         if PANICKED.load(Ordering::SeqCst) {
             return Err(TuiError::Panicked);
         }
-        let now = Instant::now();
+        let now = link.clock().instant();
         {
             let view = link.view();
             state.refresh_swarm(&view, now);

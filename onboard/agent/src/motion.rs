@@ -3,8 +3,9 @@
 //! tick. No I/O: the shell passes in the messages and the time (the one clock read here times
 //! the solves, for the log).
 //!
-//! Time is the wall clock in seconds since the Unix epoch, the clock of `PathMessage::stamp`, so
-//! a neighbour's path can be aged on arrival.
+//! Time is the swarm's clock in seconds on the Unix scale (the wall clock, or the simulator's in
+//! a simulated run: `tacos_bus::clock`), the clock of `PathMessage::stamp`, so a neighbour's path
+//! can be aged on arrival.
 
 use crate::planner::{
     Goal, NeighbourPath, Plan, PlanStatus, Planner, PlannerConfig, PlannerError, ReferenceState,

@@ -1,12 +1,15 @@
 //! The task shell around the executor and the planner: zenoh in and out (actions, heartbeats,
-//! neighbours' paths, targets; status, this drone's path), iceoryx2 to the writer, the clocks.
+//! neighbours' paths, targets; status, this drone's path), iceoryx2 to the writer, the clock.
+//!
+//! Every time here is read from one `tacos_bus::clock::Clock`: the wall clock on a drone, the simulator's with
+//! `--sim-clock`, so that rates, deadlines, the failsafe and path stamps keep their meaning when a
+//! simulation runs faster than real time.
 
 use crate::executor::{Executor, ExecutorConfig};
 use crate::failsafe::FailsafeTimer;
 use crate::motion::{Motion, MotionConfig, SolveDone, Steering};
 use crate::planner::{PlannerConfig, PlannerError};
 use std::future::Future;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tacos_bus::{BusArgs, BusError};
 use tacos_ipc::{IpcError, IpcNode};
 use tacos_shared::ActionCommand;
@@ -14,7 +17,6 @@ use tacos_shared::DroneId;
 use tacos_shared::ipc::SetpointSample;
 use tacos_shared::messages::{DroneStatus, GroundHeartbeat, PathMessage, TargetsMessage};
 use tacos_shared::scenario::Scenario;
-use tokio::time::MissedTickBehavior;
 use tracing::{Instrument, info, info_span, warn};
 
 #[derive(Debug, Clone)]
@@ -66,17 +68,6 @@ pub enum OnboardError {
     PlannerLost(String),
 }
 
-fn unix_nanos() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64)
-}
-
-/// The wall clock in seconds since the Unix epoch: the clock of path stamps.
-fn wall_seconds() -> f64 {
-    unix_nanos() as f64 * 1e-9
-}
-
 /// Counts malformed payloads of one kind, warning on the 1st, 2nd, 4th, 8th… so a flood does not
 /// flood the log.
 #[derive(Debug, Default)]
@@ -103,14 +94,14 @@ fn start_solve(
     motion: &mut Motion,
     executor: &Executor,
     steering: Steering,
-    wall: f64,
+    now: f64,
 ) -> Option<tokio::task::JoinHandle<SolveDone>> {
     let Steering::Toward(goal) = steering else {
         return None;
     };
     let vehicle = executor.vehicle()?;
     let tracking = executor.following().map(|(target, _)| target);
-    let job = motion.solve_job(wall, vehicle.position, vehicle.velocity, goal, tracking)?;
+    let job = motion.solve_job(now, vehicle.position, vehicle.velocity, goal, tracking)?;
     Some(tokio::task::spawn_blocking(move || job.run()))
 }
 
@@ -130,6 +121,9 @@ async fn run_inner(
     let keys = cfg.bus.keys();
     let drone = cfg.drone.clone();
     let session = cfg.bus.open().await?;
+    let clock = cfg.bus.clock(&session).await?;
+    // The simulator is up before its onboards; waiting keeps the timers from jumping clocks.
+    clock.synced(std::time::Duration::from_secs(10)).await.map_err(BusError::from)?;
     let actions = tacos_bus::subscribe(&session, &keys.action(&drone)).await?;
     let heartbeats = tacos_bus::subscribe(&session, &keys.ground_heartbeat()).await?;
     // Enough room for a few rounds of every neighbour's path; older ones are superseded anyway.
@@ -141,8 +135,7 @@ async fn run_inner(
     let _alive = tacos_bus::declare_alive(&session, &keys.alive(&drone)).await?;
     info!(swarm = %cfg.bus.swarm, "onboard up");
 
-    let origin = Instant::now();
-    let now = || origin.elapsed().as_secs_f64();
+    let now = || clock.now();
     let mut executor = Executor::new(ExecutorConfig::new(
         cfg.scenario.limits,
         cfg.scenario.world.clone(),
@@ -161,12 +154,10 @@ async fn run_inner(
     let mut solving: Option<tokio::task::JoinHandle<SolveDone>> = None;
     // Solves are paced by their own timer (not every n-th control tick, which would round the
     // period up to a multiple of 20 ms); each starts from the state the last tick saw.
-    let mut plan_timer = tokio::time::interval(Duration::from_secs_f64(cfg.motion.plan_period));
-    plan_timer.set_missed_tick_behavior(MissedTickBehavior::Skip);
+    let mut plan_timer = clock.ticker(cfg.motion.plan_period);
     let mut last_steering: Option<Steering> = None;
     let mut failsafe = FailsafeTimer::new(cfg.failsafe_hold_s, cfg.failsafe_land_s, now());
-    let mut control = tokio::time::interval(Duration::from_secs_f64(1.0 / cfg.control_rate_hz));
-    control.set_missed_tick_behavior(MissedTickBehavior::Skip);
+    let mut control = clock.ticker(1.0 / cfg.control_rate_hz);
     let status_every = (cfg.control_rate_hz / cfg.status_rate_hz).round().max(1.0) as u64;
     let status_key = keys.status(&drone);
 
@@ -234,19 +225,18 @@ async fn run_inner(
             }
             _ = plan_timer.tick() => {
                 if solving.is_none() && let Some(steering) = last_steering {
-                    solving = start_solve(&mut motion, &executor, steering, wall_seconds());
+                    solving = start_solve(&mut motion, &executor, steering, now());
                 }
             }
             sample = targets.recv_async() => {
                 let sample = sample.map_err(|_| OnboardError::SubscriberClosed(keys.targets()))?;
                 match tacos_bus::decode::<TargetsMessage>(&sample) {
-                    Ok(message) => motion.on_targets(&message, wall_seconds()),
+                    Ok(message) => motion.on_targets(&message, now()),
                     Err(e) => malformed_targets.note(&e),
                 }
             }
             _ = control.tick() => {
                 let t = now();
-                let wall = wall_seconds();
                 let mut path_out = None;
                 let step = (|| -> Result<(), IpcError> {
                     for result in ports.results.drain()? {
@@ -265,7 +255,7 @@ async fn run_inner(
                         warn!(stage = ?executor.failsafe(), silence_s = failsafe.silence(t), "failsafe changed");
                     }
                     if let Some((target, altitude)) = executor.following() {
-                        let station = motion.station(target, altitude, wall);
+                        let station = motion.station(target, altitude, t);
                         executor.on_station(station, t);
                     }
                     let out = executor.tick(t);
@@ -279,15 +269,15 @@ async fn run_inner(
                             && solving.is_none()
                             && !motion.has_plan()
                         {
-                            solving = start_solve(&mut motion, &executor, steering, wall);
+                            solving = start_solve(&mut motion, &executor, steering, t);
                         }
-                        let step = motion.tick(wall, vehicle.position, vehicle.velocity, steering);
+                        let step = motion.tick(t, vehicle.position, vehicle.velocity, steering);
                         path_out = step.path;
                         let reference = step.reference;
                         setpoint_seq += 1;
                         ports.send_setpoint(SetpointSample {
                             seq: setpoint_seq,
-                            stamp_ns: unix_nanos(),
+                            stamp_ns: (t.max(0.0) * 1e9) as u64,
                             position: reference.position.into(),
                             velocity: reference.velocity.into(),
                             acceleration: reference.acceleration.into(),

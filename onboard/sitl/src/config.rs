@@ -19,7 +19,7 @@ pub struct SitlConfig {
     pub mavlink_base_port: u16,
     /// Vehicle i binds `127.0.0.1:(sitl_base_port + i)`.
     pub sitl_base_port: u16,
-    /// Sim seconds per wall second.
+    /// Sim seconds per wall second while no model call is in flight (see [`SitlConfig::rate`]).
     pub speed: f64,
     pub bus: BusArgs,
 }
@@ -35,6 +35,12 @@ impl SitlConfig {
             speed: 1.0,
             bus,
         }
+    }
+
+    /// Sim seconds per wall second: `speed`, but real time while the ground has a model call in
+    /// flight, so that the models meet the world at the pace a real flight would give them.
+    pub fn rate(&self, model_call_in_flight: bool) -> f64 {
+        if model_call_in_flight { 1.0 } else { self.speed }
     }
 
     /// Checks the numbers and returns the drone slots to simulate.
@@ -129,5 +135,13 @@ mod tests {
         let mut c = config(3);
         c.sitl_base_port = u16::MAX;
         assert!(c.validate().is_err());
+    }
+
+    #[test]
+    fn a_model_call_in_flight_holds_real_time() {
+        let mut c = config(3);
+        c.speed = 4.0;
+        assert_eq!(c.rate(false), 4.0);
+        assert_eq!(c.rate(true), 1.0);
     }
 }

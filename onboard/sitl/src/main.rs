@@ -24,7 +24,8 @@ struct Cli {
     /// Vehicle i binds 127.0.0.1:(this + i).
     #[arg(long, default_value_t = DEFAULT_SITL_BASE_PORT)]
     sitl_base_port: u16,
-    /// Simulated seconds per wall-clock second.
+    /// Simulated seconds per wall-clock second while no model call is in flight (the ground
+    /// says so on `sim/pace`); the other processes must then follow `sim/clock` (`--sim-clock`).
     #[arg(long, default_value_t = 1.0)]
     speed: f64,
     #[command(flatten)]

@@ -1,6 +1,10 @@
 //! The I/O shell around [`Simulation`]: one UDP socket per vehicle (like PX4 SITL instance i),
-//! the zenoh session, and the wall clock. One task owns the simulation; per-vehicle receive
+//! the zenoh session, and the clocks. One task owns the simulation; per-vehicle receive
 //! tasks only hand datagrams over.
+//!
+//! Simulated time advances at `--speed` simulated seconds per wall second, and at real time
+//! while the ground says a model call is in flight (`sim/pace`). It is published on
+//! `sim/clock` for the other processes of the run to follow (`--sim-clock`).
 
 use crate::config::SitlConfig;
 use crate::error::SitlError;
@@ -15,7 +19,8 @@ use std::net::{Ipv4Addr, SocketAddr};
 use std::sync::Arc;
 use std::time::Duration;
 use tacos_bus::BusError;
-use tacos_shared::messages::FaultRequest;
+use tacos_bus::clock::wall_unix;
+use tacos_shared::messages::{FaultRequest, SimClock, SimPace};
 use tokio::net::UdpSocket;
 use tokio::sync::mpsc;
 use tokio::task::JoinSet;
@@ -27,11 +32,14 @@ const TICK: Duration = Duration::from_millis(10);
 /// After a stall (a suspended process, a loaded machine), catch up at most this much wall time
 /// at once rather than jumping the vehicles.
 const MAX_CATCH_UP: f64 = 0.1;
-const HEARTBEAT_PERIOD: Duration = Duration::from_secs(1);
-const LOCAL_POSITION_PERIOD: Duration = Duration::from_millis(20);
-const EXTENDED_SYS_STATE_PERIOD: Duration = Duration::from_millis(200);
-const TARGETS_PERIOD: Duration = Duration::from_millis(50);
-const TRUTH_PERIOD: Duration = Duration::from_millis(100);
+/// The periods below are simulated seconds: the telemetry keeps its rate in simulated time.
+const HEARTBEAT_PERIOD: f64 = 1.0;
+const LOCAL_POSITION_PERIOD: f64 = 0.02;
+const EXTENDED_SYS_STATE_PERIOD: f64 = 0.2;
+const TARGETS_PERIOD: f64 = 0.05;
+const TRUTH_PERIOD: f64 = 0.1;
+/// How often `sim/clock` is published (wall clock), besides at every change of rate.
+const CLOCK_PERIOD: Duration = Duration::from_millis(50);
 /// Large enough for several MAVLink frames in one datagram.
 const DATAGRAM_BYTES: usize = 8192;
 
@@ -62,6 +70,7 @@ pub async fn run(config: SitlConfig, shutdown: impl Future<Output = ()>) -> Resu
     let session = config.bus.open().await?;
     let keys = config.bus.keys();
     let faults = tacos_bus::subscribe(&session, &keys.sim_faults()).await?;
+    let pace = tacos_bus::subscribe_latest(&session, &keys.sim_pace(), 4).await?;
     let mut sim = Simulation::new(&config.scenario, &slots);
 
     let (tx, mut rx) = mpsc::channel::<Datagram>(1024);
@@ -93,15 +102,22 @@ pub async fn run(config: SitlConfig, shutdown: impl Future<Output = ()>) -> Resu
     };
     let mut ticker = tokio::time::interval(TICK);
     ticker.set_missed_tick_behavior(MissedTickBehavior::Delay);
-    let start = Instant::now();
-    let mut last = start;
+    let mut last = Instant::now();
+    // Simulated time on the Unix scale starts at the wall clock, so stamps look like times.
+    let epoch_unix = wall_unix() - sim.time();
+    let start = sim.time();
     let mut heartbeat = Every::new(HEARTBEAT_PERIOD, start);
     let mut local_position = Every::new(LOCAL_POSITION_PERIOD, start);
     let mut sys_state = Every::new(EXTENDED_SYS_STATE_PERIOD, start);
     let mut targets = Every::new(TARGETS_PERIOD, start);
     let mut truth = Every::new(TRUTH_PERIOD, start);
+    let clock_key = keys.sim_clock();
+    let mut clock_published: Option<(Instant, f64)> = None;
+    let mut model_call_in_flight = false;
     let mut faults_open = true;
+    let mut pace_open = true;
     let mut malformed_faults = 0u64;
+    let mut malformed_pace = 0u64;
     tokio::pin!(shutdown);
 
     loop {
@@ -131,22 +147,49 @@ pub async fn run(config: SitlConfig, shutdown: impl Future<Output = ()>) -> Resu
                     faults_open = false;
                 }
             },
+            sample = pace.recv_async(), if pace_open => match sample {
+                Ok(sample) => match tacos_bus::decode::<SimPace>(&sample) {
+                    Ok(p) => {
+                        if p.model_call_in_flight != model_call_in_flight {
+                            debug!(model_call_in_flight = p.model_call_in_flight, "pace changed");
+                        }
+                        model_call_in_flight = p.model_call_in_flight;
+                    }
+                    Err(e) => {
+                        malformed_pace += 1;
+                        if malformed_pace.is_power_of_two() {
+                            warn!(count = malformed_pace, "malformed pace request ignored: {e}");
+                        }
+                    }
+                },
+                Err(e) => {
+                    warn!("pace subscriber closed: {e}");
+                    pace_open = false;
+                }
+            },
             _ = ticker.tick() => {
                 let now = Instant::now();
+                let rate = config.rate(model_call_in_flight);
                 let wall_dt = now.duration_since(last).as_secs_f64().min(MAX_CATCH_UP);
                 last = now;
-                for event in sim.advance(wall_dt * config.speed) {
+                for event in sim.advance(wall_dt * rate) {
                     info!("{event}");
                     shell.publish_urgent(&events_key, &event).await;
                 }
-                let (hb, lp, ss) = (heartbeat.due(now), local_position.due(now), sys_state.due(now));
+                let t = sim.time();
+                if clock_published.is_none_or(|(at, r)| r != rate || now.duration_since(at) >= CLOCK_PERIOD) {
+                    clock_published = Some((now, rate));
+                    let anchor = SimClock { sim_unix_s: epoch_unix + t, wall_unix_s: wall_unix(), rate };
+                    shell.publish_urgent(&clock_key, &anchor).await;
+                }
+                let (hb, lp, ss) = (heartbeat.due(t), local_position.due(t), sys_state.due(t));
                 for (i, link) in links.iter_mut().enumerate() {
                     send_telemetry(&sim, i, link, hb, lp, ss);
                 }
-                if targets.due(now) {
+                if targets.due(t) {
                     shell.publish(&targets_key, &sim.targets_message()).await;
                 }
-                if truth.due(now) {
+                if truth.due(t) {
                     shell.publish(&truth_key, &sim.truth()).await;
                 }
             }
@@ -318,21 +361,21 @@ impl Shell<'_> {
     }
 }
 
-/// A fixed-rate schedule on the wall clock.
+/// A fixed-rate schedule on simulated time.
 struct Every {
-    period: Duration,
-    next: Instant,
+    period: f64,
+    next: f64,
 }
 
 impl Every {
-    fn new(period: Duration, start: Instant) -> Self {
+    fn new(period: f64, start: f64) -> Self {
         Every {
             period,
             next: start,
         }
     }
 
-    fn due(&mut self, now: Instant) -> bool {
+    fn due(&mut self, now: f64) -> bool {
         if now < self.next {
             return false;
         }

@@ -1,6 +1,8 @@
 //! The zenoh side of TACOS: opening a session from typed settings, and publishing / decoding
 //! messages through the one wire codec. Kept apart from `tacos-shared`, which does no I/O.
 
+pub mod clock;
+
 use serde::Serialize;
 use serde::de::DeserializeOwned;
 use std::path::PathBuf;
@@ -27,6 +29,8 @@ pub enum BusError {
     Put { key: String, reason: String },
     #[error(transparent)]
     Codec(#[from] CodecError),
+    #[error(transparent)]
+    NoClock(#[from] clock::ClockNotSynced),
 }
 
 /// How this process joins the swarm's zenoh network. Shared by every TACOS binary.
@@ -50,6 +54,10 @@ pub struct BusArgs {
     /// A zenoh JSON5 configuration file (TLS, access control; see deploy/); flags override it.
     #[arg(long = "zenoh-config", value_name = "FILE")]
     pub config_file: Option<PathBuf>,
+    /// Follow the simulator's clock (`sim/clock`) instead of the wall clock. Only for the
+    /// processes of a simulated run: the simulation may then run faster than real time.
+    #[arg(long = "sim-clock")]
+    pub sim_clock: bool,
 }
 
 impl BusArgs {
@@ -62,6 +70,17 @@ impl BusArgs {
             client: false,
             multicast: false,
             config_file: None,
+            sim_clock: false,
+        }
+    }
+
+    /// The clock this process's timers read: the simulator's with `--sim-clock` (reading the
+    /// wall clock until the simulator is heard: see `Clock::synced`), else the wall clock.
+    pub async fn clock(&self, session: &Session) -> Result<clock::Clock, BusError> {
+        if self.sim_clock {
+            clock::Clock::follow(session, &self.keys()).await
+        } else {
+            Ok(clock::Clock::wall())
         }
     }
 
