@@ -89,9 +89,7 @@ pub async fn run_demo(
     )?;
     config.sim_speed = opts.sim_speed;
     let logs = config.log_dir.display().to_string();
-    let link = Arc::new(
-        GroundLink::connect(&config.ground_bus()).await?,
-    );
+    let link = Arc::new(GroundLink::connect(&config.ground_bus()).await?);
     let mut stack = Stack::start(config)?;
     let truth = link.watch_truth().await?;
     let gate = SafetyGate::new(opts.scenario.clone());

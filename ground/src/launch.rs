@@ -124,7 +124,8 @@ impl StackConfig {
 
     /// How the ground joins this stack: it listens on the hub and follows the simulator's clock.
     pub fn ground_bus(&self) -> BusArgs {
-        let mut bus = BusArgs::loopback(self.swarm.clone(), Some(self.hub_endpoint.clone()), vec![]);
+        let mut bus =
+            BusArgs::loopback(self.swarm.clone(), Some(self.hub_endpoint.clone()), vec![]);
         bus.sim_clock = true;
         bus
     }

@@ -189,10 +189,9 @@ impl GroundLink {
                     if let Err(e) = tacos_bus::put(&pace_session, &pace_key, &pace, true).await {
                         warn!(error = %e, "simulator pace not sent");
                     }
-                    // Wakes at a change, or to repeat the current pace.
-                    match tokio::time::timeout(PACE_REPEAT, calls.changed()).await {
-                        Ok(Err(_)) => return,
-                        Ok(Ok(())) | Err(_) => {}
+                    // Wakes at a change, or to repeat the current pace; ends with the link.
+                    if let Ok(Err(_)) = tokio::time::timeout(PACE_REPEAT, calls.changed()).await {
+                        return;
                     }
                 }
             }));

@@ -23,7 +23,12 @@ async fn rates(
     window: Duration,
 ) -> anyhow::Result<(f64, f64)> {
     let mut next_truth = async || -> anyhow::Result<f64> {
-        within("the simulator's truth", Duration::from_secs(5), truth.changed()).await??;
+        within(
+            "the simulator's truth",
+            Duration::from_secs(5),
+            truth.changed(),
+        )
+        .await??;
         let t = truth.borrow_and_update().as_ref().map(|t| t.sim_time);
         t.ok_or_else(|| anyhow::anyhow!("no truth from the simulator"))
     };
@@ -37,11 +42,15 @@ async fn rates(
 
 /// Waits until the clock the ground follows runs at `rate` (the simulator heard the pace).
 async fn rate_becomes(clock: &Clock, rate: f64) -> anyhow::Result<()> {
-    within("the simulator's change of rate", Duration::from_secs(5), async {
-        while clock.rate() != rate {
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    })
+    within(
+        "the simulator's change of rate",
+        Duration::from_secs(5),
+        async {
+            while clock.rate() != rate {
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        },
+    )
     .await
 }
 
@@ -78,9 +87,16 @@ async fn the_simulation_runs_at_its_speed_between_model_calls_and_at_real_time_d
     sim.stop().await;
     let (fast, during_call, last) = result?;
     // The machine may not keep up with 4× at every moment; it must be well above real time.
-    assert!(fast.0 > 2.5, "the simulation ran at {:.2}× between calls", fast.0);
+    assert!(
+        fast.0 > 2.5,
+        "the simulation ran at {:.2}× between calls",
+        fast.0
+    );
     assert!(fast.1 > 2.5, "the ground's clock ran at {:.2}×", fast.1);
-    for (what, rate) in [("simulation", during_call.0), ("ground's clock", during_call.1)] {
+    for (what, rate) in [
+        ("simulation", during_call.0),
+        ("ground's clock", during_call.1),
+    ] {
         assert!(
             (0.7..1.3).contains(&rate),
             "the {what} ran at {rate:.2}× during a model call"

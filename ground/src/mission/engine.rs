@@ -513,7 +513,8 @@ impl Mission {
         for drone in targets {
             let checked = {
                 let view = self.link.view();
-                self.gate.check(&view, &drone, &action, self.link.clock().instant())
+                self.gate
+                    .check(&view, &drone, &action, self.link.clock().instant())
             };
             match checked {
                 Ok(c) => match self.send(&c, None).await {

@@ -131,7 +131,8 @@ impl PilotInput {
         for drone in targets {
             let checked = {
                 let view = self.link.view();
-                self.gate.check(&view, &drone, &action, self.link.clock().instant())
+                self.gate
+                    .check(&view, &drone, &action, self.link.clock().instant())
             };
             let checked = match checked {
                 Ok(c) => c,

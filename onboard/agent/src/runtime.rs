@@ -123,7 +123,10 @@ async fn run_inner(
     let session = cfg.bus.open().await?;
     let clock = cfg.bus.clock(&session).await?;
     // The simulator is up before its onboards; waiting keeps the timers from jumping clocks.
-    clock.synced(std::time::Duration::from_secs(10)).await.map_err(BusError::from)?;
+    clock
+        .synced(std::time::Duration::from_secs(10))
+        .await
+        .map_err(BusError::from)?;
     let actions = tacos_bus::subscribe(&session, &keys.action(&drone)).await?;
     let heartbeats = tacos_bus::subscribe(&session, &keys.ground_heartbeat()).await?;
     // Enough room for a few rounds of every neighbour's path; older ones are superseded anyway.

@@ -40,7 +40,11 @@ impl SitlConfig {
     /// Sim seconds per wall second: `speed`, but real time while the ground has a model call in
     /// flight, so that the models meet the world at the pace a real flight would give them.
     pub fn rate(&self, model_call_in_flight: bool) -> f64 {
-        if model_call_in_flight { 1.0 } else { self.speed }
+        if model_call_in_flight {
+            1.0
+        } else {
+            self.speed
+        }
     }
 
     /// Checks the numbers and returns the drone slots to simulate.

@@ -96,7 +96,10 @@ impl Drop for Shared {
 #[derive(Debug, Clone)]
 enum Source {
     /// The wall clock, read through `Instant` so that it never steps (an NTP correction).
-    Wall { unix_at: f64, at: Instant },
+    Wall {
+        unix_at: f64,
+        at: Instant,
+    },
     Sim(Arc<Shared>),
 }
 
@@ -150,7 +153,9 @@ impl Clock {
                 {
                     Some(anchor) => {
                         lock(&shared.followed).update(anchor);
-                        shared.synced.send_if_modified(|s| !std::mem::replace(s, true));
+                        shared
+                            .synced
+                            .send_if_modified(|s| !std::mem::replace(s, true));
                     }
                     None => {
                         malformed += 1;
@@ -347,7 +352,10 @@ mod tests {
         for k in 1..=5 {
             let t = ticker.tick().await;
             // A late tick is not made up for, but none comes early.
-            assert!(t - first >= 0.01 * k as f64 - 1e-6, "tick {k} at {t}, first at {first}");
+            assert!(
+                t - first >= 0.01 * k as f64 - 1e-6,
+                "tick {k} at {t}, first at {first}"
+            );
         }
         // Instants differ by the clock's seconds: each read lies between two of the clock's.
         let read = || {
