@@ -203,6 +203,8 @@ mod tests {
             mean_model_calls: 3.0,
             mean_latency_s: Some(1.0),
             mean_tokens: 10.0,
+            mean_wall_s: 20.0,
+            mean_mission_s: Some(30.0),
         }
     }
 

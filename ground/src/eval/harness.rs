@@ -105,7 +105,7 @@ pub fn write_tables(
     };
     write(
         "results.md",
-        results::markdown(&opts.task.name, &backend, &cells),
+        results::markdown(&opts.task.name, &backend, &cells, records),
     )?;
     write("results.csv", results::csv(&cells))?;
     write(
@@ -226,13 +226,14 @@ pub async fn evaluate(
             records.push(record.clone());
         }
         say(format!(
-            "{} {} n={} run {}: {:?} in {:.0} s, L={}, {} model calls — {}  ({:.0} s so far)",
+            "{} {} n={} run {}: {:?} in {:.0} s ({:.0} s of mission), L={}, {} model calls — {}  ({:.0} s so far)",
             bar(finished, total),
             record.mode,
             record.drones,
             record.run,
             record.status,
             record.elapsed_s,
+            record.mission_s.unwrap_or(0.0),
             record.cycles,
             record.model_calls,
             record.reason,

@@ -31,7 +31,16 @@ pub struct RunRecord {
     pub backend: String,
     pub status: Status,
     pub reason: String,
+    /// Wall-clock seconds the run took, set-up and shut-down included.
     pub elapsed_s: f64,
+    /// Simulated seconds per wall second between model calls (`--sim-speed`); records written
+    /// before the speed was recorded ran at 1.
+    #[serde(default = "real_time")]
+    pub sim_speed: f64,
+    /// Mission time (the simulator's clock) from the first pilot line to the verdict; `None`
+    /// when the run broke before its mission started.
+    #[serde(default)]
+    pub mission_s: Option<f64>,
     /// Supervisor (or monolithic) cycles.
     pub cycles: u32,
     pub model_calls: u32,
@@ -47,6 +56,10 @@ pub struct RunRecord {
     /// The drone failed on purpose, and when (seconds from the first pilot line).
     pub fault: Option<String>,
     pub log: String,
+}
+
+fn real_time() -> f64 {
+    1.0
 }
 
 impl RunRecord {
@@ -238,6 +251,10 @@ pub struct Cell {
     /// Mean latency of one model reply, over every reply of the cell.
     pub mean_latency_s: Option<f64>,
     pub mean_tokens: f64,
+    /// Mean wall-clock seconds per run.
+    pub mean_wall_s: f64,
+    /// Mean mission (simulated) seconds per run, over runs whose mission started.
+    pub mean_mission_s: Option<f64>,
 }
 
 /// One cell per (mode, swarm size) present in `records`, in the order of `modes` then size.
@@ -288,31 +305,60 @@ pub fn cells(records: &[RunRecord], modes: &[String]) -> Vec<Cell> {
                 mean_model_calls: per_run(&|r| f64::from(r.model_calls)),
                 mean_latency_s: (replies > 0).then(|| latency as f64 / 1000.0 / replies as f64),
                 mean_tokens: per_run(&|r| (r.prompt_tokens + r.completion_tokens) as f64),
+                mean_wall_s: per_run(&|r| r.elapsed_s),
+                mean_mission_s: mean(counted.iter().filter_map(|r| r.mission_s)),
             }
         })
         .collect()
+}
+
+fn mean(values: impl Iterator<Item = f64>) -> Option<f64> {
+    let (sum, n) = values.fold((0.0, 0u32), |(s, n), v| (s + v, n + 1));
+    (n > 0).then(|| sum / f64::from(n))
+}
+
+/// The simulation speeds the records ran at, for the table's heading ("2×", "1×, 2×").
+fn speeds(records: &[RunRecord]) -> String {
+    let mut seen: Vec<f64> = Vec::new();
+    for r in records {
+        if !seen.iter().any(|s| (s - r.sim_speed).abs() < 1e-9) {
+            seen.push(r.sim_speed);
+        }
+    }
+    seen.sort_by(f64::total_cmp);
+    seen.iter()
+        .map(|s| format!("{s}×"))
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 fn opt(v: Option<f64>, digits: usize) -> String {
     v.map_or_else(|| "–".to_owned(), |v| format!("{v:.digits$}"))
 }
 
-/// The table as Markdown.
-pub fn markdown(task: &str, backend: &str, cells: &[Cell]) -> String {
+/// The table as Markdown; `records` are the runs behind `cells` (for the simulation speed).
+pub fn markdown(task: &str, backend: &str, cells: &[Cell], records: &[RunRecord]) -> String {
     let mut out = String::new();
     let _ = writeln!(out, "# {task}: {backend}\n");
+    if !records.is_empty() {
+        let _ = writeln!(
+            out,
+            "Simulation speed between model calls: {} (model calls run at real time). Wall time is per run, set-up included; mission time is the simulator's, from the first pilot line.\n",
+            speeds(records)
+        );
+    }
     let _ = writeln!(
         out,
-        "| mode | drones | runs | success | success rate (95 % Wilson) | mean L (successes) | model calls / run | mean call latency (s) | tokens / run | errors |"
+        "| mode | drones | runs | success | success rate (95 % Wilson) | mean L (successes) | model calls / run | mean call latency (s) | tokens / run | wall (s) / run | mission (s) / run | errors |"
     );
     let _ = writeln!(
         out,
-        "| --- | ---: | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: |"
+        "| --- | ---: | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"
     );
     for c in cells {
         let _ = writeln!(
             out,
-            "| {} | {} | {} | {} | {:.0} % [{:.0}, {:.0}] | {} | {:.1} | {} | {:.0} | {} |",
+            "| {} | {} | {} | {} | {:.0} % [{:.0}, {:.0}] | {} | {:.1} | {} | {:.0} | {:.0} | {} | {} |",
             c.mode,
             c.drones,
             c.runs,
@@ -324,6 +370,8 @@ pub fn markdown(task: &str, backend: &str, cells: &[Cell]) -> String {
             c.mean_model_calls,
             opt(c.mean_latency_s, 1),
             c.mean_tokens,
+            c.mean_wall_s,
+            opt(c.mean_mission_s, 0),
             c.errors
         );
     }
@@ -333,13 +381,13 @@ pub fn markdown(task: &str, backend: &str, cells: &[Cell]) -> String {
 /// The table as CSV (rates as fractions, empty where undefined).
 pub fn csv(cells: &[Cell]) -> String {
     let mut out = String::from(
-        "mode,drones,runs,successes,success_rate,wilson_low,wilson_high,mean_l,mean_model_calls,mean_call_latency_s,mean_tokens,errors\n",
+        "mode,drones,runs,successes,success_rate,wilson_low,wilson_high,mean_l,mean_model_calls,mean_call_latency_s,mean_tokens,mean_wall_s,mean_mission_s,errors\n",
     );
     let empty = |v: Option<f64>| v.map_or_else(String::new, |v| format!("{v:.4}"));
     for c in cells {
         let _ = writeln!(
             out,
-            "{},{},{},{},{:.4},{:.4},{:.4},{},{:.2},{},{:.1},{}",
+            "{},{},{},{},{:.4},{:.4},{:.4},{},{:.2},{},{:.1},{:.1},{},{}",
             c.mode,
             c.drones,
             c.runs,
@@ -351,6 +399,8 @@ pub fn csv(cells: &[Cell]) -> String {
             c.mean_model_calls,
             empty(c.mean_latency_s),
             c.mean_tokens,
+            c.mean_wall_s,
+            empty(c.mean_mission_s),
             c.errors
         );
     }
@@ -372,6 +422,8 @@ mod tests {
             status,
             reason: String::new(),
             elapsed_s: 1.0,
+            sim_speed: 2.0,
+            mission_s: Some(1.5),
             cycles,
             model_calls: 4,
             replies: 4,
@@ -426,14 +478,19 @@ mod tests {
         assert!((t.rate - 2.0 / 3.0).abs() < 1e-12);
         assert_eq!(t.mean_latency_s, Some(2.0));
         assert_eq!(t.mean_tokens, 1000.0);
+        assert_eq!((t.mean_wall_s, t.mean_mission_s), (1.0, Some(1.5)));
         let m = &cells[1];
         assert_eq!(
             (m.mode.as_str(), m.successes, m.mean_cycles),
             ("mnl", 0, None)
         );
-        let md = markdown("find-suspect", "m", &cells);
+        let md = markdown("find-suspect", "m", &cells, &records);
         assert!(
             md.contains("| tacos | 6 | 3 | 2 | 67 % [") && md.contains("| 4.00 |"),
+            "{md}"
+        );
+        assert!(
+            md.contains("Simulation speed between model calls: 2×"),
             "{md}"
         );
         let csv = csv(&cells);
@@ -483,5 +540,16 @@ mod tests {
         let done = done_runs(&path, &records, "find-suspect", "m").expect("same evaluation");
         assert!(done.contains(&key(1)));
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn records_from_before_the_speed_was_recorded_read_as_real_time() {
+        let mut value =
+            serde_json::to_value(record("tacos", 6, 0, Status::Success, 3)).expect("to json");
+        let fields = value.as_object_mut().expect("an object");
+        fields.remove("sim_speed");
+        fields.remove("mission_s");
+        let old: RunRecord = serde_json::from_value(value).expect("an old record still reads");
+        assert_eq!((old.sim_speed, old.mission_s), (1.0, None));
     }
 }

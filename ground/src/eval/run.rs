@@ -85,6 +85,8 @@ pub async fn run_once(plan: RunPlan, start_lock: Arc<Mutex<()>>) -> RunRecord {
         status: Status::Error,
         reason: String::new(),
         elapsed_s: 0.0,
+        sim_speed: plan.sim_speed,
+        mission_s: None,
         cycles: 0,
         model_calls: 0,
         replies: 0,
@@ -391,6 +393,7 @@ async fn fly(
     };
     // The outcome is decided: the mission (perhaps waiting on a model) is stopped at once.
     drop(lines_tx);
+    record.mission_s = Some(elapsed());
     outcome?;
     record.separation_breaches = seen.separation_breaches;
     record.obstacle_breaches = seen.obstacle_breaches;
