@@ -309,6 +309,12 @@ impl OnboardPorts {
     }
 }
 
+/// iceoryx2's Unix event (its default on Linux) hands a wait's timeout to the socket's
+/// `SO_RCVTIMEO` in whole microseconds, and there zero means "wait for ever": a shorter
+/// timeout would block until the next notification, which never comes while the planner is
+/// silent (and then the writer would stop streaming its hold and its heartbeat).
+pub const SHORTEST_TIMED_WAIT: Duration = Duration::from_micros(1);
+
 /// The writer side.
 pub struct WriterPorts {
     pub setpoints: Receiver<SetpointSample>,
@@ -321,14 +327,19 @@ pub struct WriterPorts {
 
 impl WriterPorts {
     /// Blocks until the planner side signals new data or `timeout` passes; true when woken.
+    /// A timeout under [`SHORTEST_TIMED_WAIT`] (a deadline already due) only polls.
     pub fn wait_for_wakeup(&self, timeout: Duration) -> Result<bool, IpcError> {
         let mut woken = false;
-        self.wakeup
-            .timed_wait(|_| woken = true, timeout)
-            .map_err(|e| IpcError::Receive {
-                service: self.wake_name.clone(),
-                reason: format!("{e:?}"),
-            })?;
+        let on_event = |_| woken = true;
+        let waited = if timeout < SHORTEST_TIMED_WAIT {
+            self.wakeup.try_wait(on_event)
+        } else {
+            self.wakeup.timed_wait(on_event, timeout)
+        };
+        waited.map_err(|e| IpcError::Receive {
+            service: self.wake_name.clone(),
+            reason: format!("{e:?}"),
+        })?;
         Ok(woken)
     }
 
@@ -390,5 +401,34 @@ mod tests {
         };
         writer.publish_state(state).expect("publish");
         assert_eq!(onboard.state.latest().expect("recv"), Some(state));
+    }
+
+    /// A loop whose deadline has already passed asks for a zero wait: it must come back at
+    /// once, not sleep until the planner next speaks.
+    #[test]
+    fn a_wait_whose_deadline_has_passed_returns_at_once() {
+        let (done_tx, done_rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let swarm = unique_swarm();
+            let drone = DroneId::new("alfa").expect("valid id");
+            let writer_node = IpcNode::new(&swarm, &drone).expect("node");
+            let onboard_node = IpcNode::new(&swarm, &drone).expect("node");
+            let writer = writer_node.writer_ports().expect("writer ports");
+            let _onboard = onboard_node.onboard_ports().expect("onboard ports");
+            let waits = [
+                Duration::ZERO,
+                Duration::from_nanos(999),
+                Duration::from_millis(20),
+            ];
+            let results: Vec<_> = waits
+                .into_iter()
+                .map(|t| writer.wait_for_wakeup(t).map_err(|e| e.to_string()))
+                .collect();
+            let _ = done_tx.send(results);
+        });
+        let results = done_rx
+            .recv_timeout(Duration::from_secs(5))
+            .expect("a wait with a spent deadline blocked (SO_RCVTIMEO 0 waits for ever)");
+        assert_eq!(results, vec![Ok(false), Ok(false), Ok(false)]);
     }
 }
