@@ -365,14 +365,29 @@ mod tests {
         SwarmId::new(format!("t{}x{nanos}", std::process::id())).expect("valid id")
     }
 
-    #[test]
-    fn setpoints_commands_and_state_cross_over() {
+    /// Both ends of one drone's services, each on a node of its own as in the two processes.
+    struct Ends {
+        onboard: OnboardPorts,
+        writer: WriterPorts,
+        _nodes: [IpcNode; 2],
+    }
+
+    fn ends() -> Ends {
         let swarm = unique_swarm();
         let drone = DroneId::new("alfa").expect("valid id");
         let onboard_node = IpcNode::new(&swarm, &drone).expect("node");
         let writer_node = IpcNode::new(&swarm, &drone).expect("node");
-        let writer = writer_node.writer_ports().expect("writer ports");
-        let onboard = onboard_node.onboard_ports().expect("onboard ports");
+        Ends {
+            writer: writer_node.writer_ports().expect("writer ports"),
+            onboard: onboard_node.onboard_ports().expect("onboard ports"),
+            _nodes: [onboard_node, writer_node],
+        }
+    }
+
+    #[test]
+    fn setpoints_commands_and_state_cross_over() {
+        let ends = ends();
+        let (onboard, writer) = (&ends.onboard, &ends.writer);
 
         let sp = SetpointSample {
             seq: 3,
@@ -409,12 +424,7 @@ mod tests {
     fn a_wait_whose_deadline_has_passed_returns_at_once() {
         let (done_tx, done_rx) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
-            let swarm = unique_swarm();
-            let drone = DroneId::new("alfa").expect("valid id");
-            let writer_node = IpcNode::new(&swarm, &drone).expect("node");
-            let onboard_node = IpcNode::new(&swarm, &drone).expect("node");
-            let writer = writer_node.writer_ports().expect("writer ports");
-            let _onboard = onboard_node.onboard_ports().expect("onboard ports");
+            let ends = ends();
             let waits = [
                 Duration::ZERO,
                 Duration::from_nanos(999),
@@ -422,7 +432,7 @@ mod tests {
             ];
             let results: Vec<_> = waits
                 .into_iter()
-                .map(|t| writer.wait_for_wakeup(t).map_err(|e| e.to_string()))
+                .map(|t| ends.writer.wait_for_wakeup(t).map_err(|e| e.to_string()))
                 .collect();
             let _ = done_tx.send(results);
         });
