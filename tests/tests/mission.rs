@@ -1,7 +1,8 @@
 //! The language-model layers on a real simulated swarm, with a stand-in model that answers from
 //! its prompt: broken replies are repaired, nothing the gate rejects reaches a drone, the
 //! Supervisor sequences a multi-step plan over several cycles, and a drone killed mid-plan makes
-//! the Coordinator replan and give its subtask to another drone.
+//! the Coordinator replan (offered, and held to, the drones left) and give its subtask to another
+//! drone.
 
 use serde_json::{Value, json};
 use std::sync::Arc;
@@ -44,6 +45,9 @@ fn repairs(request: &ChatRequest) -> usize {
         .count()
 }
 
+/// The schemas the stand-in Coordinator was given for automatic replans.
+static REPLAN_SCHEMAS: std::sync::Mutex<Vec<Value>> = std::sync::Mutex::new(Vec::new());
+
 /// The stand-in model. `first_supervisor_misbehaves` makes its first Supervisor reply issue a goto
 /// before take-off and a target that does not exist.
 fn policy(
@@ -59,6 +63,21 @@ fn policy(
             .map_or("", |m| m.content.as_str());
         if system.starts_with("You are the Coordinator") {
             if user.contains("(automatic replan)") {
+                if let (Ok(mut seen), Some(s)) = (REPLAN_SCHEMAS.lock(), &request.schema) {
+                    seen.push(s.schema.clone());
+                }
+                let unfinished = plan_lines(user)
+                    .into_iter()
+                    .filter(|(_, _, _, _, status)| status != "done");
+                if repairs(request) == 0 {
+                    // As a small model does: the first replan leaves the lost drone's work on it.
+                    let plan: Vec<Value> = unfinished
+                        .map(|(task, drone, action, target, _)| {
+                            call(&task, &drone, &action, &target)
+                        })
+                        .collect();
+                    return Ok(json!({ "reasoning": "Keep the plan.", "plan": plan }).to_string());
+                }
                 // Reassign the unfinished subtasks of unavailable drones to an available one.
                 let swarm = swarm_lines(user);
                 let gone: Vec<&String> = swarm
@@ -71,9 +90,7 @@ fn policy(
                     .find(|(d, m, _, _)| m == "flying" && !gone.contains(&d))
                     .map(|(d, _, _, _)| d.clone())
                     .unwrap_or_default();
-                let plan: Vec<Value> = plan_lines(user)
-                    .into_iter()
-                    .filter(|(_, _, _, _, status)| status != "done")
+                let plan: Vec<Value> = unfinished
                     .map(|(task, drone, action, target, _)| {
                         let drone = if gone.contains(&&drone) {
                             spare.clone()
@@ -275,6 +292,13 @@ async fn a_drone_killed_mid_plan_has_its_subtask_reassigned() -> anyhow::Result<
         until(&mut run.updates, Duration::from_secs(150), |u| matches!(u, MissionUpdate::PlanComplete { .. })).await?;
         let lines = log::read(&run.log_path)?;
         assert!(lines.iter().any(|l| matches!(&l.record, Record::Replan { reason } if reason.contains("bravo"))), "no replan for bravo");
+        // The replan's grammar offered only the drones left, and the first reply, which kept
+        // bravo's work on bravo, was sent back saying so.
+        let schemas = REPLAN_SCHEMAS.lock().map_err(|_| anyhow::anyhow!("poisoned"))?.clone();
+        let offered = schemas.first().map(|s| s["properties"]["plan"]["items"]["anyOf"][0]["properties"]["drone"]["enum"].clone());
+        assert_eq!(offered, Some(json!(["alfa", "charlie"])), "{schemas:#?}");
+        let sent_back = lines.iter().any(|l| matches!(&l.record, Record::LlmRequest { layer, messages, .. } if layer == "coordinator" && messages.as_array().is_some_and(|ms| ms.iter().any(|m| m["content"].as_str().is_some_and(|c| c.contains("bravo is unavailable; the drones available are: alfa, charlie"))))));
+        assert!(sent_back, "the replan that kept bravo's work was not sent back");
         let t5: Vec<(String, String)> = sent_tasks(&lines).into_iter().filter(|(t, _)| t == "T5").collect();
         assert_eq!(t5.first().map(|(_, d)| d.as_str()), Some("bravo"));
         let reassigned = t5.iter().find(|(_, d)| d != "bravo").ok_or_else(|| anyhow::anyhow!("T5 never given to another drone: {t5:?}"))?;

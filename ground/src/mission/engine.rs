@@ -104,6 +104,8 @@ pub enum MissionError {
         attempts: u32,
         reason: String,
     },
+    #[error("no drone is available to carry out a plan")]
+    NoDroneAvailable,
     #[error("not sending {action} to {drone}: the pilot gave a direct command meanwhile")]
     Overridden { drone: String, action: String },
     #[error("sending {action} to {drone} failed: {reason}")]
@@ -896,6 +898,23 @@ impl Mission {
             .collect()
     }
 
+    /// The swarm's drones a plan may use now: all but the unavailable ones (lost link, failed),
+    /// in the scenario's order.
+    fn available_ids(&self) -> Vec<String> {
+        // Before the view is locked: `swarm_ids` locks it too.
+        let ids = self.swarm_ids();
+        let view = self.link.view();
+        let now = self.link.clock().instant();
+        ids.into_iter()
+            .filter(|d| {
+                DroneId::new(d)
+                    .ok()
+                    .and_then(|id| view.get(&id))
+                    .is_some_and(|e| e.effective_mode(now) != DroneMode::Unavailable)
+            })
+            .collect()
+    }
+
     fn enums(&self) -> (Vec<String>, Vec<String>) {
         let s = self.gate.scenario();
         let drones = self.swarm_ids();
@@ -940,6 +959,12 @@ impl Mission {
             .filter_map(|(c, _)| c.target_name().map(str::to_owned))
             .collect();
         let scope = grounding::places_in_scope(&places, &named, &pending_places);
+        // A plan for a drone that cannot fly it would wait for ever: the grammar offers only the
+        // available drones, and the reply check holds a server that ignores the schema to them.
+        let available = self.available_ids();
+        if available.is_empty() {
+            return Err(MissionError::NoDroneAvailable);
+        }
         let user = render::coordinator_request(
             &render::swarm(&self.drone_lines()),
             &self.world_text(),
@@ -951,7 +976,7 @@ impl Mission {
         let messages = coordinator_messages(user);
         let schema = schema::build(
             Output::Coordinator,
-            &drones,
+            &available,
             scope.as_ref().unwrap_or(&places),
         );
         self.tell(MissionUpdate::Thinking {
@@ -981,6 +1006,15 @@ impl Mission {
                             .and_then(|s| grounding::off_scope(call, &places, s));
                         let checked = match off {
                             Some(why) => Err(why),
+                            None if drones.contains(&call.drone)
+                                && !available.contains(&call.drone) =>
+                            {
+                                Err(format!(
+                                    "{} is unavailable; the drones available are: {}",
+                                    call.drone,
+                                    available.join(", ")
+                                ))
+                            }
                             None => check_static(call, &scenario, &visible),
                         };
                         match checked {
