@@ -382,7 +382,8 @@ async fn the_monolithic_model_is_held_to_its_actions_not_its_claim() -> anyhow::
 
 /// A stand-in model that plans `plan` and, as Supervisor, starts the first call its schema
 /// offers for each drone: it issues again whatever failed, while the engine offers it. With
-/// `stutter` it names every call twice, as small models do.
+/// `stutter` it names every call twice and adds a landing for the same drone after it, as small
+/// models do (a drone's next step listed in the same cycle).
 fn offered_policy(
     plan: Value,
     stutter: bool,
@@ -409,7 +410,12 @@ fn offered_policy(
         if stutter {
             actions = actions
                 .iter()
-                .flat_map(|a| [a.clone(), a.clone()])
+                .flat_map(|a| {
+                    let mut land = a.clone();
+                    land["action"] = json!("land");
+                    land["target"] = json!("none");
+                    [a.clone(), a.clone(), land]
+                })
                 .collect();
         }
         Ok(json!({ "reasoning": "Each drone does its next task.", "actions": actions, "plan_complete": false }).to_string())
@@ -486,7 +492,7 @@ async fn given_up(
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn three_drones_sent_to_one_car_each_get_a_point_of_their_own_even_when_every_call_comes_twice()
+async fn three_drones_sent_to_one_car_each_get_a_point_of_their_own_even_when_replies_stutter()
 -> anyhow::Result<()> {
     stopping_after(start("onecar").await?, async |run| {
         let plan = json!([
@@ -519,7 +525,8 @@ async fn three_drones_sent_to_one_car_each_get_a_point_of_their_own_even_when_ev
             })
             .collect();
         assert_eq!(goals.len(), 3, "{goals:?}");
-        // Every call came twice in each reply; each was sent once and none was rejected.
+        // Every call came twice in each reply, followed by a landing of the same drone; each
+        // call was sent once, no landing was, nothing was rejected and no reply sent back.
         let rejected: Vec<&String> = lines
             .iter()
             .filter_map(|l| match &l.record {
@@ -529,6 +536,9 @@ async fn three_drones_sent_to_one_car_each_get_a_point_of_their_own_even_when_ev
             .collect();
         assert!(rejected.is_empty(), "{rejected:?}");
         assert_eq!(sent_tasks(&lines).len(), 6);
+        assert!(!lines.iter().any(|l| matches!(&l.record, Record::ActionSent { action, .. } if action.starts_with("land"))));
+        assert!(!lines.iter().any(|l| matches!(&l.record, Record::LlmRequest { attempt, .. } if *attempt > 1)));
+        assert!(lines.iter().any(|l| matches!(&l.record, Record::Event { text } if text.starts_with("later steps in the same reply"))));
         let spacing = run.sim.scenario.limits.safety_distance;
         for (i, a) in goals.iter().enumerate() {
             for b in &goals[i + 1..] {
@@ -593,21 +603,31 @@ async fn a_target_lost_after_tracking_was_done_fails_the_task_and_it_is_given_ag
         run.sim
             .wait_on_the_ground(&["alfa", "bravo", "charlie"])
             .await?;
-        // Bravo's take-off can never start (its onboard is gone): the plan stays open while
-        // alfa tracks, and it is not stuck, since alfa is at work.
-        let bravo = DroneId::new("bravo")?;
-        run.sim
-            .stack
-            .crash(Role::Onboard, Some(&bravo))
-            .await
-            .ok_or_else(|| anyhow::anyhow!("bravo's onboard was not running"))?;
+        // Bravo's take-off is never started (the stand-in Supervisor leaves it): the plan stays
+        // open while alfa tracks, and it is not stuck, since alfa is at work.
         let plan = json!([
             call("T1", "alfa", "arm_takeoff", "none"),
             call("T2", "alfa", "start_tracking", "rover"),
             call("T3", "bravo", "arm_takeoff", "none"),
         ]);
-        let (mut updates, lines, log_path, max) =
-            run_offered(run, "tunnellog", plan, false, "alfa, follow the rover").await?;
+        let offered = offered_policy(plan, false);
+        let leaves_bravo = move |request: &ChatRequest| {
+            let reply = offered(request)?;
+            let Ok(mut reply_json) = serde_json::from_str::<Value>(&reply) else {
+                return Ok(reply);
+            };
+            if let Some(actions) = reply_json.get_mut("actions").and_then(Value::as_array_mut) {
+                actions.retain(|a| a["drone"] != "bravo");
+            }
+            Ok(reply_json.to_string())
+        };
+        let (mut updates, lines, log_path, max) = run_with_backend(
+            run,
+            "tunnellog",
+            PolicyBackend::new(leaves_bravo),
+            "alfa, follow the rover",
+        )
+        .await?;
         let error = given_up(&mut updates, Duration::from_secs(150)).await?;
         drop(lines);
         let lines = log::read(&log_path)?;
@@ -691,9 +711,77 @@ async fn a_goto_to_where_the_drone_already_hovers_is_done_without_flying() -> an
 
 /// A plan that can never go on (a take-off for a drone whose onboard is gone) is given up with
 /// the reason, instead of waiting for ever.
+/// A drone lost mid-plan whose work no replan can give to another drone (the stand-in
+/// Coordinator insists on the lost drone, and is refused): the plan in force keeps the lost
+/// drone's task, which nothing can start, and is given up after 20 s.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_plan_that_cannot_go_on_is_given_up() -> anyhow::Result<()> {
     stopping_after(start("stuck").await?, async |run| {
+        let plan = json!([
+            call("T1", "bravo", "arm_takeoff", "none"),
+            call("T2", "bravo", "goto", "car_1"),
+        ]);
+        let (mut updates, lines, log_path, _) = run_offered(
+            run,
+            "stucklog",
+            plan,
+            false,
+            "bravo, take off and check car_1",
+        )
+        .await?;
+        let bravo = DroneId::new("bravo")?;
+        until(
+            &mut updates,
+            Duration::from_secs(60),
+            |u| matches!(u, MissionUpdate::Sent { drone, .. } if drone == "bravo"),
+        )
+        .await?;
+        run.sim
+            .stack
+            .crash(Role::Onboard, Some(&bravo))
+            .await
+            .ok_or_else(|| anyhow::anyhow!("bravo's onboard was not running"))?;
+        let lost_at = std::time::Instant::now();
+        let mut errors = Vec::new();
+        within("the plan to be given up", Duration::from_secs(120), async {
+            while let Some(u) = updates.recv().await {
+                if let MissionUpdate::Error(e) = u {
+                    let stuck = e.contains("nothing has run or could start");
+                    errors.push(e);
+                    if stuck {
+                        return;
+                    }
+                }
+            }
+        })
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}; errors so far: {errors:?}"))?;
+        drop(lines);
+        assert!(
+            lost_at.elapsed() >= Duration::from_secs(20),
+            "given up after {:?}",
+            lost_at.elapsed()
+        );
+        let last = errors.last().cloned().unwrap_or_default();
+        assert!(last.contains("T2 bravo goto(car_1)"), "{errors:?}");
+        // The replan was refused: it gave the work to bravo again.
+        assert!(
+            errors.iter().any(|e| e.contains("coordinator")),
+            "{errors:?}"
+        );
+        let lines = log::read(&log_path)?;
+        assert!(
+            !sent_tasks(&lines).iter().any(|(t, _)| t == "T2"),
+            "bravo's goto was sent"
+        );
+        anyhow::Ok(())
+    })
+    .await
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_plan_for_a_drone_that_is_gone_is_refused() -> anyhow::Result<()> {
+    stopping_after(start("gone").await?, async |run| {
         let bravo = DroneId::new("bravo")?;
         run.sim
             .stack
@@ -710,21 +798,17 @@ async fn a_plan_that_cannot_go_on_is_given_up() -> anyhow::Result<()> {
         .await?;
         let plan = json!([call("T1", "bravo", "arm_takeoff", "none")]);
         let (mut updates, lines, log_path, _) =
-            run_offered(run, "stucklog", plan, false, "bravo, take off").await?;
-        let started = std::time::Instant::now();
-        let error = given_up(&mut updates, Duration::from_secs(60)).await?;
+            run_offered(run, "gonelog", plan, false, "bravo, take off").await?;
+        let error = given_up(&mut updates, Duration::from_secs(30)).await?;
         drop(lines);
         assert!(
-            started.elapsed() >= Duration::from_secs(20),
-            "given up after {:?}",
-            started.elapsed()
-        );
-        assert!(
-            error.contains("nothing has run or could start")
-                && error.contains("T1 bravo arm_takeoff()"),
+            error.contains("coordinator") && error.contains("no call of its plan passed"),
             "{error}"
         );
         let lines = log::read(&log_path)?;
+        let sent_back = lines.iter().any(|l| matches!(&l.record, Record::LlmRequest { layer, messages, .. } if layer == "coordinator" && messages.to_string().contains("bravo is unavailable; the drones available are: alfa, charlie")));
+        assert!(sent_back, "the plan for bravo was not sent back");
+        assert!(!lines.iter().any(|l| matches!(&l.record, Record::Plan { .. })), "a plan was made");
         assert!(sent_tasks(&lines).is_empty());
         anyhow::Ok(())
     })

@@ -1033,6 +1033,15 @@ impl Mission {
             )
             .await?;
         let (reasoning, calls) = checked;
+        if calls.is_empty() {
+            // Every call of the last attempt was refused: the plan in force (if any) stays, and
+            // the refusals are in the log's repair requests.
+            return Err(MissionError::NoValidReply {
+                layer: "coordinator",
+                attempts: self.caller.max_repairs + 1,
+                reason: "no call of its plan passed the checks".into(),
+            });
+        }
         let (calls, repeats) = without_repeated_work(calls);
         for call in repeats {
             let text = format!("{call}: repeats {}'s previous task: dropped", call.drone);
@@ -1352,7 +1361,7 @@ impl Mission {
             .cfg
             .supervisor_max_tokens
             .max(schema::token_budget(ask.output, self.swarm_ids().len()));
-        let (reasoning, claim, all_passed, accepted) = {
+        let (reasoning, claim, all_passed, accepted, later) = {
             let (gate, link) = (&self.gate, &self.link);
             let visible = self.targets.borrow().clone();
             let (only, tasks) = (&ask.only, &ask.tasks);
@@ -1366,9 +1375,10 @@ impl Mission {
                     max_tokens,
                     ask.parse,
                     |reply: &CycleReply| {
+                        let (firsts, later) = first_call_per_drone(&reply.actions);
                         let (calls, mut rejections) = match only {
-                            Some(startable) => match_startable(&reply.actions, startable),
-                            None => (reply.actions.clone(), Vec::new()),
+                            Some(startable) => match_startable(&firsts, startable),
+                            None => (firsts, Vec::new()),
                         };
                         let (accepted, live) = check_live(&calls, gate, link, &visible, tasks);
                         rejections.extend(live);
@@ -1378,6 +1388,7 @@ impl Mission {
                                 reply.claim,
                                 rejections.is_empty(),
                                 accepted,
+                                later,
                             ),
                             rejections,
                         }
@@ -1385,6 +1396,14 @@ impl Mission {
                 )
                 .await?
         };
+        if !later.is_empty() {
+            let text = format!(
+                "later steps in the same reply, left for a later cycle: {}",
+                later.join("; ")
+            );
+            self.log.note(Record::Event { text: text.clone() });
+            self.tell(MissionUpdate::Event(text));
+        }
         let mut sent = Vec::new();
         for (call, checked) in accepted {
             let seq = self.send(&checked, Some(call.task.clone())).await?;
@@ -1894,6 +1913,24 @@ fn startable_schema(startable: &[Call], must_act: bool) -> serde_json::Value {
 
 /// Keeps the proposed calls that are one of the startable calls (task, drone, action and target
 /// as the plan has them; the point of a goto comes from the plan), and says why the others are not.
+/// Each drone's first call in a reply; the calls after it for the same drone are its next
+/// steps (one action per drone per cycle), which a later cycle issues if they still apply. A
+/// small model lists a drone's whole route at once, often under one task id: sending that back
+/// costs a model call of minutes and changes nothing. Returns the first calls and the later
+/// steps that are other work (a repeat of the first call is just dropped).
+fn first_call_per_drone(calls: &[Call]) -> (Vec<Call>, Vec<String>) {
+    let mut firsts: Vec<Call> = Vec::new();
+    let mut later = Vec::new();
+    for call in calls {
+        match firsts.iter().find(|c| c.drone == call.drone) {
+            None => firsts.push(call.clone()),
+            Some(first) if same_work(first) == same_work(call) => {}
+            Some(_) => later.push(call.to_string()),
+        }
+    }
+    (firsts, later)
+}
+
 fn match_startable(proposed: &[Call], startable: &[Call]) -> (Vec<Call>, Vec<String>) {
     let mut calls = Vec::new();
     let mut rejections = Vec::new();
@@ -2185,5 +2222,28 @@ mod tests {
         // Bravo's goto between alfa's two does not separate them; small_park does (out and back).
         assert_eq!(tasks(&kept), ["T1", "T2", "T4", "T5"]);
         assert_eq!(tasks(&dropped), ["T3", "T6"]);
+    }
+
+    #[test]
+    fn a_reply_gives_each_drone_its_first_call_and_names_the_later_steps() {
+        let call = |task: &str, drone: &str, target: &str| Call {
+            task: task.into(),
+            drone: drone.into(),
+            action: ActionName::Goto,
+            target: target.into(),
+            xyz: None,
+        };
+        // The 135M model's monolithic reply at 12 drones: one task id, alfa's whole route.
+        let reply = vec![
+            call("A1", "alfa", "car_1"),
+            call("A1", "alfa", "car_2"),
+            call("A2", "bravo", "car_4"),
+            call("A3", "alfa", "car_1"),
+            call("A1", "alfa", "car_3"),
+        ];
+        let (firsts, later) = first_call_per_drone(&reply);
+        assert_eq!(firsts, vec![reply[0].clone(), reply[2].clone()]);
+        // The repeat of alfa's first call (under another id) is no later step.
+        assert_eq!(later, ["A1 alfa goto(car_2)", "A1 alfa goto(car_3)"]);
     }
 }
