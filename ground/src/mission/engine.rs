@@ -1386,7 +1386,7 @@ impl Mission {
                             accepted: (
                                 reply.reasoning.clone(),
                                 reply.claim,
-                                rejections.is_empty(),
+                                rejections.is_empty() && later.is_empty(),
                                 accepted,
                                 later,
                             ),
@@ -1692,14 +1692,16 @@ struct CycleOutcome {
     reasoning: String,
     /// The model claimed the work complete.
     claim: bool,
-    /// Every call of the accepted reply passed the checks.
+    /// Every call of the accepted reply passed the checks and was issued (none was a later
+    /// step left for a later cycle).
     all_passed: bool,
     sent: Vec<String>,
 }
 
 impl CycleOutcome {
-    /// A claim of completion counts only from a reply whose every call passed: a reply that
-    /// names a rejected call and says "done" meant that call to be part of the work.
+    /// A claim of completion counts only from a reply whose every call passed and was issued:
+    /// a reply that names a rejected call or a later step and says "done" meant that call to be
+    /// part of the work.
     fn claim_stands(&self) -> bool {
         self.claim && self.all_passed
     }
