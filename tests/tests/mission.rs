@@ -938,3 +938,105 @@ async fn a_plan_off_the_places_the_pilot_named_is_sent_back() -> anyhow::Result<
     })
     .await
 }
+
+/// The chase, as the moving-target script flies it: a plan for "alfa, follow the van" that
+/// tracks nothing is sent back naming the missing start_tracking; once alfa follows the van
+/// and the plan is complete, alfa's vehicle dies, and the automatic replan names the chase it
+/// left, so the Coordinator hands it on and bravo follows the van.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_chase_is_held_to_the_pilot_and_handed_on_when_its_tracker_dies() -> anyhow::Result<()> {
+    stopping_after(start("chase").await?, async |run| {
+        let supervisor = offered_policy(json!([]), false);
+        let model = move |request: &ChatRequest| {
+            let system = &request.messages[0].content;
+            if !system.starts_with("You are the Coordinator") {
+                return supervisor(request);
+            }
+            let user = request
+                .messages
+                .iter()
+                .rev()
+                .find(|m| m.role == ChatRole::User && m.content.starts_with("## "))
+                .map_or("", |m| m.content.as_str());
+            let plan = if user.contains("(automatic replan)") {
+                // Only what the instruction names: the chase the dead drone left.
+                if !user.contains("alfa start_tracking(van)") {
+                    return Ok(json!({ "reasoning": "Nothing to hand on.", "plan": [] }).to_string());
+                }
+                json!([
+                    call("T1", "bravo", "arm_takeoff", "none"),
+                    call("T2", "bravo", "start_tracking", "van"),
+                ])
+            } else if repairs(request) == 0 {
+                // As the 135M model did: it flies to the van instead of following it.
+                json!([
+                    call("T1", "alfa", "arm_takeoff", "none"),
+                    call("T2", "alfa", "goto", "van"),
+                ])
+            } else {
+                json!([
+                    call("T1", "alfa", "arm_takeoff", "none"),
+                    call("T2", "alfa", "start_tracking", "van"),
+                ])
+            };
+            Ok(json!({ "reasoning": "As the pilot said.", "plan": plan }).to_string())
+        };
+        let (mut updates, lines, log_path, _) = run_with_backend(
+            run,
+            "chaselog",
+            PolicyBackend::new(model),
+            "alfa, follow the van",
+        )
+        .await?;
+        until(&mut updates, Duration::from_secs(150), |u| {
+            matches!(u, MissionUpdate::PlanComplete { .. })
+        })
+        .await?;
+        let alfa = DroneId::new("alfa")?;
+        run.sim
+            .link
+            .inject_fault(&alfa, tacos_shared::scenario::FaultKind::VehicleDies)
+            .await?;
+        let bravo = DroneId::new("bravo")?;
+        within("bravo to follow the van", Duration::from_secs(150), async {
+            loop {
+                let following = {
+                    let view = run.sim.link.view();
+                    view.get(&bravo)
+                        .and_then(|e| e.status.as_ref())
+                        .is_some_and(|s| {
+                            s.mode == tacos_shared::DroneMode::Tracking
+                                && s.action.as_ref().is_some_and(|p| {
+                                    matches!(&p.action, tacos_shared::action::Action::StartTracking { target } if target == "van")
+                                })
+                        })
+                };
+                if following {
+                    return;
+                }
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+        })
+        .await?;
+        drop(lines);
+        let lines = log::read(&log_path)?;
+        let asked_back = lines.iter().any(|l| {
+            matches!(&l.record, Record::LlmRequest { layer, messages, .. } if layer == "coordinator"
+                && messages.as_array().is_some_and(|ms| ms.iter().any(|m| m["content"].as_str().is_some_and(|c| {
+                    c.starts_with("Your reply was rejected") && c.contains("asks to follow van") && c.contains("start_tracking")
+                }))))
+        });
+        assert!(asked_back, "the plan that only flew to the van was not sent back");
+        // Alfa never got the goto; the replan came from alfa's loss although no plan was open.
+        assert!(
+            !lines.iter().any(|l| matches!(&l.record, Record::ActionSent { action, .. } if action.starts_with("goto"))),
+            "a goto was sent"
+        );
+        assert!(
+            lines.iter().any(|l| matches!(&l.record, Record::Replan { reason } if reason.contains("alfa"))),
+            "no replan for alfa"
+        );
+        anyhow::Ok(())
+    })
+    .await
+}

@@ -20,7 +20,7 @@ use tacos_prompts::{
     ActionName, Call, CoordinatorReply, MonolithicReply, ReplyError, SupervisorReply, texts,
 };
 use tacos_shared::action::Action;
-use tacos_shared::messages::{ActionState, TargetObservation, WorldEvent};
+use tacos_shared::messages::{ActionState, FailureReason, TargetObservation, WorldEvent};
 use tacos_shared::{DroneId, DroneMode};
 use tokio::sync::{mpsc, watch};
 
@@ -549,9 +549,17 @@ impl Mission {
         };
         self.log.note(Record::Event { text: text.clone() });
         self.tell(MissionUpdate::Event(text.clone()));
-        if let SwarmChange::Left(d) = &change {
-            self.fail_tasks_of(d, "drone lost");
-        }
+        // What the lost drone leaves undone, named in the replan's instruction so the
+        // Coordinator hands exactly that on (a done start_tracking is still work while the
+        // drone follows: without this, the chase would end with its tracker).
+        let lost_work = match &change {
+            SwarmChange::Left(d) => {
+                let following = self.following_of(d);
+                self.fail_tasks_of(d, "drone lost");
+                self.unfinished_work_of(d, following)
+            }
+            _ => Vec::new(),
+        };
         match self.cfg.mode {
             Mode::Mnl => {
                 self.mnl.executed.push(format!("event: {text}"));
@@ -561,11 +569,16 @@ impl Mission {
             Mode::Tacos | Mode::Wor => {
                 self.history.push(HistoryEntry::Event(text.clone()));
                 // Replan only when there is work that the change may affect.
-                if self.plan.is_some() {
+                if self.plan.is_some() || !lost_work.is_empty() {
                     self.log.note(Record::Replan {
                         reason: text.clone(),
                     });
-                    self.coordinate(&format!("(automatic replan) {text}: reassign its unfinished subtasks and keep the mission going")).await
+                    let subtasks = if lost_work.is_empty() {
+                        String::new()
+                    } else {
+                        format!(" ({})", lost_work.join(", "))
+                    };
+                    self.coordinate(&format!("(automatic replan) {text}: reassign its unfinished subtasks{subtasks} and keep the mission going")).await
                 } else {
                     Ok(())
                 }
@@ -584,17 +597,62 @@ impl Mission {
         }
     }
 
+    /// Fails `drone`'s running tasks, and its done start_tracking while it still followed the
+    /// target (tracking goes on after the task is done): failed tasks may start on any drone.
     fn fail_tasks_of(&mut self, drone: &DroneId, why: &str) {
+        let following = self.following_of(drone);
         let tasks = self
             .plan
             .iter_mut()
             .flat_map(|p| p.tasks.iter_mut())
             .chain(self.mnl.tasks.iter_mut());
-        for t in tasks.filter(|t| {
-            t.status == TaskStatus::Running && t.sent.as_ref().is_some_and(|(d, _)| d == drone)
-        }) {
-            t.status = TaskStatus::Failed(why.to_owned());
+        for t in tasks.filter(|t| t.sent.as_ref().is_some_and(|(d, _)| d == drone)) {
+            let still_following = t.status == TaskStatus::Done
+                && t.call.action == ActionName::StartTracking
+                && following.as_deref() == t.call.target_name();
+            if t.status == TaskStatus::Running || still_following {
+                t.status = TaskStatus::Failed(why.to_owned());
+            }
         }
+    }
+
+    /// The target `drone` was following when last heard of: its last action is a start_tracking
+    /// that was under way, done, or ended by the autopilot link's loss (not by losing the
+    /// target, and not replaced by a newer action).
+    fn following_of(&self, drone: &DroneId) -> Option<String> {
+        let view = self.link.view();
+        let progress = view.get(drone)?.status.as_ref()?.action.as_ref()?;
+        let Action::StartTracking { target } = &progress.action else {
+            return None;
+        };
+        match &progress.state {
+            ActionState::Running { .. }
+            | ActionState::Done
+            | ActionState::Failed(FailureReason::AutopilotLinkLost) => Some(target.clone()),
+            ActionState::Failed(_) => None,
+        }
+    }
+
+    /// `drone`'s unfinished work in the plan (its tasks not done: failed with it, or not yet
+    /// started), and the target it was following if no such task names it, as call texts.
+    fn unfinished_work_of(&self, drone: &DroneId, following: Option<String>) -> Vec<String> {
+        let mut work: Vec<String> = Vec::new();
+        let mut tracking_named = false;
+        for t in self.plan.iter().flat_map(|p| p.tasks.iter()) {
+            let its = match &t.sent {
+                Some((d, _)) => d == drone,
+                None => t.call.drone == drone.as_str(),
+            };
+            if its && t.status != TaskStatus::Done {
+                tracking_named |= t.call.action == ActionName::StartTracking
+                    && following.as_deref() == t.call.target_name();
+                work.push(t.call.to_string());
+            }
+        }
+        if let Some(target) = following.filter(|_| !tracking_named) {
+            work.push(format!("{drone} start_tracking({target})"));
+        }
+        work
     }
 
     /// Looks for finished actions; true when any task changed state.
@@ -933,6 +991,30 @@ impl Mission {
         (drones, places)
     }
 
+    /// The targets a drone may be asked to follow: the scenario's targets that are not hidden.
+    fn trackable(&self) -> Vec<String> {
+        self.gate
+            .scenario()
+            .targets
+            .iter()
+            .filter(|t| t.hidden_at.is_none())
+            .map(|t| t.name.clone())
+            .collect()
+    }
+
+    /// The targets that drones follow now (tracking, by their status).
+    fn followed_targets(&self) -> Vec<String> {
+        let view = self.link.view();
+        let now = self.link.clock().instant();
+        view.drones()
+            .filter(|e| e.effective_mode(now) == DroneMode::Tracking)
+            .filter_map(|e| match &e.status.as_ref()?.action.as_ref()?.action {
+                Action::StartTracking { target } => Some(target.clone()),
+                _ => None,
+            })
+            .collect()
+    }
+
     fn plan_lines(&self) -> Vec<(Call, TaskStatus)> {
         self.plan
             .iter()
@@ -965,6 +1047,17 @@ impl Mission {
         if available.is_empty() {
             return Err(MissionError::NoDroneAvailable);
         }
+        // A target the instruction asks to be followed must be tracked by the plan (or be
+        // followed already); a drone named beside it is suggested only if it can fly.
+        let follow: Vec<grounding::FollowAsked> =
+            grounding::follow_asked(instruction, &drones, &self.trackable())
+                .into_iter()
+                .map(|a| grounding::FollowAsked {
+                    drone: a.drone.filter(|d| available.contains(d)),
+                    ..a
+                })
+                .collect();
+        let followed = self.followed_targets();
         let user = render::coordinator_request(
             &render::swarm(&self.drone_lines()),
             &self.world_text(),
@@ -1025,6 +1118,7 @@ impl Mission {
                     if reply.plan.is_empty() {
                         rejections.push("the plan is empty".into());
                     }
+                    rejections.extend(grounding::untracked(&follow, &plan, &followed));
                     Checked {
                         accepted: (reply.reasoning.clone(), plan),
                         rejections,
@@ -1304,14 +1398,7 @@ impl Mission {
             &self.mnl.executed,
         );
         let (drones, places) = self.enums();
-        let trackable: Vec<String> = self
-            .gate
-            .scenario()
-            .targets
-            .iter()
-            .filter(|t| t.hidden_at.is_none())
-            .map(|t| t.name.clone())
-            .collect();
+        let trackable = self.trackable();
         let ask = CycleAsk {
             layer: "monolithic",
             output: Output::Monolithic,
