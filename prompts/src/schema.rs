@@ -78,6 +78,50 @@ pub fn build(output: Output, drones: &[String], targets: &[String]) -> Value {
     schema
 }
 
+/// A call that a Coordinator plan must contain: `action` on `target`, by one of `drones`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RequiredCall {
+    pub drones: Vec<String>,
+    pub action: &'static str,
+    pub target: String,
+}
+
+/// The Coordinator schema `schema` with its plan opening on `required` (`prefixItems`), the
+/// rest of the plan as before. For a repair round, when a reply missed a call the instruction
+/// asks for in so many words: the 135M model, told "add start_tracking with target van",
+/// answered with the same gotos twice; under this grammar it can only open with the call and
+/// choose its drone. Used only after a miss, so a server that has trouble with `prefixItems`
+/// meets it only when its first answer was wrong already.
+pub fn requiring(schema: &Value, required: &[RequiredCall]) -> Value {
+    let mut out = schema.clone();
+    let Some(plan) = out.pointer_mut("/properties/plan") else {
+        return out;
+    };
+    let prefix: Vec<Value> = required
+        .iter()
+        .map(|r| {
+            serde_json::json!({
+                "type": "object",
+                "properties": {
+                    "task": { "type": "string", "pattern": "^[TA][0-9]{1,3}$" },
+                    "drone": { "type": "string", "enum": r.drones },
+                    "action": { "type": "string", "enum": [r.action] },
+                    "target": { "type": "string", "enum": [r.target] },
+                    "xyz": { "type": "null" }
+                },
+                "required": ["task", "drone", "action", "target", "xyz"],
+                "additionalProperties": false
+            })
+        })
+        .collect();
+    let n = prefix.len();
+    plan["prefixItems"] = Value::Array(prefix);
+    let max = plan["maxItems"].as_u64().unwrap_or(0).max(n as u64);
+    plan["maxItems"] = Value::from(max);
+    plan["minItems"] = Value::from(n);
+    out
+}
+
 /// The most tokens a reply can take under [`build`]'s bounds for `drones` drones: its reasoning
 /// at full length (a token is at least one character) and its list full, each call at its
 /// longest (a point in "xyz", about 40 tokens). A smaller limit cuts off a well-formed reply of
@@ -95,6 +139,33 @@ pub fn token_budget(output: Output, drones: usize) -> u32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_required_call_opens_the_plan() {
+        let s = build(
+            Output::Coordinator,
+            &["alfa".into(), "bravo".into()],
+            &["car_1".into(), "van".into()],
+        );
+        let required = RequiredCall {
+            drones: vec!["bravo".into()],
+            action: "start_tracking",
+            target: "van".into(),
+        };
+        let r = requiring(&s, std::slice::from_ref(&required));
+        let plan = &r["properties"]["plan"];
+        assert_eq!(plan["minItems"], 1);
+        assert_eq!(plan["maxItems"], s["properties"]["plan"]["maxItems"]);
+        let first = &plan["prefixItems"][0]["properties"];
+        assert_eq!(first["drone"]["enum"], serde_json::json!(["bravo"]));
+        assert_eq!(
+            first["action"]["enum"],
+            serde_json::json!(["start_tracking"])
+        );
+        assert_eq!(first["target"]["enum"], serde_json::json!(["van"]));
+        // The rest of the plan is as before.
+        assert_eq!(plan["items"], s["properties"]["plan"]["items"]);
+    }
 
     #[test]
     fn schema_files_are_valid_json() {

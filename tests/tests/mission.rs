@@ -939,10 +939,26 @@ async fn a_plan_off_the_places_the_pilot_named_is_sent_back() -> anyhow::Result<
     .await
 }
 
+/// Whether the request's grammar opens the plan with a start_tracking of the van.
+fn opens_with_tracking(request: &ChatRequest) -> bool {
+    request
+        .schema
+        .as_ref()
+        .and_then(|s| {
+            s.schema
+                .pointer("/properties/plan/prefixItems/0/properties")
+        })
+        .is_some_and(|p| {
+            p["action"]["enum"] == json!(["start_tracking"])
+                && p["target"]["enum"] == json!(["van"])
+        })
+}
+
 /// The chase, as the moving-target script flies it: a plan for "alfa, follow the van" that
-/// tracks nothing is sent back naming the missing start_tracking; once alfa follows the van
-/// and the plan is complete, alfa's vehicle dies, and the automatic replan names the chase it
-/// left, so the Coordinator hands it on and bravo follows the van.
+/// tracks nothing is sent back naming the missing start_tracking, with a grammar that opens the
+/// plan with it; once alfa follows the van and the plan is complete, alfa's vehicle dies, and
+/// the automatic replan names the chase it left, so the Coordinator hands it on and bravo
+/// follows the van.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_chase_is_held_to_the_pilot_and_handed_on_when_its_tracker_dies() -> anyhow::Result<()> {
     stopping_after(start("chase").await?, async |run| {
@@ -967,16 +983,18 @@ async fn a_chase_is_held_to_the_pilot_and_handed_on_when_its_tracker_dies() -> a
                     call("T1", "bravo", "arm_takeoff", "none"),
                     call("T2", "bravo", "start_tracking", "van"),
                 ])
-            } else if repairs(request) == 0 {
-                // As the 135M model did: it flies to the van instead of following it.
+            } else if repairs(request) == 0 || !opens_with_tracking(request) {
+                // As the 135M model did: it flies to the van instead of following it, and told
+                // so, it answers the same until its grammar leaves it no other way.
                 json!([
                     call("T1", "alfa", "arm_takeoff", "none"),
                     call("T2", "alfa", "goto", "van"),
                 ])
             } else {
+                // The grammar's order: the required call first.
                 json!([
-                    call("T1", "alfa", "arm_takeoff", "none"),
                     call("T2", "alfa", "start_tracking", "van"),
+                    call("T1", "alfa", "arm_takeoff", "none"),
                 ])
             };
             Ok(json!({ "reasoning": "As the pilot said.", "plan": plan }).to_string())

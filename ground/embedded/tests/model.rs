@@ -154,3 +154,53 @@ async fn abandoned_call_does_not_block_the_next() {
         .expect("answers after an abandoned call");
     assert!(serde_json::from_str::<Value>(&reply.content).is_ok());
 }
+
+/// `prefixItems` (the mission engine's repair grammar for a call the instruction asks for):
+/// the reply opens with the required call, and the rest of the list follows `items`.
+#[tokio::test]
+async fn a_required_opening_call_opens_the_reply() {
+    let call = |actions: &[&str], targets: &[&str]| {
+        json!({
+            "type": "object",
+            "properties": {
+                "drone": {"type": "string", "enum": DRONES},
+                "action": {"type": "string", "enum": actions},
+                "target": {"type": "string", "enum": targets}
+            },
+            "required": ["drone", "action", "target"],
+            "additionalProperties": false
+        })
+    };
+    let schema = json!({
+        "type": "object",
+        "properties": {
+            "plan": {
+                "type": "array",
+                "minItems": 1,
+                "maxItems": 3,
+                "prefixItems": [call(&["start_tracking"], &["van"])],
+                "items": call(&["goto", "land"], &["car_1", "none"])
+            }
+        },
+        "required": ["plan"],
+        "additionalProperties": false
+    });
+    let mut req = request(300);
+    req.messages[1] = ChatMessage::user("bravo, go to car_1");
+    req.schema = Some(ResponseSchema {
+        name: "plan".to_string(),
+        schema,
+    });
+    let reply = backend().chat(&req).await.expect("embedded model answers");
+    eprintln!("reply: {}", reply.content);
+    let v: Value = serde_json::from_str(&reply.content).expect("the reply is JSON");
+    let plan = v["plan"].as_array().expect("plan is an array");
+    assert_eq!(plan[0]["action"], "start_tracking", "{plan:?}");
+    assert_eq!(plan[0]["target"], "van", "{plan:?}");
+    for later in &plan[1..] {
+        assert!(
+            later["action"] == "goto" || later["action"] == "land",
+            "{plan:?}"
+        );
+    }
+}

@@ -289,6 +289,9 @@ async fn log_positions(link: Arc<GroundLink>, log: Arc<MissionLog>) {
 struct Checked<U> {
     accepted: U,
     rejections: Vec<String>,
+    /// The schema for the repair round, when the reply missed something the grammar can hold
+    /// the next one to; `None`: the same schema again.
+    narrowed: Option<serde_json::Value>,
 }
 
 impl Mission {
@@ -1072,6 +1075,7 @@ impl Mission {
             &available,
             scope.as_ref().unwrap_or(&places),
         );
+        let first_schema = schema.clone();
         self.tell(MissionUpdate::Thinking {
             layer: "coordinator",
         });
@@ -1118,10 +1122,27 @@ impl Mission {
                     if reply.plan.is_empty() {
                         rejections.push("the plan is empty".into());
                     }
-                    rejections.extend(grounding::untracked(&follow, &plan, &followed));
+                    let missing = grounding::untracked(&follow, &plan, &followed);
+                    // The repair round's grammar opens the plan with the missing tracking.
+                    let narrowed = (!missing.is_empty()).then(|| {
+                        let required: Vec<schema::RequiredCall> = missing
+                            .iter()
+                            .map(|a| schema::RequiredCall {
+                                drones: a
+                                    .drone
+                                    .clone()
+                                    .map_or_else(|| available.clone(), |d| vec![d]),
+                                action: "start_tracking",
+                                target: a.target.clone(),
+                            })
+                            .collect();
+                        schema::requiring(&first_schema, &required)
+                    });
+                    rejections.extend(missing.iter().map(grounding::FollowAsked::missing_text));
                     Checked {
                         accepted: (reply.reasoning.clone(), plan),
                         rejections,
+                        narrowed,
                     }
                 },
             )
@@ -1478,6 +1499,7 @@ impl Mission {
                                 later,
                             ),
                             rejections,
+                            narrowed: None,
                         }
                     },
                 )
@@ -1618,7 +1640,7 @@ impl Caller {
         layer: &'static str,
         mut messages: Vec<ChatMessage>,
         output: Output,
-        schema: serde_json::Value,
+        mut schema: serde_json::Value,
         max_tokens: u32,
         parse: fn(&str) -> Result<T, ReplyError>,
         mut check: impl FnMut(&T) -> Checked<U>,
@@ -1686,6 +1708,9 @@ impl Caller {
                     }
                     if checked.rejections.is_empty() || attempt == attempts {
                         return Ok(checked.accepted);
+                    }
+                    if let Some(narrowed) = checked.narrowed {
+                        schema = narrowed;
                     }
                     checked.rejections
                 }

@@ -127,28 +127,30 @@ pub fn follow_asked(instruction: &str, drones: &[String], targets: &[String]) ->
     out
 }
 
-/// What a plan misses of `asked`: one line per asked target that no call of `plan` starts
-/// tracking and no drone follows already (`followed`).
-pub fn untracked(asked: &[FollowAsked], plan: &[Call], followed: &[String]) -> Vec<String> {
+/// What a plan misses of `asked`: the asked targets that no call of `plan` starts tracking and
+/// no drone follows already (`followed`).
+pub fn untracked(asked: &[FollowAsked], plan: &[Call], followed: &[String]) -> Vec<FollowAsked> {
     asked
         .iter()
         .filter(|a| !followed.contains(&a.target))
         .filter(|a| {
-            !plan
-                .iter()
-                .any(|c| c.action == ActionName::StartTracking && c.target_name() == Some(&a.target))
+            !plan.iter().any(|c| {
+                c.action == ActionName::StartTracking && c.target_name() == Some(&a.target)
+            })
         })
-        .map(|a| {
-            let by = a
-                .drone
-                .as_ref()
-                .map_or_else(|| "one drone".to_owned(), |d| d.clone());
-            format!(
-                "the instruction asks to follow {t}, but no call of the plan starts tracking it: add start_tracking with target {t} for {by}",
-                t = a.target
-            )
-        })
+        .cloned()
         .collect()
+}
+
+impl FollowAsked {
+    /// What a plan that misses this is told.
+    pub fn missing_text(&self) -> String {
+        let by = self.drone.as_deref().unwrap_or("one drone");
+        format!(
+            "the instruction asks to follow {t}, but no call of the plan starts tracking it: add start_tracking with target {t} for {by}",
+            t = self.target
+        )
+    }
 }
 
 #[cfg(test)]
@@ -259,11 +261,11 @@ mod tests {
         let goto = call(ActionName::Goto, "van");
         let track = call(ActionName::StartTracking, "van");
         let missing = untracked(&asked, std::slice::from_ref(&goto), &[]);
-        assert_eq!(missing.len(), 1);
+        assert_eq!(missing, asked);
+        let text = missing[0].missing_text();
         assert!(
-            missing[0].contains("start_tracking") && missing[0].contains("for bravo"),
-            "{}",
-            missing[0]
+            text.contains("start_tracking") && text.contains("for bravo"),
+            "{text}"
         );
         assert!(untracked(&asked, &[goto.clone(), track], &[]).is_empty());
         // A drone following the van already: nothing is missing.
