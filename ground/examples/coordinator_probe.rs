@@ -47,18 +47,18 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         })
         .collect();
     let ids: Vec<String> = drones.iter().map(|d| d.id.clone()).collect();
+    let trackable: Vec<String> = scenario
+        .targets
+        .iter()
+        .filter(|t| t.hidden_at.is_none())
+        .map(|t| t.name.clone())
+        .collect();
     let places: Vec<String> = scenario
         .world
         .landmarks
         .iter()
         .map(|l| l.name.clone())
-        .chain(
-            scenario
-                .targets
-                .iter()
-                .filter(|t| t.hidden_at.is_none())
-                .map(|t| t.name.clone()),
-        )
+        .chain(trackable.iter().cloned())
         .collect();
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
@@ -83,7 +83,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             messages,
             schema: Some(ResponseSchema {
                 name: Output::Coordinator.name().into(),
-                schema: schema::build(Output::Coordinator, &ids, scope.as_ref().unwrap_or(&places)),
+                schema: schema::build(
+                    Output::Coordinator,
+                    &ids,
+                    scope.as_ref().unwrap_or(&places),
+                    &trackable
+                        .iter()
+                        .filter(|t| scope.as_ref().is_none_or(|s| s.contains(t)))
+                        .cloned()
+                        .collect::<Vec<_>>(),
+                ),
             }),
             max_tokens: schema::token_budget(Output::Coordinator, ids.len()),
             temperature: 0.0,

@@ -33,7 +33,15 @@ impl Output {
     }
 }
 
-fn fill(value: &mut Value, drones: &[String], targets: &[String], call: &Value) {
+/// The names that fill a schema's placeholders.
+struct Names<'a> {
+    drones: &'a [String],
+    targets: &'a [String],
+    trackable: &'a [String],
+}
+
+fn fill(value: &mut Value, names: &Names, call: &Value) {
+    let (drones, targets) = (names.drones, names.targets);
     match value {
         Value::Array(items) if items.len() == 1 && items[0] == "$DRONES" => {
             *items = drones.iter().map(|d| Value::String(d.clone())).collect();
@@ -44,28 +52,42 @@ fn fill(value: &mut Value, drones: &[String], targets: &[String], call: &Value) 
                 .map(Value::String)
                 .collect();
         }
+        Value::Array(items) if items.len() == 1 && items[0] == "$TRACKABLE" => {
+            *items = names.trackable.iter().cloned().map(Value::String).collect();
+        }
         Value::String(s) if s == "$CALL" => *value = call.clone(),
-        Value::Array(items) => items
-            .iter_mut()
-            .for_each(|v| fill(v, drones, targets, call)),
-        Value::Object(map) => map
-            .values_mut()
-            .for_each(|v| fill(v, drones, targets, call)),
+        Value::Array(items) => items.iter_mut().for_each(|v| fill(v, names, call)),
+        Value::Object(map) => map.values_mut().for_each(|v| fill(v, names, call)),
         _ => {}
     }
 }
 
-/// The schema of `output` for a mission with these drone ids and target/landmark names.
-pub fn build(output: Output, drones: &[String], targets: &[String]) -> Value {
+/// The schema of `output` for a mission with these drone ids, target/landmark names (what a
+/// goto may name) and trackable targets (what a start_tracking may name: tracking a landmark is
+/// refused anyway, and the 135M model, made to track the van, went on to "track" car_1 17
+/// times). With nothing trackable, a call cannot be a start_tracking.
+pub fn build(output: Output, drones: &[String], targets: &[String], trackable: &[String]) -> Value {
     let parse = |text: &str| serde_json::from_str::<Value>(text).unwrap_or(Value::Null);
+    let names = Names {
+        drones,
+        targets,
+        trackable,
+    };
     let mut call = parse(CALL);
-    fill(&mut call, drones, targets, &Value::Null);
+    fill(&mut call, &names, &Value::Null);
+    if let Some(variants) = call.get_mut("anyOf").and_then(Value::as_array_mut) {
+        variants.retain(|v| {
+            v.pointer("/properties/target/enum")
+                .and_then(Value::as_array)
+                .is_none_or(|e| !e.is_empty())
+        });
+    }
     let mut schema = parse(match output {
         Output::Coordinator => COORDINATOR,
         Output::Supervisor => SUPERVISOR,
         Output::Monolithic => MONOLITHIC,
     });
-    fill(&mut schema, drones, targets, &call);
+    fill(&mut schema, &names, &call);
     // Bound the lists by the swarm: a small model left unbounded can list calls until it runs out
     // of tokens. A plan gets up to three calls per drone, a cycle one per drone.
     let n = drones.len().max(1);
@@ -146,6 +168,7 @@ mod tests {
             Output::Coordinator,
             &["alfa".into(), "bravo".into()],
             &["car_1".into(), "van".into()],
+            &["van".into()],
         );
         let required = RequiredCall {
             drones: vec!["bravo".into()],
@@ -179,7 +202,8 @@ mod tests {
         let s = build(
             Output::Coordinator,
             &["alfa".into(), "bravo".into()],
-            &["car_1".into()],
+            &["car_1".into(), "van".into()],
+            &["van".into()],
         );
         let variants = s["properties"]["plan"]["items"]["anyOf"]
             .as_array()
@@ -201,13 +225,16 @@ mod tests {
                 })
                 .unwrap_or_else(|| panic!("no variant for {action}"))
         };
-        // Only goto and start_tracking take a target; only goto a point.
-        for action in ["goto", "start_tracking"] {
-            assert_eq!(
-                variant(action)["properties"]["target"]["enum"],
-                serde_json::json!(["none", "car_1"])
-            );
-        }
+        // Only goto and start_tracking take a target, only a trackable one for tracking; only
+        // goto a point.
+        assert_eq!(
+            variant("goto")["properties"]["target"]["enum"],
+            serde_json::json!(["none", "car_1", "van"])
+        );
+        assert_eq!(
+            variant("start_tracking")["properties"]["target"]["enum"],
+            serde_json::json!(["van"])
+        );
         for action in ["arm_takeoff", "land", "hold", "stop_tracking"] {
             assert_eq!(
                 variant(action)["properties"]["target"]["enum"],
@@ -220,7 +247,7 @@ mod tests {
             "null"
         );
         assert!(variant("goto")["properties"]["xyz"]["anyOf"].is_array());
-        for placeholder in ["$DRONES", "$TARGETS", "$CALL"] {
+        for placeholder in ["$DRONES", "$TARGETS", "$TRACKABLE", "$CALL"] {
             assert!(
                 !s.to_string().contains(placeholder),
                 "{placeholder} was left: {s}"
@@ -228,7 +255,19 @@ mod tests {
         }
         assert_eq!(s["properties"]["plan"]["maxItems"], 6);
         assert_eq!(token_budget(Output::Coordinator, 2), 300 + 40 + 40 * 6);
-        let s = build(Output::Supervisor, &["alfa".into()], &[]);
+        // Nothing to track: no call can be a start_tracking.
+        let s = build(
+            Output::Coordinator,
+            &["alfa".into()],
+            &["car_1".into()],
+            &[],
+        );
+        let variants = s["properties"]["plan"]["items"]["anyOf"]
+            .as_array()
+            .expect("a call is one of its variants");
+        assert_eq!(variants.len(), 2);
+        assert!(!s.to_string().contains("start_tracking"));
+        let s = build(Output::Supervisor, &["alfa".into()], &[], &[]);
         assert_eq!(s["properties"]["actions"]["maxItems"], 1);
         assert_eq!(
             s["properties"]["actions"]["items"]["anyOf"][0]["properties"]["drone"]["enum"],

@@ -1058,3 +1058,54 @@ async fn a_chase_is_held_to_the_pilot_and_handed_on_when_its_tracker_dies() -> a
     })
     .await
 }
+
+/// A repair round the backend cannot answer (the embedded model's window is full, as seen with
+/// a 6-drone repair prompt) leaves what passed in the reply before it: alfa's take-off flies,
+/// the refused call does not.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_repair_round_that_fails_leaves_what_passed_before() -> anyhow::Result<()> {
+    stopping_after(start("repairfail").await?, async |run| {
+        let supervisor = offered_policy(json!([]), false);
+        let model = move |request: &ChatRequest| {
+            if !request.messages[0]
+                .content
+                .starts_with("You are the Coordinator")
+            {
+                return supervisor(request);
+            }
+            if repairs(request) > 0 {
+                return Err(LlmError::Generation(
+                    "the prompt has 4387 tokens; the embedded model's window is 4096".into(),
+                ));
+            }
+            let plan = json!([
+                call("T1", "alfa", "arm_takeoff", "none"),
+                call("T2", "alfa", "start_tracking", "car_1"),
+            ]);
+            Ok(json!({ "reasoning": "Alfa takes off.", "plan": plan }).to_string())
+        };
+        let (mut updates, lines, log_path, _) = run_with_backend(
+            run,
+            "repairfaillog",
+            PolicyBackend::new(model),
+            "alfa, take off",
+        )
+        .await?;
+        until(&mut updates, Duration::from_secs(90), |u| {
+            matches!(u, MissionUpdate::PlanComplete { .. })
+        })
+        .await?;
+        drop(lines);
+        let lines = log::read(&log_path)?;
+        assert_eq!(
+            sent_tasks(&lines),
+            vec![("T1".to_owned(), "alfa".to_owned())]
+        );
+        assert!(
+            lines.iter().any(|l| matches!(&l.record, Record::LlmError { attempt: 2, error, .. } if error.contains("window"))),
+            "the repair round's failure is not in the log"
+        );
+        anyhow::Ok(())
+    })
+    .await
+}

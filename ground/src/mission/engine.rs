@@ -1070,10 +1070,13 @@ impl Mission {
             &named,
         );
         let messages = coordinator_messages(user);
+        let in_scope = |name: &String| scope.as_ref().is_none_or(|s| s.contains(name));
+        let trackable: Vec<String> = self.trackable().into_iter().filter(in_scope).collect();
         let schema = schema::build(
             Output::Coordinator,
             &available,
             scope.as_ref().unwrap_or(&places),
+            &trackable,
         );
         let first_schema = schema.clone();
         self.tell(MissionUpdate::Thinking {
@@ -1647,6 +1650,9 @@ impl Caller {
     ) -> Result<U, MissionError> {
         let attempts = self.max_repairs + 1;
         let mut last_problem = String::new();
+        // What passed in the last checked reply: a repair round that the backend cannot answer
+        // (e.g. the repair prompt has outgrown the embedded model's window) leaves it in force.
+        let mut passed_before: Option<U> = None;
         for attempt in 1..=attempts {
             let request = ChatRequest {
                 messages: messages.clone(),
@@ -1686,6 +1692,9 @@ impl Caller {
                         attempt,
                         error: error.to_string(),
                     });
+                    if let Some(passed) = passed_before {
+                        return Ok(passed);
+                    }
                     return Err(MissionError::Llm { layer, error });
                 }
             };
@@ -1712,6 +1721,7 @@ impl Caller {
                     if let Some(narrowed) = checked.narrowed {
                         schema = narrowed;
                     }
+                    passed_before = Some(checked.accepted);
                     checked.rejections
                 }
             };
@@ -1876,7 +1886,7 @@ fn callable_schema(
     trackable: &[String],
 ) -> serde_json::Value {
     use serde_json::json;
-    let mut schema = schema::build(Output::Monolithic, drones, places);
+    let mut schema = schema::build(Output::Monolithic, drones, places, trackable);
     let call = |c: &Callable, action: ActionName, target: serde_json::Value, xyz| {
         json!({
             "type": "object",
@@ -1992,7 +2002,7 @@ fn startable_schema(startable: &[Call], must_act: bool) -> serde_json::Value {
         .iter()
         .filter_map(|c| c.target_name().map(str::to_owned))
         .collect();
-    let mut schema = schema::build(Output::Supervisor, &drones, &places);
+    let mut schema = schema::build(Output::Supervisor, &drones, &places, &[]);
     // Each call is exactly one of the startable calls: task, drone, action and target come as a
     // unit, so a constrained model cannot give one task's id to another drone.
     let alternatives: Vec<serde_json::Value> = startable
