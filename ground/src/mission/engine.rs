@@ -1725,12 +1725,18 @@ impl Caller {
                     checked.rejections
                 }
             };
+            let problems = distinct_problems(problems);
             last_problem = problems.join("; ");
-            messages.push(ChatMessage::assistant(reply.content.clone()));
+            messages.push(ChatMessage::assistant(without_repeated_items(
+                &reply.content,
+            )));
             messages.push(ChatMessage::user(format!(
                 "Your reply was rejected:\n- {}\nAnswer again with the corrected JSON object only.",
                 problems.join("\n- ")
             )));
+        }
+        if let Some(passed) = passed_before {
+            return Ok(passed);
         }
         Err(MissionError::NoValidReply {
             layer,
@@ -1765,6 +1771,57 @@ impl Caller {
             completion_tokens: reply.usage.completion_tokens,
         });
     }
+}
+
+/// `reply` as echoed back in a repair round: in its lists of objects, an item equal to an
+/// earlier one but for its `task` is left out (the engine drops such repeats anyway). A 135M
+/// model that loops on one call writes it until the list is full, and echoed whole, its 680
+/// tokens pushed a 6-drone repair round past the embedded model's 4096-token window. A reply
+/// that is not a JSON object is echoed as it is.
+fn without_repeated_items(reply: &str) -> String {
+    let Ok(serde_json::Value::Object(mut object)) = serde_json::from_str(reply) else {
+        return reply.to_owned();
+    };
+    for value in object.values_mut() {
+        let serde_json::Value::Array(items) = value else {
+            continue;
+        };
+        let mut seen: Vec<serde_json::Value> = Vec::new();
+        items.retain(|item| {
+            let mut key = item.clone();
+            if let Some(o) = key.as_object_mut() {
+                o.remove("task");
+            }
+            let new = !seen.contains(&key);
+            seen.push(key);
+            new
+        });
+    }
+    serde_json::to_string(&object).unwrap_or_else(|_| reply.to_owned())
+}
+
+/// The problems of a reply, each said once: the same refusal of the same call under other task
+/// ids ("T2 alfa start_tracking(car_1): …", "T3 alfa start_tracking(car_1): …") is one line.
+fn distinct_problems(problems: Vec<String>) -> Vec<String> {
+    let mut seen: Vec<String> = Vec::new();
+    problems
+        .into_iter()
+        .filter(|p| {
+            let key = match p.split_once(' ') {
+                Some((first, rest))
+                    if first.len() > 1
+                        && first.starts_with(['T', 'A'])
+                        && first[1..].chars().all(|c| c.is_ascii_digit()) =>
+                {
+                    rest.to_owned()
+                }
+                _ => p.clone(),
+            };
+            let new = !seen.contains(&key);
+            seen.push(key);
+            new
+        })
+        .collect()
 }
 
 /// One cycle's question to its model: the Supervisor's or the monolithic model's.
@@ -2196,6 +2253,41 @@ fn check_live(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_repair_echo_leaves_out_repeated_items_and_problems_are_said_once() {
+        let reply = r#"{"reasoning": "r", "plan": [
+            {"task": "T1", "drone": "alfa", "action": "goto", "target": "car_1", "xyz": null},
+            {"task": "T2", "drone": "alfa", "action": "arm_takeoff", "target": "none", "xyz": null},
+            {"task": "T3", "drone": "alfa", "action": "arm_takeoff", "target": "none", "xyz": null},
+            {"task": "T4", "drone": "alfa", "action": "goto", "target": "car_2", "xyz": null}]}"#;
+        let echoed: serde_json::Value =
+            serde_json::from_str(&without_repeated_items(reply)).expect("JSON");
+        let tasks: Vec<&str> = echoed["plan"]
+            .as_array()
+            .expect("plan")
+            .iter()
+            .filter_map(|c| c["task"].as_str())
+            .collect();
+        assert_eq!(tasks, ["T1", "T2", "T4"]);
+        assert_eq!(echoed["reasoning"], "r");
+        assert_eq!(without_repeated_items("Sure!"), "Sure!");
+        let problems = distinct_problems(vec![
+            "T2 alfa start_tracking(car_1): car_1 is not a target".into(),
+            "T3 alfa start_tracking(car_1): car_1 is not a target".into(),
+            "T4 bravo start_tracking(car_1): car_1 is not a target".into(),
+            "the plan is empty".into(),
+            "the plan is empty".into(),
+        ]);
+        assert_eq!(
+            problems,
+            [
+                "T2 alfa start_tracking(car_1): car_1 is not a target",
+                "T4 bravo start_tracking(car_1): car_1 is not a target",
+                "the plan is empty"
+            ]
+        );
+    }
 
     fn alternatives(
         schema: &serde_json::Value,
