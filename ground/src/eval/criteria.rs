@@ -132,10 +132,8 @@ pub fn rejected_calls_sent(lines: &[Line]) -> Vec<String> {
             // A new reply: the previous attempt's rejections were answered by it.
             Record::LlmReply { .. } => rejected.clear(),
             Record::GateRejected { call, .. } => {
-                let (call, reason) = call.split_once(": ").unwrap_or((call.as_str(), ""));
-                if !reason.ends_with("already gets an action this cycle") {
-                    rejected.insert(call.to_owned());
-                }
+                let call = call.split_once(": ").map_or(call.as_str(), |(c, _)| c);
+                rejected.insert(call.to_owned());
             }
             Record::SupervisorCycle { actions, .. } => {
                 sent_anyway.extend(actions.iter().filter(|a| rejected.contains(*a)).cloned());
@@ -333,16 +331,6 @@ mod tests {
             line(2.2, cycle(&["T4 alfa goto(car_11)"])),
         ];
         assert!(rejected_calls_sent(&repaired).is_empty());
-        // The same call twice in one reply: the twin refused for the double booking, one sent.
-        let twin = vec![
-            line(1.0, reply(10)),
-            line(
-                1.1,
-                rejected("T1 alfa arm_takeoff(): alfa already gets an action this cycle"),
-            ),
-            line(1.2, cycle(&["T1 alfa arm_takeoff()"])),
-        ];
-        assert!(rejected_calls_sent(&twin).is_empty());
         // A rejection from an earlier cycle does not taint a later, checked send.
         let later = vec![
             line(1.0, reply(10)),

@@ -2167,8 +2167,9 @@ fn check_static(
     Ok(())
 }
 
-/// Checks calls against the live swarm: resolvable, through the safety gate, one per drone, to
-/// drones that are not busy, and not repeating a task that is running or done.
+/// Checks calls against the live swarm: resolvable, through the safety gate, to drones that are
+/// not busy, one drone per task id, and not repeating a task that is running or done. The calls
+/// come one per drone (`first_call_per_drone`).
 fn check_live(
     calls: &[Call],
     gate: &SafetyGate,
@@ -2181,25 +2182,10 @@ fn check_live(
     let view = link.view();
     let now = link.clock().instant();
     for call in calls {
-        // The same work for the same drone twice in one reply (small models repeat themselves,
-        // under one task id or two) is one call, not a conflict worth a repair round.
-        if accepted
-            .iter()
-            .any(|(c, _)| same_work(c) == same_work(call))
-        {
-            continue;
-        }
         if let Some((other, _)) = accepted.iter().find(|(c, _)| c.task == call.task) {
             rejections.push(format!(
                 "{call}: task {} already goes to {} this cycle",
                 call.task, other.drone
-            ));
-            continue;
-        }
-        if accepted.iter().any(|(c, _)| c.drone == call.drone) {
-            rejections.push(format!(
-                "{call}: {} already gets an action this cycle",
-                call.drone
             ));
             continue;
         }
