@@ -1,5 +1,16 @@
 //! Reading the engine's requests the way the stand-in models of the tests do: the sections of a
-//! rendered prompt (`## Title`), its plan lines and its swarm lines.
+//! rendered prompt (`## Title`), its plan lines and its swarm lines, and the request itself.
+
+/// The engine's rendered request in `request`: its last user message that starts with a section
+/// (a repair round's "Your reply was rejected" comes after it).
+pub fn request_text(request: &tacos_llm::ChatRequest) -> &str {
+    request
+        .messages
+        .iter()
+        .rev()
+        .find(|m| m.role == tacos_llm::Role::User && m.content.starts_with("## "))
+        .map_or("", |m| m.content.as_str())
+}
 
 /// The body of the `## title` section of `text`, up to the next section; empty if there is none.
 pub fn section<'a>(text: &'a str, title: &str) -> &'a str {

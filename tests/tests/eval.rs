@@ -11,10 +11,10 @@ use tacos_ground::eval::results::Status;
 use tacos_ground::eval::run::{RunPlan, run_once};
 use tacos_ground::mission::Mode;
 use tacos_ground::mission::log::{self, Record};
-use tacos_llm::{ChatRequest, LlmError, Role as ChatRole};
+use tacos_llm::{ChatRequest, LlmError};
 use tacos_shared::scenario::Scenario;
 use tacos_shared::world::LandmarkKind;
-use tacos_tests::prompt_text::{plan_lines, swarm_lines};
+use tacos_tests::prompt_text::{plan_lines, request_text, swarm_lines};
 use tacos_tests::{PolicyBackend, within};
 
 fn call(task: &str, drone: &str, target: &str) -> Value {
@@ -27,12 +27,7 @@ fn call(task: &str, drone: &str, target: &str) -> Value {
 fn policy(places: Vec<String>) -> impl Fn(&ChatRequest) -> Result<String, LlmError> + Send + Sync {
     move |request: &ChatRequest| {
         let system = &request.messages[0].content;
-        let user = request
-            .messages
-            .iter()
-            .rev()
-            .find(|m| m.role == ChatRole::User && m.content.starts_with("## "))
-            .map_or("", |m| m.content.as_str());
+        let user = request_text(request);
         let swarm = swarm_lines(user);
         let flying: Vec<&String> = swarm
             .iter()

@@ -14,7 +14,7 @@ use tacos_ground::mission::{Mission, MissionConfig, MissionUpdate, Mode};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{ChatRequest, LlmError, Role as ChatRole};
 use tacos_shared::DroneId;
-use tacos_tests::prompt_text::{plan_lines, swarm_lines};
+use tacos_tests::prompt_text::{plan_lines, request_text, swarm_lines};
 use tacos_tests::{PolicyBackend, SimSwarm, within};
 use tokio::sync::mpsc;
 
@@ -55,12 +55,7 @@ fn policy(
 ) -> impl Fn(&ChatRequest) -> Result<String, LlmError> + Send + Sync {
     move |request: &ChatRequest| {
         let system = &request.messages[0].content;
-        let user = request
-            .messages
-            .iter()
-            .rev()
-            .find(|m| m.role == ChatRole::User && m.content.starts_with("## "))
-            .map_or("", |m| m.content.as_str());
+        let user = request_text(request);
         if system.starts_with("You are the Coordinator") {
             if user.contains("(automatic replan)") {
                 if let (Ok(mut seen), Some(s)) = (REPLAN_SCHEMAS.lock(), &request.schema) {
@@ -231,6 +226,17 @@ async fn until(
     Ok(seen)
 }
 
+/// Waits for the mission's plan to complete (a mission error fails at once).
+async fn plan_complete(
+    updates: &mut mpsc::UnboundedReceiver<MissionUpdate>,
+    limit: Duration,
+) -> anyhow::Result<Vec<MissionUpdate>> {
+    until(updates, limit, |u| {
+        matches!(u, MissionUpdate::PlanComplete { .. })
+    })
+    .await
+}
+
 fn sent_tasks(lines: &[log::Line]) -> Vec<(String, String)> {
     lines
         .iter()
@@ -249,7 +255,7 @@ async fn broken_replies_are_repaired_and_the_plan_runs_over_several_cycles() -> 
         let link = run.sim.link.clone();
         launch_mission(run, link.clone(), true).await?;
         run.lines.send("all drones take off, then inspect the cars near the pads".into()).await?;
-        until(&mut run.updates, Duration::from_secs(120), |u| matches!(u, MissionUpdate::PlanComplete { .. })).await?;
+        plan_complete(&mut run.updates, Duration::from_secs(120)).await?;
         let lines = log::read(&run.log_path)?;
         let sent = sent_tasks(&lines);
         let mut tasks: Vec<&str> = sent.iter().map(|(t, _)| t.as_str()).collect();
@@ -289,7 +295,7 @@ async fn a_drone_killed_mid_plan_has_its_subtask_reassigned() -> anyhow::Result<
         until(&mut run.updates, Duration::from_secs(90), |u| matches!(u, MissionUpdate::Sent { drone, action, .. } if drone == "bravo" && action.starts_with("goto"))).await?;
         let bravo = DroneId::new("bravo")?;
         run.sim.stack.crash(Role::Onboard, Some(&bravo)).await.ok_or_else(|| anyhow::anyhow!("bravo's onboard was not running"))?;
-        until(&mut run.updates, Duration::from_secs(150), |u| matches!(u, MissionUpdate::PlanComplete { .. })).await?;
+        plan_complete(&mut run.updates, Duration::from_secs(150)).await?;
         let lines = log::read(&run.log_path)?;
         assert!(lines.iter().any(|l| matches!(&l.record, Record::Replan { reason } if reason.contains("bravo"))), "no replan for bravo");
         // The replan's grammar offered only the drones left, and the first reply, which kept
@@ -352,7 +358,7 @@ async fn the_monolithic_model_is_held_to_its_actions_not_its_claim() -> anyhow::
         let (lines, rx) = mpsc::channel(4);
         tokio::spawn(mission.run(rx));
         lines.send("all drones take off".into()).await?;
-        until(&mut updates, Duration::from_secs(90), |u| matches!(u, MissionUpdate::PlanComplete { .. })).await?;
+        plan_complete(&mut updates, Duration::from_secs(90)).await?;
         drop(lines);
         let lines = log::read(&log_path)?;
         // The first request offered take-offs only: every drone was on the ground.
@@ -505,9 +511,7 @@ async fn three_drones_sent_to_one_car_each_get_a_point_of_their_own_even_when_re
         ]);
         let (mut updates, lines, log_path, _) =
             run_offered(run, "onecarlog", plan, true, "everyone to car_1").await?;
-        until(&mut updates, Duration::from_secs(150), |u| {
-            matches!(u, MissionUpdate::PlanComplete { .. })
-        })
+        plan_complete(&mut updates, Duration::from_secs(150))
         .await?;
         drop(lines);
         let lines = log::read(&log_path)?;
@@ -687,10 +691,7 @@ async fn a_goto_to_where_the_drone_already_hovers_is_done_without_flying() -> an
         ]);
         let (mut updates, lines, log_path, _) =
             run_offered(run, "therelog", plan, false, "alfa, to car_11, twice").await?;
-        until(&mut updates, Duration::from_secs(120), |u| {
-            matches!(u, MissionUpdate::PlanComplete { .. })
-        })
-        .await?;
+        plan_complete(&mut updates, Duration::from_secs(120)).await?;
         drop(lines);
         let lines = log::read(&log_path)?;
         let sent: Vec<String> = sent_tasks(&lines).into_iter().map(|(t, _)| t).collect();
@@ -822,7 +823,7 @@ async fn a_grounded_drone_sent_somewhere_gets_the_take_off_its_plan_forgot() -> 
     stopping_after(start("forgot").await?, async |run| {
         let plan = json!([call("T1", "alfa", "goto", "car_11"), call("T2", "bravo", "arm_takeoff", "none")]);
         let (mut updates, lines, log_path, _) = run_offered(run, "forgotlog", plan, false, "alfa, to car_11").await?;
-        until(&mut updates, Duration::from_secs(90), |u| matches!(u, MissionUpdate::PlanComplete { .. })).await?;
+        plan_complete(&mut updates, Duration::from_secs(90)).await?;
         drop(lines);
         let lines = log::read(&log_path)?;
         let sent = sent_tasks(&lines);
@@ -921,7 +922,7 @@ async fn a_plan_off_the_places_the_pilot_named_is_sent_back() -> anyhow::Result<
             Ok(json!({ "reasoning": "Alfa goes.", "plan": [call("T1", "alfa", "arm_takeoff", "none"), call("T2", "alfa", "goto", goal)] }).to_string())
         };
         let (mut updates, lines, log_path, _) = run_with_backend(run, "scopelog", PolicyBackend::new(policy), "alfa, check car_11").await?;
-        until(&mut updates, Duration::from_secs(120), |u| matches!(u, MissionUpdate::PlanComplete { .. })).await?;
+        plan_complete(&mut updates, Duration::from_secs(120)).await?;
         drop(lines);
         let records = log::read(&log_path)?;
         let rejected: Vec<&String> = records.iter().filter_map(|l| match &l.record { Record::GateRejected { call, .. } => Some(call), _ => None }).collect();
@@ -968,12 +969,7 @@ async fn a_chase_is_held_to_the_pilot_and_handed_on_when_its_tracker_dies() -> a
             if !system.starts_with("You are the Coordinator") {
                 return supervisor(request);
             }
-            let user = request
-                .messages
-                .iter()
-                .rev()
-                .find(|m| m.role == ChatRole::User && m.content.starts_with("## "))
-                .map_or("", |m| m.content.as_str());
+            let user = request_text(request);
             let plan = if user.contains("(automatic replan)") {
                 // Only what the instruction names: the chase the dead drone left.
                 if !user.contains("alfa start_tracking(van)") {
@@ -1006,9 +1002,7 @@ async fn a_chase_is_held_to_the_pilot_and_handed_on_when_its_tracker_dies() -> a
             "alfa, follow the van",
         )
         .await?;
-        until(&mut updates, Duration::from_secs(150), |u| {
-            matches!(u, MissionUpdate::PlanComplete { .. })
-        })
+        plan_complete(&mut updates, Duration::from_secs(150))
         .await?;
         let alfa = DroneId::new("alfa")?;
         run.sim
@@ -1091,9 +1085,7 @@ async fn a_repair_round_that_fails_leaves_what_passed_before() -> anyhow::Result
             "alfa, take off",
         )
         .await?;
-        until(&mut updates, Duration::from_secs(90), |u| {
-            matches!(u, MissionUpdate::PlanComplete { .. })
-        })
+        plan_complete(&mut updates, Duration::from_secs(90))
         .await?;
         drop(lines);
         let lines = log::read(&log_path)?;
