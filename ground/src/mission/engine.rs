@@ -558,7 +558,7 @@ impl Mission {
         let lost_work = match &change {
             SwarmChange::Left(d) => {
                 let following = self.following_of(d);
-                self.fail_tasks_of(d, "drone lost");
+                self.fail_tasks_of(d, following.as_deref(), "drone lost");
                 self.unfinished_work_of(d, following)
             }
             _ => Vec::new(),
@@ -602,8 +602,8 @@ impl Mission {
 
     /// Fails `drone`'s running tasks, and its done start_tracking while it still followed the
     /// target (tracking goes on after the task is done): failed tasks may start on any drone.
-    fn fail_tasks_of(&mut self, drone: &DroneId, why: &str) {
-        let following = self.following_of(drone);
+    /// `following`: the target it followed ([`Self::following_of`]).
+    fn fail_tasks_of(&mut self, drone: &DroneId, following: Option<&str>, why: &str) {
         let tasks = self
             .plan
             .iter_mut()
@@ -612,7 +612,7 @@ impl Mission {
         for t in tasks.filter(|t| t.sent.as_ref().is_some_and(|(d, _)| d == drone)) {
             let still_following = t.status == TaskStatus::Done
                 && t.call.action == ActionName::StartTracking
-                && following.as_deref() == t.call.target_name();
+                && following == t.call.target_name();
             if t.status == TaskStatus::Running || still_following {
                 t.status = TaskStatus::Failed(why.to_owned());
             }
@@ -984,12 +984,7 @@ impl Mission {
             .landmarks
             .iter()
             .map(|l| l.name.clone())
-            .chain(
-                s.targets
-                    .iter()
-                    .filter(|t| t.hidden_at.is_none())
-                    .map(|t| t.name.clone()),
-            )
+            .chain(self.trackable())
             .collect();
         (drones, places)
     }
