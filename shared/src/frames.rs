@@ -29,6 +29,37 @@ impl Home {
     }
 }
 
+/// Where the world frame's origin is on Earth, for autopilots that need a geodetic position
+/// (PX4 SITL's SIH spawns each vehicle at a latitude, longitude and altitude). SIH's own default
+/// origin, so a vehicle at the world origin spawns where PX4 would put it unasked.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GeodeticOrigin {
+    pub lat_deg: f64,
+    pub lon_deg: f64,
+    /// Metres above mean sea level of the world's z = 0.
+    pub alt_m: f64,
+}
+
+/// PX4 SIH's default origin (47.397742 N, 8.545594 E, 489.4 m AMSL).
+pub const SIH_ORIGIN: GeodeticOrigin = GeodeticOrigin {
+    lat_deg: 47.397742,
+    lon_deg: 8.545594,
+    alt_m: 489.4,
+};
+
+/// Metres per degree of latitude (WGS-84 mean; the flat-earth approximation is exact to
+/// centimetres over the few hundred metres of a map).
+const METRES_PER_DEG_LAT: f64 = 111_319.49;
+
+impl GeodeticOrigin {
+    /// A world ENU point → (latitude °, longitude °, altitude m AMSL).
+    pub fn to_geodetic(&self, p: &Vec3) -> (f64, f64, f64) {
+        let lat = self.lat_deg + p.y / METRES_PER_DEG_LAT;
+        let lon = self.lon_deg + p.x / (METRES_PER_DEG_LAT * self.lat_deg.to_radians().cos());
+        (lat, lon, self.alt_m + p.z)
+    }
+}
+
 /// A free vector (velocity, acceleration, offset) from ENU to NED axes.
 pub fn enu_vector_to_ned(v: &Vec3) -> Vec3 {
     Vec3::new(v.y, v.x, -v.z)
@@ -110,5 +141,15 @@ mod tests {
         fn yaw_round_trips(yaw in -3.1..3.1f64) {
             prop_assert!((ned_yaw_to_enu(enu_yaw_to_ned(yaw)) - yaw).abs() < 1e-9);
         }
+    }
+
+    #[test]
+    fn geodetic_offsets_are_metres_on_the_ground() {
+        let (lat, lon, alt) = SIH_ORIGIN.to_geodetic(&Vec3::new(100.0, 200.0, 2.0));
+        let north = (lat - SIH_ORIGIN.lat_deg) * METRES_PER_DEG_LAT;
+        let east =
+            (lon - SIH_ORIGIN.lon_deg) * METRES_PER_DEG_LAT * SIH_ORIGIN.lat_deg.to_radians().cos();
+        assert!((north - 200.0).abs() < 1e-6 && (east - 100.0).abs() < 1e-6);
+        assert!((alt - 491.4).abs() < 1e-9);
     }
 }

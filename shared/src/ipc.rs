@@ -120,7 +120,11 @@ impl CommandOutcome {
     }
 }
 
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+/// Room for a result's reason: PX4's STATUSTEXT is at most 50 characters, and the writer's own
+/// words round it (what it waited for, for how long).
+pub const REASON_BYTES: usize = 160;
+
+#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
 #[repr(C)]
 pub struct CommandResultSample {
     pub seq: u64,
@@ -129,12 +133,58 @@ pub struct CommandResultSample {
     pub outcome: u32,
     /// MAV_RESULT from the COMMAND_ACK, when there was one.
     pub mav_result: u32,
-    pub _reserved: u32,
+    /// How many bytes of `reason` are used.
+    pub reason_len: u32,
+    /// Why it ended so, in UTF-8: the autopilot's own words (STATUSTEXT) where it gave any.
+    pub reason: [u8; REASON_BYTES],
+}
+
+impl Default for CommandResultSample {
+    fn default() -> Self {
+        CommandResultSample {
+            seq: 0,
+            kind: 0,
+            outcome: 0,
+            mav_result: 0,
+            reason_len: 0,
+            reason: [0; REASON_BYTES],
+        }
+    }
 }
 
 impl CommandResultSample {
+    pub fn new(seq: u64, kind: u32, outcome: CommandOutcome, mav_result: u32) -> Self {
+        CommandResultSample {
+            seq,
+            kind,
+            outcome: outcome as u32,
+            mav_result,
+            ..Default::default()
+        }
+    }
+
+    /// The same result with `reason` (cut at a character boundary to fit).
+    pub fn with_reason(mut self, reason: &str) -> Self {
+        let mut end = reason.len().min(REASON_BYTES);
+        while !reason.is_char_boundary(end) {
+            end -= 1;
+        }
+        self.reason = [0; REASON_BYTES];
+        self.reason[..end].copy_from_slice(&reason.as_bytes()[..end]);
+        self.reason_len = end as u32;
+        self
+    }
+
     pub fn outcome(&self) -> Option<CommandOutcome> {
         CommandOutcome::from_code(self.outcome)
+    }
+
+    /// The reason, if any; bytes that are not UTF-8 (a foreign writer) give none.
+    pub fn reason(&self) -> Option<&str> {
+        let len = (self.reason_len as usize).min(REASON_BYTES);
+        std::str::from_utf8(&self.reason[..len])
+            .ok()
+            .filter(|r| !r.is_empty())
     }
 }
 
@@ -157,7 +207,17 @@ pub struct VehicleStateSample {
     pub velocity: [f64; 3],
     /// Milliseconds since the last heartbeat.
     pub heartbeat_age_ms: u64,
+    /// Milliseconds since the last position from the autopilot ([`NEVER_MS`] before the first):
+    /// an autopilot whose heartbeats still come but whose estimate is gone has a stale position.
+    pub position_age_ms: u64,
+    /// 1 when the autopilot says it can arm (PX4: HEARTBEAT system_status STANDBY, its
+    /// pre-flight checks pass) or is already armed.
+    pub ready: u32,
+    pub _reserved: u32,
 }
+
+/// `heartbeat_age_ms` / `position_age_ms` before the first one.
+pub const NEVER_MS: u64 = u64::MAX;
 
 impl VehicleStateSample {
     pub fn position(&self) -> Vec3 {

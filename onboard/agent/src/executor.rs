@@ -36,6 +36,10 @@ const MODE_REPORT_GRACE_S: f64 = 1.6;
 /// 40% of top speed on average, while a drone that is stuck stops closing in.
 const GOTO_STALL_S: f64 = 30.0;
 
+/// A position older than this means the autopilot's estimate is gone: the drone is unavailable
+/// even while heartbeats still arrive (PX4 streams LOCAL_POSITION_NED at 30 Hz or more).
+pub const POSITION_STALE_MS: u64 = 1_000;
+
 /// What the executor knows of the vehicle, from `tacos-px4`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct VehicleView {
@@ -50,7 +54,7 @@ pub struct VehicleView {
 impl From<&VehicleStateSample> for VehicleView {
     fn from(s: &VehicleStateSample) -> Self {
         VehicleView {
-            link_ok: s.link_ok != 0,
+            link_ok: s.link_ok != 0 && s.position_age_ms <= POSITION_STALE_MS,
             armed: s.armed != 0,
             px4: s.mode(),
             landed: s.landed != 0,
@@ -445,7 +449,10 @@ impl Executor {
                 return;
             }
             Some(CommandOutcome::Rejected) => {
-                let why = format!("{kind:?} refused (MAV_RESULT {})", result.mav_result);
+                let why = match result.reason() {
+                    Some(reason) => format!("{kind:?} refused: {reason}"),
+                    None => format!("{kind:?} refused (MAV_RESULT {})", result.mav_result),
+                };
                 return self.fail(FailureReason::Rejected(why));
             }
             Some(CommandOutcome::TimedOut) => return self.fail(FailureReason::TimedOut),
@@ -1026,7 +1033,7 @@ mod tests {
                 kind: arm.kind,
                 outcome: CommandOutcome::Rejected as u32,
                 mav_result: 2, // MAV_RESULT_DENIED
-                _reserved: 0,
+                ..Default::default()
             },
             0.5,
         );
@@ -1046,6 +1053,43 @@ mod tests {
             4.0,
         );
         assert_eq!(state_of(&ex), ActionState::Failed(FailureReason::TimedOut));
+    }
+
+    #[test]
+    fn a_refusal_says_why_in_the_autopilots_words_and_a_stale_position_is_unavailable() {
+        let mut ex = lab();
+        ex.on_vehicle(&state(Vec3::new(-50.0, -132.5, 0.0), false, Px4Mode::Hold));
+        ex.on_command(&cmd(1, Action::ArmTakeoff), 0.0);
+        let arm = ex.tick(0.0).commands[0];
+        let refused = CommandResultSample::new(arm.seq, arm.kind, CommandOutcome::Rejected, 1)
+            .with_reason("Arm was refused (TEMPORARILY_REJECTED): PX4 says \"Arming denied\"");
+        // Temporary refusals are asked again a few times; the last one fails with the words.
+        for i in 0..=RETRIES_AFTER_TEMPORARY_REJECTION {
+            let now = f64::from(i);
+            let again = ex.tick(now).commands.first().copied().unwrap_or(arm);
+            ex.on_result(
+                &CommandResultSample {
+                    seq: again.seq,
+                    ..refused
+                },
+                now,
+            );
+        }
+        match state_of(&ex) {
+            ActionState::Failed(FailureReason::Rejected(why)) => {
+                assert!(why.contains("Arming denied"), "{why}")
+            }
+            other => panic!("expected a refusal, got {other:?}"),
+        }
+        assert_eq!(ex.mode(), DroneMode::Idle);
+        let mut stale = state(Vec3::new(-50.0, -132.5, 0.0), false, Px4Mode::Hold);
+        stale.position_age_ms = POSITION_STALE_MS + 1;
+        ex.on_vehicle(&stale);
+        assert_eq!(
+            ex.mode(),
+            DroneMode::Unavailable,
+            "heartbeats alone are not enough"
+        );
     }
 
     #[test]
@@ -1087,7 +1131,7 @@ mod tests {
                 kind: cmd.kind,
                 outcome: CommandOutcome::Rejected as u32,
                 mav_result: MAV_RESULT_TEMPORARILY_REJECTED,
-                _reserved: 0,
+                ..Default::default()
             },
             now,
         );

@@ -16,7 +16,9 @@ pub enum MavlinkLink {
     /// Bind this address and answer whoever sends to it (the autopilot's address is learnt from
     /// its packets), as MAVSDK's `udp://:14540` does with PX4 SITL.
     UdpIn(SocketAddr),
-    /// Send to this address from an ephemeral local port.
+    /// Send to this address, from `WriterConfig::local` when given (PX4 answers only the first
+    /// address that talked to it, so a writer that restarts must come back from the same port),
+    /// else from an ephemeral port.
     UdpOut(SocketAddr),
 }
 
@@ -93,6 +95,14 @@ pub enum ConfigError {
     OnboardTimeout,
     #[error("--sysid {0} must be 1..=255")]
     SysId(u32),
+    #[error("--autopilot-sysid {0} must be 1..=255")]
+    AutopilotSysId(u32),
+    #[error("--mavlink-local is only for udpout links (udpin binds its own address)")]
+    LocalWithUdpIn,
+}
+
+fn sysid(raw: u32) -> Option<u8> {
+    u8::try_from(raw).ok().filter(|s| *s != 0)
 }
 
 /// Everything one writer needs.
@@ -103,12 +113,28 @@ pub struct WriterConfig {
     /// The vehicle's NED origin in world ENU.
     pub home: Home,
     pub link: MavlinkLink,
+    /// The local address a `udpout` link sends from.
+    pub local: Option<SocketAddr>,
+    /// The autopilot's MAVLink system id: only its heartbeats and messages are taken.
+    pub autopilot_sysid: u8,
     /// SET_POSITION_TARGET_LOCAL_NED rate.
     pub stream_rate_hz: f64,
     /// No setpoint from the planner for this long → stream a hold.
     pub onboard_timeout: Duration,
-    /// Our MAVLink system id (PX4 SITL's MAVSDK convention is 245 for an onboard computer).
+    /// Our MAVLink system id. By default the autopilot's: PX4 tracks an onboard computer's
+    /// heartbeat only from its own system (MAVSDK's companion convention), with our component
+    /// 191 (MAV_COMP_ID_ONBOARD_COMPUTER).
     pub sysid: u8,
+}
+
+/// The writer's MAVLink identity and peer, as given on the command line.
+#[derive(Debug, Clone, Copy)]
+pub struct MavlinkIds {
+    pub link: MavlinkLink,
+    pub local: Option<SocketAddr>,
+    pub autopilot_sysid: u32,
+    /// `None`: the autopilot's.
+    pub sysid: Option<u32>,
 }
 
 impl WriterConfig {
@@ -117,10 +143,9 @@ impl WriterConfig {
         swarm: SwarmId,
         drone: DroneId,
         home: Home,
-        link: MavlinkLink,
+        ids: MavlinkIds,
         stream_rate_hz: f64,
         onboard_timeout_ms: u64,
-        sysid: u32,
     ) -> Result<Self, ConfigError> {
         if !(MIN_STREAM_RATE_HZ..=MAX_STREAM_RATE_HZ).contains(&stream_rate_hz) {
             return Err(ConfigError::StreamRate(stream_rate_hz));
@@ -128,18 +153,25 @@ impl WriterConfig {
         if onboard_timeout_ms == 0 {
             return Err(ConfigError::OnboardTimeout);
         }
-        let sysid = u8::try_from(sysid)
-            .ok()
-            .filter(|s| *s != 0)
-            .ok_or(ConfigError::SysId(sysid))?;
+        let autopilot_sysid =
+            sysid(ids.autopilot_sysid).ok_or(ConfigError::AutopilotSysId(ids.autopilot_sysid))?;
+        let ours = match ids.sysid {
+            Some(raw) => sysid(raw).ok_or(ConfigError::SysId(raw))?,
+            None => autopilot_sysid,
+        };
+        if ids.local.is_some() && matches!(ids.link, MavlinkLink::UdpIn(_)) {
+            return Err(ConfigError::LocalWithUdpIn);
+        }
         Ok(WriterConfig {
             swarm,
             drone,
             home,
-            link,
+            link: ids.link,
+            local: ids.local,
+            autopilot_sysid,
             stream_rate_hz,
             onboard_timeout: Duration::from_millis(onboard_timeout_ms),
-            sysid,
+            sysid: ours,
         })
     }
 
@@ -178,7 +210,6 @@ mod tests {
             "udpin:127.0.0.1",
             "udpout:0.0.0.0:14540",
             "udpout:127.0.0.1:0",
-            "serial:/dev/ttyS0",
         ] {
             assert!(bad.parse::<MavlinkLink>().is_err(), "{bad:?} was accepted");
         }
@@ -197,17 +228,42 @@ mod tests {
 
     #[test]
     fn numbers_are_checked() {
-        let ok = |rate, timeout, sysid| {
+        let with = |rate, timeout, sysid: Option<u32>, autopilot_sysid, local| {
             WriterConfig::new(
                 SwarmId::new("s").map_err(|_| ConfigError::OnboardTimeout)?,
                 DroneId::new("alfa").map_err(|_| ConfigError::OnboardTimeout)?,
                 Home::new(Vec3::zeros()),
-                MavlinkLink::UdpIn(SocketAddr::from(([127, 0, 0, 1], 14540))),
+                MavlinkIds {
+                    link: MavlinkLink::UdpIn(SocketAddr::from(([127, 0, 0, 1], 14540))),
+                    local,
+                    autopilot_sysid,
+                    sysid,
+                },
                 rate,
                 timeout,
-                sysid,
             )
         };
+        let ok = |rate, timeout, sysid| with(rate, timeout, Some(sysid), 1, None);
+        assert_eq!(
+            with(50.0, 500, None, 3, None).map(|c| (c.sysid, c.autopilot_sysid)),
+            Ok((3, 3)),
+            "ours defaults to the autopilot's"
+        );
+        assert_eq!(
+            with(50.0, 500, None, 0, None).err(),
+            Some(ConfigError::AutopilotSysId(0))
+        );
+        assert_eq!(
+            with(
+                50.0,
+                500,
+                None,
+                1,
+                Some(SocketAddr::from(([127, 0, 0, 1], 1)))
+            )
+            .err(),
+            Some(ConfigError::LocalWithUdpIn)
+        );
         assert!(ok(50.0, 500, 245).is_ok());
         assert_eq!(
             ok(10.0, 500, 245).err(),

@@ -7,19 +7,21 @@
 //! vehicle state back.
 //!
 //! Pure parts, each unit-tested: [`convert`] (ENU → NED), [`reference`] (what to stream, holds),
-//! [`commands`] (the command state machine), [`vehicle`] (link loss, state), [`mav`] (framing).
+//! [`commands`] (the MAVLink command protocol), [`procedure`] (PX4's sequences around it:
+//! readiness and mode before arming, AMSL take-off, mode switches confirmed), [`vehicle`] (link loss, state), [`mav`] (framing).
 //! The shell in [`writer`] wires them to a UDP socket and the iceoryx2 ports.
 
 pub mod commands;
 pub mod config;
 pub mod convert;
 pub mod mav;
+pub mod procedure;
 pub mod ratelimit;
 pub mod reference;
 pub mod vehicle;
 pub mod writer;
 
-pub use config::{ConfigError, MavlinkLink, WriterConfig, parse_home};
+pub use config::{ConfigError, MavlinkIds, MavlinkLink, WriterConfig, parse_home};
 pub use writer::{RunSummary, run};
 
 use std::net::SocketAddr;

@@ -3,9 +3,10 @@
 use anyhow::Context;
 use clap::Parser;
 use std::io::IsTerminal;
+use std::net::SocketAddr;
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
-use tacos_px4::{MavlinkLink, WriterConfig, parse_home};
+use tacos_px4::{MavlinkIds, MavlinkLink, WriterConfig, parse_home};
 use tacos_shared::frames::Home;
 use tacos_shared::{DroneId, SwarmId};
 use tracing_subscriber::EnvFilter;
@@ -23,18 +24,28 @@ struct Args {
     /// The vehicle's home (its NED origin) in world ENU metres: X,Y,Z.
     #[arg(long, value_parser = parse_home, allow_hyphen_values = true)]
     home: Home,
-    /// udpin:ADDR (bind ADDR, answer the autopilot's address) or udpout:ADDR (send to ADDR).
+    /// udpin:ADDR (bind ADDR, answer the autopilot's address) or udpout:ADDR (send to ADDR;
+    /// for PX4 SITL instance i, udpout:127.0.0.1:14580+i with a fixed --mavlink-local).
     #[arg(long, default_value = "udpin:127.0.0.1:14540")]
     mavlink: MavlinkLink,
+    /// The local address an udpout link sends from. PX4 answers only the first address that
+    /// talked to it: a writer restarted on a new port would hear nothing.
+    #[arg(long)]
+    mavlink_local: Option<SocketAddr>,
+    /// The autopilot's MAVLink system id (PX4's MAV_SYS_ID; SITL instance i has i+1). Messages
+    /// of any other system are ignored.
+    #[arg(long, default_value_t = 1)]
+    autopilot_sysid: u32,
     /// SET_POSITION_TARGET_LOCAL_NED rate, Hz (20..=500).
     #[arg(long, default_value_t = 50.0)]
     stream_rate_hz: f64,
     /// No setpoint from the planner for this long → stream a hold at the last one.
     #[arg(long, default_value_t = 500)]
     onboard_timeout_ms: u64,
-    /// Our MAVLink system id.
-    #[arg(long, default_value_t = 245)]
-    sysid: u32,
+    /// Our MAVLink system id (component 191); by default the autopilot's, as PX4 expects of its
+    /// onboard computer.
+    #[arg(long)]
+    sysid: Option<u32>,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -51,10 +62,14 @@ fn main() -> anyhow::Result<()> {
         args.swarm,
         args.drone,
         args.home,
-        args.mavlink,
+        MavlinkIds {
+            link: args.mavlink,
+            local: args.mavlink_local,
+            autopilot_sysid: args.autopilot_sysid,
+            sysid: args.sysid,
+        },
         args.stream_rate_hz,
         args.onboard_timeout_ms,
-        args.sysid,
     )?;
 
     // SIGINT/SIGTERM set the flag the loops poll; a second one exits at once.

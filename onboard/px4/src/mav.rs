@@ -90,6 +90,8 @@ fn mav_cmd(command: u16) -> Option<MavCmd> {
         mav_cmd::NAV_TAKEOFF => MavCmd::MAV_CMD_NAV_TAKEOFF,
         mav_cmd::DO_SET_MODE => MavCmd::MAV_CMD_DO_SET_MODE,
         mav_cmd::COMPONENT_ARM_DISARM => MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+        mav_cmd::SET_MESSAGE_INTERVAL => MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
+        mav_cmd::REQUEST_MESSAGE => MavCmd::MAV_CMD_REQUEST_MESSAGE,
         _ => return None,
     })
 }
@@ -114,6 +116,15 @@ pub fn command_long(
         target_component,
         confirmation: cmd.confirmation,
     }))
+}
+
+/// The text of a STATUSTEXT (NUL-padded, at most 50 bytes); bytes that are not UTF-8 are
+/// replaced, never a panic.
+pub fn status_text(text: &[u8]) -> String {
+    let end = text.iter().position(|b| *b == 0).unwrap_or(text.len());
+    String::from_utf8_lossy(text.get(..end).unwrap_or_default())
+        .trim()
+        .to_owned()
 }
 
 /// The MAV_CMD number of a decoded command enum.
@@ -156,9 +167,7 @@ pub fn decode_datagram(bytes: &[u8]) -> Datagram {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::commands::command_long_for;
     use tacos_shared::Vec3;
-    use tacos_shared::ipc::CommandKind;
 
     #[test]
     fn our_frames_decode_back() {
@@ -171,7 +180,7 @@ mod tests {
         };
         let mut bytes = enc.encode(&heartbeat());
         bytes.extend(enc.encode(&set_position_target(&target, 1234, 1, 1)));
-        let arm = command_long_for(CommandKind::Arm, 0.0).and_then(|c| command_long(&c, 1, 1));
+        let arm = command_long(&CommandLong::arm(), 1, 1);
         assert!(arm.is_some());
         bytes.extend(arm.map(|m| enc.encode(&m)).unwrap_or_default());
         let d = decode_datagram(&bytes);
@@ -197,6 +206,29 @@ mod tests {
                 );
             }
             other => panic!("expected COMMAND_LONG, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn status_texts_are_read_up_to_their_padding() {
+        let mut raw = [0u8; 50];
+        raw[..13].copy_from_slice(b"Arming denied");
+        assert_eq!(status_text(&raw), "Arming denied");
+        assert_eq!(status_text(&[0xff, b'a']), "\u{fffd}a");
+        assert_eq!(
+            status_text(&[b'x'; 50]).len(),
+            50,
+            "a full buffer has no NUL"
+        );
+        for cmd in [
+            CommandLong::message_interval(32, 2e4),
+            CommandLong::request_message(33),
+        ] {
+            assert!(
+                command_long(&cmd, 1, 1).is_some(),
+                "{} is encodable",
+                cmd.command
+            );
         }
     }
 

@@ -9,14 +9,14 @@
 //!   on link changes, and at least every 200 ms).
 
 use crate::Px4Error;
-use crate::commands::{CommandEvent, CommandRunner};
 use crate::config::{MavlinkLink, WriterConfig};
 use crate::convert::to_ned;
 use crate::mav::{self, Datagram, Encoder};
+use crate::procedure::{ProcedureEvent, Procedures};
 use crate::ratelimit::RateLimit;
 use crate::reference::{ReferenceKeeper, Source};
 use crate::vehicle::{HeartbeatVerdict, LinkChange, VehicleTracker};
-use mavlink::dialects::common::{MavAutopilot, MavMessage};
+use mavlink::dialects::common::{MavAutopilot, MavMessage, MavSeverity};
 use std::io::ErrorKind;
 use std::net::{Ipv4Addr, Ipv6Addr, SocketAddr, UdpSocket};
 use std::sync::Mutex;
@@ -33,6 +33,15 @@ const RECV_TIMEOUT: Duration = Duration::from_millis(50);
 const STATE_PERIOD: Duration = Duration::from_millis(200);
 const HEARTBEAT_PERIOD: Duration = Duration::from_secs(1);
 const LOG_INTERVAL: Duration = Duration::from_secs(5);
+/// What the writer asks the autopilot to stream when the link comes up, and how often (µs):
+/// links in PX4's "normal" mode send LOCAL_POSITION_NED at 1 Hz unless asked, and the planner
+/// needs far more. (message id, interval)
+pub const STREAMS: [(u32, f32); 4] = [
+    (32, 20_000.0),     // LOCAL_POSITION_NED, 50 Hz
+    (33, 100_000.0),    // GLOBAL_POSITION_INT, 10 Hz: AMSL altitude and heading
+    (245, 200_000.0),   // EXTENDED_SYS_STATE, 5 Hz: landed state
+    (242, 1_000_000.0), // HOME_POSITION, 1 Hz
+];
 
 /// Counters of one run, returned when the writer stops.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -52,6 +61,10 @@ struct Shared {
     peer: Option<SocketAddr>,
     /// (MAV_CMD, MAV_RESULT) of COMMAND_ACKs not yet seen by the stream thread.
     acks: Vec<(u32, u8)>,
+    /// Warning-or-worse STATUSTEXTs not yet seen by the stream thread.
+    texts: Vec<String>,
+    /// The link came up and the stream thread has not asked for the streams yet.
+    request_streams: bool,
 }
 
 struct Ctx<'a> {
@@ -83,7 +96,10 @@ impl Ctx<'_> {
     }
 }
 
-fn open_socket(link: MavlinkLink) -> Result<(UdpSocket, Option<SocketAddr>), Px4Error> {
+fn open_socket(
+    link: MavlinkLink,
+    local: Option<SocketAddr>,
+) -> Result<(UdpSocket, Option<SocketAddr>), Px4Error> {
     let (bind, peer) = match link {
         MavlinkLink::UdpIn(addr) => (addr, None),
         MavlinkLink::UdpOut(addr) => {
@@ -92,7 +108,7 @@ fn open_socket(link: MavlinkLink) -> Result<(UdpSocket, Option<SocketAddr>), Px4
             } else {
                 SocketAddr::from((Ipv6Addr::UNSPECIFIED, 0))
             };
-            (any, Some(addr))
+            (local.unwrap_or(any), Some(addr))
         }
     };
     let socket = UdpSocket::bind(bind).map_err(|source| Px4Error::Bind { addr: bind, source })?;
@@ -105,20 +121,22 @@ fn open_socket(link: MavlinkLink) -> Result<(UdpSocket, Option<SocketAddr>), Px4
 /// Runs one writer until `shutdown` is set (or a fatal error). Binds the socket first, so a port
 /// in use fails at once.
 pub fn run(config: &WriterConfig, shutdown: &AtomicBool) -> Result<RunSummary, Px4Error> {
-    let (socket, peer) = open_socket(config.link)?;
+    let (socket, peer) = open_socket(config.link, config.local)?;
     let local = socket.local_addr().map_err(Px4Error::Socket)?;
     let node = IpcNode::new(&config.swarm, &config.drone)?;
     let ports = node.writer_ports()?;
     let epoch = Instant::now();
-    info!(%local, link = %config.link, home = ?config.home.enu, rate_hz = config.stream_rate_hz, "MAVLink writer up");
+    info!(%local, link = %config.link, autopilot_sysid = config.autopilot_sysid, sysid = config.sysid, home = ?config.home.enu, rate_hz = config.stream_rate_hz, "MAVLink writer up");
     let ctx = Ctx {
         config,
         socket,
         ports,
         shared: Mutex::new(Shared {
-            vehicle: VehicleTracker::new(config.home, epoch),
+            vehicle: VehicleTracker::new(config.home, epoch, config.autopilot_sysid),
             peer,
             acks: Vec::new(),
+            texts: Vec::new(),
+            request_streams: false,
         }),
         epoch,
         shutdown,
@@ -160,7 +178,7 @@ struct Stream<'a> {
     ctx: &'a Ctx<'a>,
     encoder: Encoder,
     keeper: ReferenceKeeper,
-    runner: CommandRunner,
+    procedures: Procedures,
     summary: RunSummary,
     last_source: Option<Source>,
     send_log: RateLimit,
@@ -187,7 +205,7 @@ impl Stream<'_> {
 
     fn publish_result(&mut self, result: CommandResultSample, now: Instant) {
         self.summary.commands_done += 1;
-        info!(seq = result.seq, kind = result.kind, outcome = ?result.outcome(), mav_result = result.mav_result, "command done");
+        info!(seq = result.seq, kind = result.kind, outcome = ?result.outcome(), mav_result = result.mav_result, reason = result.reason().unwrap_or(""), "command done");
         if let Err(e) = self.ctx.ports.publish_result(result)
             && let Some(skipped) = self.ipc_log.allow(now)
         {
@@ -226,7 +244,7 @@ impl Stream<'_> {
                         param = cmd.param,
                         "command received"
                     );
-                    if let Some(result) = self.runner.submit(cmd) {
+                    if let Some(result) = self.procedures.submit(cmd) {
                         self.publish_result(result, now);
                     }
                 }
@@ -246,6 +264,7 @@ impl Stream<'_> {
         peer: Option<SocketAddr>,
         target: Option<(u8, u8)>,
         view: Option<crate::reference::VehicleView>,
+        held_heading: Option<f64>,
     ) {
         let Some(reference) = self.keeper.current(now, view) else {
             return;
@@ -267,7 +286,9 @@ impl Stream<'_> {
         let (Some(peer), Some((sysid, compid))) = (peer, target) else {
             return;
         };
-        let ned = to_ned(&self.ctx.config.home, &reference.reference);
+        let mut ned = to_ned(&self.ctx.config.home, &reference.reference);
+        // No heading from the planner: hold PX4's own instead of letting it drift (NaN yaw).
+        ned.yaw = ned.yaw.or(held_heading);
         let boot_ms = now.saturating_duration_since(self.ctx.epoch).as_millis() as u32; // wraps after 49 days, as PX4's does
         let msg = mav::set_position_target(&ned, boot_ms, sysid, compid);
         if self.send(peer, &msg, now) {
@@ -282,7 +303,7 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
         ctx,
         encoder: Encoder::new(ctx.config.sysid),
         keeper: ReferenceKeeper::new(ctx.config.onboard_timeout),
-        runner: CommandRunner::new(),
+        procedures: Procedures::new(),
         summary: RunSummary::default(),
         last_source: None,
         send_log: RateLimit::new(LOG_INTERVAL),
@@ -296,32 +317,47 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
         let now = Instant::now();
         let fresh = s.drain_ipc(now);
 
-        let (acks, link_ok, target, view, peer) = {
+        let (acks, texts, request_streams, mut facts, target, view, peer, heading) = {
             let mut shared = ctx.shared();
             let acks = std::mem::take(&mut shared.acks);
+            let texts = std::mem::take(&mut shared.texts);
+            let request_streams = std::mem::take(&mut shared.request_streams);
             let ap = shared.vehicle.autopilot();
             (
                 acks,
-                shared.vehicle.link_ok(now),
+                texts,
+                request_streams,
+                shared.vehicle.facts(now),
                 ap.map(|a| (a.sysid, a.compid)),
                 shared.vehicle.view(),
                 shared.peer,
+                shared.vehicle.held_heading(),
             )
         };
-
+        facts.link_ok = facts.link_ok && peer.is_some() && target.is_some();
+        if request_streams {
+            for (message, interval_us) in STREAMS {
+                s.procedures.request_stream(message, interval_us);
+            }
+        }
+        for text in texts {
+            s.procedures.on_status_text(&text, now);
+        }
+        let mut events = Vec::new();
         for (command, result) in acks {
             let Ok(command) = u16::try_from(command) else {
                 continue;
             };
-            if let Some(done) = s.runner.on_ack(command, result, now) {
-                s.publish_result(done, now);
-            }
+            events.extend(s.procedures.on_ack(command, result, now, &facts));
         }
-        let reachable = link_ok && peer.is_some() && target.is_some();
-        for event in s.runner.poll(now, reachable) {
+        events.extend(s.procedures.poll(now, &facts));
+        for event in events {
             match event {
-                CommandEvent::Done(result) => s.publish_result(result, now),
-                CommandEvent::Send(cmd) => {
+                ProcedureEvent::Done(result) => s.publish_result(result, now),
+                ProcedureEvent::Internal { command, outcome } => {
+                    debug!(command, ?outcome, "writer's own command done");
+                }
+                ProcedureEvent::Send(cmd) => {
                     let (Some(peer), Some((sysid, compid))) = (peer, target) else {
                         continue;
                     };
@@ -348,7 +384,7 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
         }
 
         if fresh || now >= next_tick {
-            s.stream_setpoint(now, peer, target, view);
+            s.stream_setpoint(now, peer, target, view, heading);
             // A new setpoint restarts the period; a late tick does not cause a burst.
             next_tick = if fresh {
                 now + period
@@ -361,7 +397,7 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
         }
 
         let mut deadline = next_tick.min(next_heartbeat);
-        if let Some(d) = s.runner.next_deadline() {
+        if let Some(d) = s.procedures.next_deadline() {
             deadline = deadline.min(d);
         }
         let timeout = deadline.saturating_duration_since(Instant::now());
@@ -421,6 +457,7 @@ fn receive_loop(ctx: &Ctx<'_>) -> Result<(), Px4Error> {
             match shared.vehicle.update_link(now) {
                 Some(LinkChange::Up) => {
                     info!(autopilot = ?shared.vehicle.autopilot(), peer = ?shared.peer, "autopilot link up");
+                    shared.request_streams = true;
                     publish = true;
                 }
                 Some(LinkChange::Lost) => {
@@ -449,7 +486,10 @@ fn receive_loop(ctx: &Ctx<'_>) -> Result<(), Px4Error> {
     Ok(())
 }
 
-/// Applies one datagram to the shared state; true when a new position arrived.
+/// Applies one datagram to the shared state; true when a new position arrived. Only messages
+/// of the configured autopilot count; for `udpin` its address is learnt from its first
+/// heartbeat and kept: a heartbeat of the same system id from elsewhere is taken only after the
+/// link was lost (a restarted autopilot), never while the link is up.
 fn handle_datagram(
     ctx: &Ctx<'_>,
     datagram: Datagram,
@@ -460,19 +500,23 @@ fn handle_datagram(
     let mut position = false;
     let mut shared = ctx.shared();
     let udpin = matches!(ctx.config.link, MavlinkLink::UdpIn(_));
-    if udpin && shared.peer.is_none() && !datagram.messages.is_empty() {
-        info!(%from, "first MAVLink packet: replying to its sender");
-        shared.peer = Some(from);
-    }
     for (header, msg) in datagram.messages {
         let Ok(sysid) = u8::try_from(header.system_id) else {
             continue;
         };
         let compid = header.component_id;
+        let from_peer = shared.peer.is_none_or(|p| p == from);
         match msg {
             MavMessage::HEARTBEAT(hb) => {
                 if hb.autopilot == MavAutopilot::MAV_AUTOPILOT_INVALID {
                     continue; // a GCS or another companion computer
+                }
+                let relearn = udpin && !from_peer && !shared.vehicle.link_ok(now);
+                if !from_peer && !relearn {
+                    if let Some(skipped) = foreign_log.allow(now) {
+                        warn!(%from, sysid, skipped, "ignoring an autopilot heartbeat from another address while the link is up");
+                    }
+                    continue;
                 }
                 match shared.vehicle.on_heartbeat(
                     now,
@@ -480,10 +524,11 @@ fn handle_datagram(
                     compid,
                     hb.base_mode.bits(),
                     hb.custom_mode,
+                    hb.system_status as u8,
                 ) {
                     HeartbeatVerdict::Ours => {
                         if udpin && shared.peer != Some(from) {
-                            info!(%from, "autopilot heartbeats now come from a new address");
+                            info!(%from, "autopilot found: replying to its address");
                             shared.peer = Some(from);
                         }
                     }
@@ -497,21 +542,38 @@ fn handle_datagram(
                     }
                 }
             }
-            _ if !shared.vehicle.is_autopilot(sysid, compid) => {}
+            _ if !from_peer || !shared.vehicle.is_autopilot(sysid, compid) => {}
             MavMessage::LOCAL_POSITION_NED(p) => {
                 let ned = Vec3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
                 let vel = Vec3::new(f64::from(p.vx), f64::from(p.vy), f64::from(p.vz));
                 if ned.iter().chain(vel.iter()).all(|c| c.is_finite()) {
-                    shared.vehicle.on_local_position(ned, vel);
+                    shared.vehicle.on_local_position(ned, vel, now);
                     position = true;
                 }
+            }
+            MavMessage::GLOBAL_POSITION_INT(g) => {
+                shared.vehicle.on_global_position(g.alt, g.hdg, now)
             }
             MavMessage::EXTENDED_SYS_STATE(s) => {
                 shared.vehicle.on_extended_sys_state(s.landed_state as u8)
             }
-            MavMessage::COMMAND_ACK(ack) => shared
-                .acks
-                .push((mav::command_id(ack.command), ack.result as u8)),
+            MavMessage::STATUSTEXT(t) => {
+                let text = mav::status_text(&t.text[..]);
+                if (t.severity as u8) <= (MavSeverity::MAV_SEVERITY_WARNING as u8) {
+                    warn!(text, "autopilot says");
+                    shared.texts.push(text);
+                } else {
+                    info!(text, "autopilot says");
+                }
+            }
+            // An ack addressed to someone else (a ground station on the same link) is not ours.
+            MavMessage::COMMAND_ACK(ack)
+                if ack.target_system == 0 || ack.target_system == ctx.config.sysid =>
+            {
+                shared
+                    .acks
+                    .push((mav::command_id(ack.command), ack.result as u8))
+            }
             _ => {}
         }
     }

@@ -3,9 +3,12 @@
 #![allow(dead_code)] // each test file uses a different part of the kit
 
 use mavlink::dialects::common::{
-    COMMAND_ACK_DATA, HEARTBEAT_DATA, LOCAL_POSITION_NED_DATA, MavAutopilot, MavMessage,
-    MavModeFlag, MavResult, MavState, MavType,
+    COMMAND_ACK_DATA, GLOBAL_POSITION_INT_DATA, HEARTBEAT_DATA, LOCAL_POSITION_NED_DATA,
+    MavAutopilot, MavMessage, MavModeFlag, MavResult, MavState, MavType,
 };
+
+/// The fake's home altitude above mean sea level, as PX4 SIH's (489.4 m).
+pub const HOME_AMSL_M: f32 = 489.4;
 use mavlink::{MavHeader, MavlinkReader};
 use std::net::{SocketAddr, UdpSocket};
 use std::path::PathBuf;
@@ -139,8 +142,9 @@ struct Inner {
 }
 
 /// A minimal PX4 (system 1, component 1) on a real UDP socket, run by a background thread:
-/// heartbeats at 4 Hz (while enabled), positions at 10 Hz (when set), acks per policy, and a log
-/// of everything the writer sent.
+/// heartbeats at 4 Hz (while enabled), positions at 10 Hz (when set, with GLOBAL_POSITION_INT
+/// at PX4 SIH's AMSL altitude), acks per policy (a mode switch answered twice and applied, as
+/// PX4 does), and a log of everything the writer sent.
 pub struct FakeAutopilot {
     inner: Arc<Inner>,
     thread: Option<JoinHandle<()>>,
@@ -259,7 +263,7 @@ fn run_autopilot(inner: &Inner) {
     let boot = Instant::now();
     while !inner.stop.load(Ordering::Relaxed) {
         let now = Instant::now();
-        let (heartbeat, position) = {
+        let (heartbeat, position, global) = {
             let s = inner.state.lock().expect("autopilot state");
             let hb = (s.heartbeats && now >= next_heartbeat).then(|| {
                 let mut base = MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED;
@@ -271,7 +275,11 @@ fn run_autopilot(inner: &Inner) {
                     mavtype: MavType::MAV_TYPE_QUADROTOR,
                     autopilot: MavAutopilot::MAV_AUTOPILOT_PX4,
                     base_mode: base,
-                    system_status: MavState::MAV_STATE_STANDBY,
+                    system_status: if s.armed {
+                        MavState::MAV_STATE_ACTIVE
+                    } else {
+                        MavState::MAV_STATE_STANDBY
+                    },
                     mavlink_version: 3,
                 })
             });
@@ -289,11 +297,26 @@ fn run_autopilot(inner: &Inner) {
                         vz: 0.0,
                     })
                 });
-            (hb, pos)
+            let global = s
+                .position_ned
+                .filter(|_| now >= next_position)
+                .map(|[_, _, z]| {
+                    MavMessage::GLOBAL_POSITION_INT(GLOBAL_POSITION_INT_DATA {
+                        time_boot_ms: boot.elapsed().as_millis() as u32,
+                        alt: ((HOME_AMSL_M - z) * 1000.0) as i32,
+                        relative_alt: (-z * 1000.0) as i32,
+                        hdg: 9_000,
+                        ..Default::default()
+                    })
+                });
+            (hb, pos, global)
         };
         if let Some(hb) = heartbeat {
             send(&hb);
             next_heartbeat = now + Duration::from_millis(250);
+        }
+        if let Some(g) = global {
+            send(&g);
         }
         if let Some(p) = position {
             send(&p);
@@ -324,15 +347,32 @@ fn run_autopilot(inner: &Inner) {
                                 AckPolicy::Answer(r) => Some(r),
                             };
                             if let Some(result) = result {
-                                if result == MavResult::MAV_RESULT_ACCEPTED
-                                    && cmd.command as u32 == 400
-                                {
+                                let accepted = result == MavResult::MAV_RESULT_ACCEPTED;
+                                if accepted && cmd.command as u32 == 400 {
                                     s.armed = cmd.param1 == 1.0;
                                 }
-                                replies.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+                                let ack = MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
                                     command: cmd.command,
                                     result,
-                                }));
+                                    target_system: header.system_id as u8,
+                                    target_component: header.component_id,
+                                    ..Default::default()
+                                });
+                                if cmd.command as u32 == 176 {
+                                    // PX4's receiver accepts first; commander answers after.
+                                    if accepted {
+                                        s.custom_mode = ((cmd.param2 as u32) << 16)
+                                            | ((cmd.param3 as u32) << 24);
+                                    }
+                                    replies.push(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+                                        command: cmd.command,
+                                        result: MavResult::MAV_RESULT_ACCEPTED,
+                                        target_system: header.system_id as u8,
+                                        target_component: header.component_id,
+                                        ..Default::default()
+                                    }));
+                                }
+                                replies.push(ack);
                             }
                         }
                         s.received.push(Received { at, header, msg });
