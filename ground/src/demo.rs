@@ -40,6 +40,7 @@ pub struct DemoOptions {
     pub drones: usize,
     /// Simulated seconds per wall second while no model call is in flight.
     pub sim_speed: f64,
+    pub autopilot: crate::launch::AutopilotKind,
     /// Printed progress goes here (stdout in the binary).
     pub verbose: bool,
 }
@@ -88,6 +89,7 @@ pub async fn run_demo(
         opts.drones,
     )?;
     config.sim_speed = opts.sim_speed;
+    config.autopilot = opts.autopilot.clone();
     let logs = config.log_dir.display().to_string();
     let link = Arc::new(GroundLink::connect(&config.ground_bus()).await?);
     let mut stack = Stack::start(config)?;

@@ -6,6 +6,7 @@
 //! supervisor (which kills on drop), and shut down with SIGTERM then SIGKILL.
 
 mod forker;
+pub mod px4;
 
 use std::net::{TcpListener, UdpSocket};
 use std::path::{Path, PathBuf};
@@ -41,6 +42,8 @@ pub enum Role {
     Sitl,
     Writer,
     Onboard,
+    /// A PX4 SITL instance (with `--autopilot px4-sitl`).
+    Px4,
 }
 
 impl Role {
@@ -49,8 +52,58 @@ impl Role {
             Role::Sitl => "tacos-sitl",
             Role::Writer => "tacos-px4",
             Role::Onboard => "tacos-onboard",
+            Role::Px4 => "px4",
         }
     }
+}
+
+/// Which autopilot the drones fly on.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum AutopilotKind {
+    /// `tacos-sitl`'s own vehicles, the stand-in for PX4.
+    Sitl,
+    /// Real PX4 SITL instances (SIH) from this build folder; `tacos-sitl` runs only the world
+    /// (targets, detections, breach checks) and observes the vehicles on their GCS links.
+    Px4Sitl { dir: PathBuf },
+}
+
+/// `--autopilot` and `--px4-sitl`, as the demo and the tests take them.
+#[derive(Debug, Clone, clap::Args)]
+pub struct AutopilotArgs {
+    /// What the drones fly on: `sitl` (tacos-sitl's simulated vehicles) or `px4-sitl` (real
+    /// PX4 SITL instances with SIH, one per drone, at the map's pads; runs at real time).
+    #[arg(long, value_enum, default_value_t = AutopilotChoice::Sitl)]
+    pub autopilot: AutopilotChoice,
+    /// The PX4 SITL build folder (bin/px4, etc/); else $TACOS_PX4_SITL, else ../shared/px4-sitl.
+    #[arg(long)]
+    pub px4_sitl: Option<PathBuf>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum AutopilotChoice {
+    Sitl,
+    Px4Sitl,
+}
+
+impl AutopilotArgs {
+    /// The autopilot chosen, with PX4 SITL's folder found.
+    pub fn kind(&self) -> Result<AutopilotKind, LaunchError> {
+        match self.autopilot {
+            AutopilotChoice::Sitl => Ok(AutopilotKind::Sitl),
+            AutopilotChoice::Px4Sitl => Ok(AutopilotKind::Px4Sitl {
+                dir: px4::find_px4_sitl(self.px4_sitl.as_deref())?,
+            }),
+        }
+    }
+}
+
+/// How a child is started: the program and its surroundings.
+#[derive(Debug, Clone)]
+struct ChildSpec {
+    program: PathBuf,
+    args: Vec<String>,
+    cwd: Option<PathBuf>,
+    env: Vec<(String, String)>,
 }
 
 /// A child that ended, and how.
@@ -67,6 +120,8 @@ struct ChildHandle {
     drone: Option<DroneId>,
     pid: Option<u32>,
     running: bool,
+    /// How it was started, for [`Stack::restart`].
+    spec: ChildSpec,
 }
 
 #[derive(Debug, Clone)]
@@ -90,6 +145,7 @@ pub struct StackConfig {
     pub sitl_args: Vec<String>,
     /// Extra arguments for every tacos-onboard.
     pub onboard_args: Vec<String>,
+    pub autopilot: AutopilotKind,
 }
 
 impl StackConfig {
@@ -119,6 +175,7 @@ impl StackConfig {
             sim_speed: 1.0,
             sitl_args: Vec::new(),
             onboard_args: Vec::new(),
+            autopilot: AutopilotKind::Sitl,
         })
     }
 
@@ -244,6 +301,21 @@ impl Stack {
             )));
         }
 
+        let px4 = match &c.autopilot {
+            AutopilotKind::Sitl => None,
+            AutopilotKind::Px4Sitl { dir } => {
+                if c.sim_speed != 1.0 {
+                    return Err(LaunchError::Config(format!(
+                        "PX4 SITL runs at real time: the simulation speed must be 1, got {}",
+                        c.sim_speed
+                    )));
+                }
+                let bundle = px4::prepare(dir, &c.log_dir.join("px4"))?;
+                let base = px4::free_instance_base(c.drones)?;
+                Some((bundle, base))
+            }
+        };
+
         let mut sitl = vec![
             "--scenario".into(),
             c.scenario_arg.clone(),
@@ -256,21 +328,67 @@ impl Stack {
         ];
         bus(&mut sitl);
         sitl.extend(["--speed".into(), c.sim_speed.to_string()]);
+        if let Some((_, base)) = &px4 {
+            sitl.extend([
+                "--observe-px4-gcs-port".into(),
+                (px4::GCS_PORT + base).to_string(),
+                "--observe-px4-sysid".into(),
+                px4::sysid(*base).to_string(),
+            ]);
+        }
         sitl.extend(c.sitl_args.iter().cloned());
-        stack.spawn(Role::Sitl, None, sitl)?;
 
         for (i, slot) in c.scenario.drones.iter().take(c.drones).enumerate() {
             let home = format!("{},{},{}", slot.home.x, slot.home.y, slot.home.z);
-            let writer = vec![
+            let mut writer = vec![
                 "--swarm".into(),
                 c.swarm.to_string(),
                 "--drone".into(),
                 slot.id.to_string(),
                 "--home".into(),
                 home,
-                "--mavlink".into(),
-                format!("udpin:127.0.0.1:{}", c.mavlink_base_port as usize + i),
             ];
+            let local = format!("127.0.0.1:{}", c.mavlink_base_port as usize + i);
+            // The map's box becomes the autopilot's own geofence (breach: hold).
+            let (lo, hi) = (c.scenario.world.bounds.min, c.scenario.world.bounds.max);
+            writer.push(format!(
+                "--geofence={},{},{},{},{},{}",
+                lo.x, lo.y, lo.z, hi.x, hi.y, hi.z
+            ));
+            match &px4 {
+                None => writer.extend([
+                    "--mavlink".into(),
+                    format!("udpin:{local}"),
+                    "--autopilot-sysid".into(),
+                    (i + 1).to_string(),
+                ]),
+                Some((bundle, base)) => {
+                    let instance = base + i as u16;
+                    let launch = px4::instance(bundle, instance, &slot.home);
+                    std::fs::create_dir_all(&launch.cwd).map_err(|e| LaunchError::LogDir {
+                        dir: launch.cwd.display().to_string(),
+                        reason: e.to_string(),
+                    })?;
+                    stack.spawn_child(
+                        Role::Px4,
+                        Some(slot.id.clone()),
+                        ChildSpec {
+                            program: bundle.px4.clone(),
+                            args: launch.args,
+                            cwd: Some(launch.cwd),
+                            env: launch.env,
+                        },
+                    )?;
+                    writer.extend([
+                        "--mavlink".into(),
+                        format!("udpout:127.0.0.1:{}", px4::OFFBOARD_PORT + instance),
+                        "--mavlink-local".into(),
+                        local,
+                        "--autopilot-sysid".into(),
+                        px4::sysid(instance).to_string(),
+                    ]);
+                }
+            }
             stack.spawn(Role::Writer, Some(slot.id.clone()), writer)?;
             let mut onboard = vec![
                 "--drone".into(),
@@ -283,16 +401,33 @@ impl Stack {
             onboard.extend(c.onboard_args.iter().cloned());
             stack.spawn(Role::Onboard, Some(slot.id.clone()), onboard)?;
         }
+        // The world last: with PX4 it must be the first to talk to each GCS link.
+        stack.spawn(Role::Sitl, None, sitl)?;
         info!(drones = c.drones, logs = %c.log_dir.display(), hub = %c.hub_endpoint, "simulated swarm started");
         Ok(stack)
     }
 
-    /// Starts (or restarts) one process of the stack.
+    /// Starts (or restarts) one TACOS process of the stack.
     pub fn spawn(
         &mut self,
         role: Role,
         drone: Option<DroneId>,
         args: Vec<String>,
+    ) -> Result<(), LaunchError> {
+        let spec = ChildSpec {
+            program: self.config.bin_dir.join(role.binary()),
+            args,
+            cwd: None,
+            env: Vec::new(),
+        };
+        self.spawn_child(role, drone, spec)
+    }
+
+    fn spawn_child(
+        &mut self,
+        role: Role,
+        drone: Option<DroneId>,
+        spec: ChildSpec,
     ) -> Result<(), LaunchError> {
         let name = match &drone {
             Some(d) => format!("{}[{d}]", role.binary()),
@@ -315,9 +450,14 @@ impl Stack {
             name: name.clone(),
             reason: e.to_string(),
         })?;
-        let mut command = Command::new(self.config.bin_dir.join(role.binary()));
+        let handle_spec = spec.clone();
+        let mut command = Command::new(&spec.program);
+        if let Some(cwd) = &spec.cwd {
+            command.current_dir(cwd);
+        }
         command
-            .args(&args)
+            .args(&spec.args)
+            .envs(spec.env.iter().map(|(k, v)| (k, v)))
             .stdin(Stdio::null())
             .stdout(log)
             .stderr(log_err)
@@ -353,8 +493,31 @@ impl Stack {
             drone,
             pid,
             running: true,
+            spec: handle_spec,
         });
         Ok(())
+    }
+
+    /// Starts a process that exited (or was crashed) again, exactly as it was started before:
+    /// what a service manager's `Restart=` does.
+    pub fn restart(&mut self, role: Role, drone: Option<&DroneId>) -> Result<(), LaunchError> {
+        let spec = self
+            .children
+            .iter()
+            .find(|c| c.role == role && c.drone.as_ref() == drone)
+            .map(|c| c.spec.clone())
+            .ok_or_else(|| LaunchError::Config(format!("no {} to restart", role.binary())))?;
+        if self
+            .children
+            .iter()
+            .any(|c| c.running && c.role == role && c.drone.as_ref() == drone)
+        {
+            return Err(LaunchError::Config(format!(
+                "{} is still running",
+                role.binary()
+            )));
+        }
+        self.spawn_child(role, drone.cloned(), spec)
     }
 
     fn signal(&self, role: Role, drone: Option<&DroneId>, signal: i32) -> bool {

@@ -93,6 +93,8 @@ enum Cmd {
         /// much more often.
         #[arg(long, default_value_t = 1.0, value_parser = sim_speed)]
         sim_speed: f64,
+        #[command(flatten)]
+        autopilot: tacos_ground::launch::AutopilotArgs,
     },
     /// Run the paper's ablation: every mode × swarm size × run of a task, on simulated swarms.
     ///
@@ -242,8 +244,10 @@ fn run() -> anyhow::Result<()> {
                 llm,
                 log,
                 sim_speed,
+                autopilot,
             } => {
                 demo(DemoArgs {
+                    autopilot,
                     drones,
                     map,
                     no_llm,
@@ -400,6 +404,7 @@ fn plot(log: &std::path::Path, output: &std::path::Path, map: Option<&str>) -> a
 }
 
 struct DemoArgs {
+    autopilot: tacos_ground::launch::AutopilotArgs,
     drones: Option<usize>,
     map: String,
     no_llm: bool,
@@ -449,6 +454,7 @@ async fn demo(args: DemoArgs) -> anyhow::Result<()> {
         scenario,
         drones,
         sim_speed: args.sim_speed,
+        autopilot: args.autopilot.kind()?,
         verbose: true,
     };
     let interrupt = async {

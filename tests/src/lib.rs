@@ -196,3 +196,19 @@ where
         "policy test model".into()
     }
 }
+
+/// The PX4 SITL build for the tests that fly real PX4, or `None` (the test then returns early,
+/// having said how to get one). `$TACOS_PX4_SITL`, else `../shared/px4-sitl`; with `CI=true`
+/// a missing build is a failure, since CI always has one.
+pub fn px4_sitl_or_skip(test: &str) -> Option<std::path::PathBuf> {
+    match tacos_ground::launch::px4::find_px4_sitl(None) {
+        Ok(dir) => Some(dir),
+        Err(e) if std::env::var("CI").is_ok_and(|v| v == "true") => {
+            panic!("{test}: CI must fly real PX4, but {e}")
+        }
+        Err(e) => {
+            eprintln!("SKIPPED {test}: {e}");
+            None
+        }
+    }
+}

@@ -62,6 +62,60 @@ impl std::fmt::Display for MavlinkLink {
     }
 }
 
+/// Parses a geofence given as `MINX,MINY,MINZ,MAXX,MAXY,MAXZ` (world ENU metres).
+pub fn parse_geofence(raw: &str) -> Result<crate::setup::Geofence, ConfigError> {
+    let bad = |why: String| ConfigError::Geofence {
+        raw: raw.to_owned(),
+        reason: why,
+    };
+    let values: Vec<f64> = raw
+        .split(',')
+        .map(|p| {
+            p.trim()
+                .parse::<f64>()
+                .map_err(|e| bad(format!("{p:?}: {e}")))
+        })
+        .collect::<Result<_, _>>()?;
+    let [x0, y0, z0, x1, y1, z1] = values[..] else {
+        return Err(bad(format!("expected 6 numbers, got {}", values.len())));
+    };
+    if !values.iter().all(|v| v.is_finite()) || x0 >= x1 || y0 >= y1 || z0 >= z1 {
+        return Err(bad(
+            "each minimum must be finite and below its maximum".into()
+        ));
+    }
+    Ok(crate::setup::Geofence {
+        min: Vec3::new(x0, y0, z0),
+        max: Vec3::new(x1, y1, z1),
+    })
+}
+
+/// Parses `NAME=VALUE` for `--px4-param`.
+pub fn parse_param(raw: &str) -> Result<crate::params::ParamWant, ConfigError> {
+    let bad = |why: &str| ConfigError::Param {
+        raw: raw.to_owned(),
+        reason: why.to_owned(),
+    };
+    let (name, value) = raw
+        .split_once('=')
+        .ok_or_else(|| bad("expected NAME=VALUE"))?;
+    let name = name.trim();
+    if name.is_empty()
+        || name.len() > 16
+        || !name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_')
+    {
+        return Err(bad("a PX4 parameter name is 1 to 16 letters, digits or _"));
+    }
+    let value: f64 = value
+        .trim()
+        .parse()
+        .map_err(|_| bad("the value is not a number"))?;
+    if !value.is_finite() {
+        return Err(bad("the value is not finite"));
+    }
+    Ok(crate::params::ParamWant::set(name, value))
+}
+
 /// Parses a home given as `X,Y,Z` (world ENU metres).
 pub fn parse_home(raw: &str) -> Result<Home, ConfigError> {
     let bad = |why: String| ConfigError::Home {
@@ -89,6 +143,10 @@ pub enum ConfigError {
     Link { raw: String, reason: String },
     #[error("bad --home {raw:?}: {reason}")]
     Home { raw: String, reason: String },
+    #[error("bad --geofence {raw:?}: {reason}")]
+    Geofence { raw: String, reason: String },
+    #[error("bad --px4-param {raw:?}: {reason}")]
+    Param { raw: String, reason: String },
     #[error("--stream-rate-hz {0} is outside [{MIN_STREAM_RATE_HZ}, {MAX_STREAM_RATE_HZ}]")]
     StreamRate(f64),
     #[error("--onboard-timeout-ms must be at least 1")]
@@ -121,6 +179,13 @@ pub struct WriterConfig {
     pub stream_rate_hz: f64,
     /// No setpoint from the planner for this long → stream a hold.
     pub onboard_timeout: Duration,
+    /// The scenario's box, uploaded as PX4's geofence; `None`: no fence.
+    pub geofence: Option<crate::setup::Geofence>,
+    /// The autopilot parameters read and set at connect.
+    pub params: Vec<crate::params::ParamWant>,
+    /// Parameters and fence are set and confirmed before any arming (off only for an
+    /// autopilot configured by hand that lacks the parameter or mission protocol).
+    pub autopilot_setup: bool,
     /// Our MAVLink system id. By default the autopilot's: PX4 tracks an onboard computer's
     /// heartbeat only from its own system (MAVSDK's companion convention), with our component
     /// 191 (MAV_COMP_ID_ONBOARD_COMPUTER).
@@ -171,6 +236,9 @@ impl WriterConfig {
             autopilot_sysid,
             stream_rate_hz,
             onboard_timeout: Duration::from_millis(onboard_timeout_ms),
+            geofence: None,
+            params: crate::params::failsafe_defaults(),
+            autopilot_setup: true,
             sysid: ours,
         })
     }
@@ -212,6 +280,38 @@ mod tests {
             "udpout:127.0.0.1:0",
         ] {
             assert!(bad.parse::<MavlinkLink>().is_err(), "{bad:?} was accepted");
+        }
+    }
+
+    #[test]
+    fn geofences_and_params_parse() {
+        let g = parse_geofence("-10,-20,0,10,20,60");
+        assert_eq!(
+            g.map(|g| (g.min, g.max)),
+            Ok((Vec3::new(-10.0, -20.0, 0.0), Vec3::new(10.0, 20.0, 60.0)))
+        );
+        for bad in [
+            "",
+            "1,2,3,4,5",
+            "0,0,0,0,1,1",
+            "0,0,0,1,1,NaN",
+            "a,0,0,1,1,1",
+        ] {
+            assert!(parse_geofence(bad).is_err(), "{bad:?} was accepted");
+        }
+        assert_eq!(
+            parse_param("COM_OBL_RC_ACT=4"),
+            Ok(crate::params::ParamWant::set("COM_OBL_RC_ACT", 4.0))
+        );
+        for bad in [
+            "COM_OBL_RC_ACT",
+            "=1",
+            "A B=1",
+            "X=y",
+            "WAY_TOO_LONG_PARAM_NAME=1",
+            "X=inf",
+        ] {
+            assert!(parse_param(bad).is_err(), "{bad:?} was accepted");
         }
     }
 

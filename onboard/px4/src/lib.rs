@@ -14,10 +14,13 @@
 pub mod commands;
 pub mod config;
 pub mod convert;
+pub mod fence;
 pub mod mav;
+pub mod params;
 pub mod procedure;
 pub mod ratelimit;
 pub mod reference;
+pub mod setup;
 pub mod vehicle;
 pub mod writer;
 

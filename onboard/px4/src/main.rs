@@ -6,6 +6,9 @@ use std::io::IsTerminal;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
+use tacos_px4::config::{parse_geofence, parse_param};
+use tacos_px4::params::ParamWant;
+use tacos_px4::setup::Geofence;
 use tacos_px4::{MavlinkIds, MavlinkLink, WriterConfig, parse_home};
 use tacos_shared::frames::Home;
 use tacos_shared::{DroneId, SwarmId};
@@ -42,6 +45,18 @@ struct Args {
     /// No setpoint from the planner for this long → stream a hold at the last one.
     #[arg(long, default_value_t = 500)]
     onboard_timeout_ms: u64,
+    /// The world box to upload as PX4's geofence, MINX,MINY,MINZ,MAXX,MAXY,MAXZ (world ENU
+    /// metres; the launcher passes the scenario's bounds). Breach action: hold.
+    #[arg(long, value_parser = parse_geofence, allow_hyphen_values = true)]
+    geofence: Option<Geofence>,
+    /// A PX4 parameter to set at connect, NAME=VALUE (repeatable; on top of the failsafe
+    /// defaults: COM_OBL_RC_ACT=5, COM_OF_LOSS_T=1, NAV_DLL_ACT=0, COM_RCL_EXCEPT=4).
+    #[arg(long = "px4-param", value_parser = parse_param)]
+    px4_params: Vec<ParamWant>,
+    /// Do not read or set parameters or the geofence, and arm without them: only for an
+    /// autopilot configured by hand that lacks the parameter or mission protocol.
+    #[arg(long)]
+    no_autopilot_setup: bool,
     /// Our MAVLink system id (component 191); by default the autopilot's, as PX4 expects of its
     /// onboard computer.
     #[arg(long)]
@@ -71,6 +86,14 @@ fn main() -> anyhow::Result<()> {
         args.stream_rate_hz,
         args.onboard_timeout_ms,
     )?;
+
+    let mut config = config;
+    config.geofence = args.geofence;
+    config.autopilot_setup = !args.no_autopilot_setup;
+    for want in args.px4_params {
+        config.params.retain(|p| p.name != want.name);
+        config.params.push(want);
+    }
 
     // SIGINT/SIGTERM set the flag the loops poll; a second one exits at once.
     let shutdown = Arc::new(AtomicBool::new(false));

@@ -3,6 +3,9 @@
 
 use crate::commands::{CommandLong, mav_cmd};
 use crate::convert::{NedTarget, type_mask};
+use crate::fence::FenceRequest;
+use crate::params::ParamRequest;
+use crate::setup::SetupRequest;
 use mavlink::dialects::common::{
     COMMAND_LONG_DATA, HEARTBEAT_DATA, MavAutopilot, MavCmd, MavFrame, MavMessage, MavModeFlag,
     MavState, MavType, PositionTargetTypemask, SET_POSITION_TARGET_LOCAL_NED_DATA,
@@ -116,6 +119,103 @@ pub fn command_long(
         target_component,
         confirmation: cmd.confirmation,
     }))
+}
+
+fn param_id(name: &str) -> mavlink::types::CharArray<16> {
+    let mut id = [0u8; 16];
+    for (slot, byte) in id.iter_mut().zip(name.bytes()) {
+        *slot = byte;
+    }
+    mavlink::types::CharArray::new(id)
+}
+
+/// A parameter name as PARAM_VALUE carries it (NUL-padded, 16 bytes).
+pub fn param_name(id: &[u8]) -> String {
+    status_text(id)
+}
+
+/// The message for one setup step (parameters, geofence), addressed to the autopilot.
+pub fn setup_message(
+    request: &SetupRequest,
+    target_system: u8,
+    target_component: u8,
+) -> MavMessage {
+    use mavlink::dialects::common::{
+        MISSION_ACK_DATA, MISSION_COUNT_DATA, MISSION_ITEM_INT_DATA, MISSION_REQUEST_INT_DATA,
+        MISSION_REQUEST_LIST_DATA, MavMissionResult, MavMissionType, MavParamType,
+        PARAM_REQUEST_READ_DATA, PARAM_SET_DATA,
+    };
+    let fence = MavMissionType::MAV_MISSION_TYPE_FENCE;
+    match request {
+        SetupRequest::Param(ParamRequest::Read(name)) => {
+            MavMessage::PARAM_REQUEST_READ(PARAM_REQUEST_READ_DATA {
+                param_index: -1,
+                target_system,
+                target_component,
+                param_id: param_id(name),
+            })
+        }
+        SetupRequest::Param(ParamRequest::Set(name, value)) => {
+            let (param_value, param_type) = value.to_wire();
+            MavMessage::PARAM_SET(PARAM_SET_DATA {
+                param_value,
+                target_system,
+                target_component,
+                param_id: param_id(name),
+                param_type: if param_type == crate::params::TYPE_INT32 {
+                    MavParamType::MAV_PARAM_TYPE_INT32
+                } else {
+                    MavParamType::MAV_PARAM_TYPE_REAL32
+                },
+            })
+        }
+        SetupRequest::Fence(FenceRequest::Count(count)) => {
+            MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+                count: *count,
+                target_system,
+                target_component,
+                mission_type: fence,
+                opaque_id: 0,
+            })
+        }
+        SetupRequest::Fence(FenceRequest::Item { seq, count, vertex }) => {
+            MavMessage::MISSION_ITEM_INT(MISSION_ITEM_INT_DATA {
+                param1: f32::from(*count),
+                x: vertex.lat_e7,
+                y: vertex.lon_e7,
+                seq: *seq,
+                command: MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
+                target_system,
+                target_component,
+                frame: MavFrame::MAV_FRAME_GLOBAL,
+                autocontinue: 1,
+                mission_type: fence,
+                ..Default::default()
+            })
+        }
+        SetupRequest::Fence(FenceRequest::RequestList) => {
+            MavMessage::MISSION_REQUEST_LIST(MISSION_REQUEST_LIST_DATA {
+                target_system,
+                target_component,
+                mission_type: fence,
+            })
+        }
+        SetupRequest::Fence(FenceRequest::RequestItem(seq)) => {
+            MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA {
+                seq: *seq,
+                target_system,
+                target_component,
+                mission_type: fence,
+            })
+        }
+        SetupRequest::Fence(FenceRequest::Ack) => MavMessage::MISSION_ACK(MISSION_ACK_DATA {
+            target_system,
+            target_component,
+            mavtype: MavMissionResult::MAV_MISSION_ACCEPTED,
+            mission_type: fence,
+            opaque_id: 0,
+        }),
+    }
 }
 
 /// The text of a STATUSTEXT (NUL-padded, at most 50 bytes); bytes that are not UTF-8 are

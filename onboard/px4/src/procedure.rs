@@ -15,6 +15,7 @@
 //! The COMMAND_LONG protocol itself (acks, retries) is [`crate::commands::CommandRunner`]'s.
 
 use crate::commands::{AckOutcome, CommandEvent, CommandLong, CommandRunner, mav_cmd, mav_result};
+use crate::setup::SetupState;
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 use tacos_shared::ipc::{CommandKind, CommandOutcome, CommandResultSample, CommandSample};
@@ -95,8 +96,10 @@ struct Job {
 }
 
 /// Runs TACOS commands one at a time through their PX4 procedures.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub struct Procedures {
+    /// The failsafe parameters and the geofence: no arming before they are confirmed.
+    setup: SetupState,
     runner: CommandRunner,
     queue: VecDeque<(CommandSample, CommandKind)>,
     job: Option<Job>,
@@ -129,9 +132,29 @@ fn mav_result_name(code: u8) -> &'static str {
     }
 }
 
+impl Default for Procedures {
+    fn default() -> Self {
+        Procedures {
+            setup: SetupState::Pending,
+            runner: CommandRunner::default(),
+            queue: VecDeque::new(),
+            job: None,
+            internal: Vec::new(),
+            next_id: 0,
+            last_text: None,
+        }
+    }
+}
+
 impl Procedures {
+    /// Arming waits for [`Procedures::on_setup`] to say the autopilot is set up.
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// Where the autopilot's setup (parameters, geofence) stands.
+    pub fn on_setup(&mut self, state: SetupState) {
+        self.setup = state;
     }
 
     fn id(&mut self) -> u64 {
@@ -357,7 +380,10 @@ impl Procedures {
                 CommandKind::Hold => self.send(mode_command(Px4Mode::Hold), Then::Finish),
             },
             Step::WaitReady { until } => {
-                if facts.ready || facts.armed {
+                if let SetupState::Failed(why) = &self.setup {
+                    let why = format!("the autopilot could not be prepared for flight: {why}");
+                    self.finish_rejected(NO_MAV_RESULT, &why, events);
+                } else if facts.armed || (facts.ready && self.setup.allows_arming()) {
                     self.send(CommandLong::arm(), Then::Finish);
                 } else if !facts.link_ok {
                     self.finish(
@@ -367,10 +393,17 @@ impl Procedures {
                         events,
                     );
                 } else if now >= until {
-                    let why = format!(
-                        "the autopilot was not ready to arm after {} s (its pre-flight checks did not pass)",
-                        READY_TIMEOUT.as_secs()
-                    );
+                    let why = if self.setup.allows_arming() {
+                        format!(
+                            "the autopilot was not ready to arm after {} s (its pre-flight checks did not pass)",
+                            READY_TIMEOUT.as_secs()
+                        )
+                    } else {
+                        format!(
+                            "the autopilot's failsafe parameters and geofence were not confirmed within {} s",
+                            READY_TIMEOUT.as_secs()
+                        )
+                    };
                     self.finish_rejected(NO_MAV_RESULT, &why, events);
                 }
             }

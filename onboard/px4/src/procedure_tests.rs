@@ -2,6 +2,13 @@
 
 use super::*;
 
+/// Procedures whose autopilot setup is done (its own tests are in `setup`).
+fn ready_procedures() -> Procedures {
+    let mut p = Procedures::new();
+    p.on_setup(SetupState::Done);
+    p
+}
+
 fn at(t0: Instant, ms: u64) -> Instant {
     t0 + Duration::from_millis(ms)
 }
@@ -43,7 +50,7 @@ fn commands(events: &[ProcedureEvent]) -> Vec<u16> {
 #[test]
 fn arm_waits_for_the_preflight_checks_then_arms() {
     let t0 = Instant::now();
-    let mut p = Procedures::new();
+    let mut p = ready_procedures();
     assert!(
         p.submit(CommandSample::new(1, CommandKind::Arm, 0.0))
             .is_none()
@@ -70,7 +77,7 @@ fn arm_waits_for_the_preflight_checks_then_arms() {
 #[test]
 fn an_arm_never_ready_fails_in_px4s_words() {
     let t0 = Instant::now();
-    let mut p = Procedures::new();
+    let mut p = ready_procedures();
     p.submit(CommandSample::new(1, CommandKind::Arm, 0.0));
     let booting = facts(Px4Mode::Hold, false);
     p.poll(t0, &booting);
@@ -91,7 +98,7 @@ fn an_arm_never_ready_fails_in_px4s_words() {
 fn after_an_offboard_flight_the_arm_switches_to_hold_first() {
     // PX4 lands back in OFFBOARD with system_status 0 and refuses to arm there.
     let t0 = Instant::now();
-    let mut p = Procedures::new();
+    let mut p = ready_procedures();
     p.submit(CommandSample::new(2, CommandKind::Arm, 0.0));
     let landed = facts(Px4Mode::Offboard, false);
     let ev = p.poll(t0, &landed);
@@ -118,7 +125,7 @@ fn after_an_offboard_flight_the_arm_switches_to_hold_first() {
 #[test]
 fn take_off_sends_an_amsl_altitude() {
     let t0 = Instant::now();
-    let mut p = Procedures::new();
+    let mut p = ready_procedures();
     p.submit(CommandSample::new(3, CommandKind::Takeoff, 5.0));
     let mut armed = facts(Px4Mode::Hold, true);
     armed.armed = true;
@@ -137,7 +144,7 @@ fn take_off_sends_an_amsl_altitude() {
 #[test]
 fn take_off_asks_for_the_altitude_and_fails_clearly_without_it() {
     let t0 = Instant::now();
-    let mut p = Procedures::new();
+    let mut p = ready_procedures();
     p.submit(CommandSample::new(3, CommandKind::Takeoff, 5.0));
     let mut unknown = facts(Px4Mode::Hold, true);
     unknown.amsl_m = None;
@@ -171,7 +178,7 @@ fn take_off_asks_for_the_altitude_and_fails_clearly_without_it() {
 #[test]
 fn a_mode_switch_refused_in_the_second_ack_is_refused() {
     let t0 = Instant::now();
-    let mut p = Procedures::new();
+    let mut p = ready_procedures();
     p.submit(CommandSample::new(5, CommandKind::Offboard, 0.0));
     let hold = facts(Px4Mode::Hold, true);
     assert_eq!(commands(&p.poll(t0, &hold)), vec![176]);
@@ -201,7 +208,7 @@ fn a_mode_switch_refused_in_the_second_ack_is_refused() {
 #[test]
 fn a_mode_switch_is_done_when_the_heartbeat_shows_it_or_the_second_ack_accepts() {
     let t0 = Instant::now();
-    let mut p = Procedures::new();
+    let mut p = ready_procedures();
     p.submit(CommandSample::new(6, CommandKind::Offboard, 0.0));
     let hold = facts(Px4Mode::Hold, true);
     p.poll(t0, &hold);
@@ -244,7 +251,7 @@ fn a_mode_switch_is_done_when_the_heartbeat_shows_it_or_the_second_ack_accepts()
 #[test]
 fn a_refused_arm_carries_the_statustext_and_bad_commands_are_unsupported() {
     let t0 = Instant::now();
-    let mut p = Procedures::new();
+    let mut p = ready_procedures();
     p.submit(CommandSample::new(9, CommandKind::Arm, 0.0));
     let ready = facts(Px4Mode::Hold, true);
     p.poll(t0, &ready);
@@ -281,7 +288,7 @@ fn a_refused_arm_carries_the_statustext_and_bad_commands_are_unsupported() {
 #[test]
 fn commands_wait_for_each_other_and_a_lost_link_ends_them() {
     let t0 = Instant::now();
-    let mut p = Procedures::new();
+    let mut p = ready_procedures();
     p.submit(CommandSample::new(1, CommandKind::Arm, 0.0));
     p.submit(CommandSample::new(2, CommandKind::Land, 0.0));
     let booting = facts(Px4Mode::Hold, false);
@@ -303,4 +310,29 @@ fn commands_wait_for_each_other_and_a_lost_link_ends_them() {
             (2, Some(CommandOutcome::LinkLost))
         ]
     );
+}
+
+#[test]
+fn arming_waits_for_the_setup_and_a_failed_setup_refuses_with_its_reason() {
+    let t0 = Instant::now();
+    let mut p = Procedures::new();
+    p.submit(CommandSample::new(1, CommandKind::Arm, 0.0));
+    let ready = facts(Px4Mode::Hold, true);
+    assert!(
+        p.poll(t0, &ready).is_empty(),
+        "no arming before the failsafe parameters are set"
+    );
+    p.on_setup(SetupState::Done);
+    assert_eq!(commands(&p.poll(at(t0, 100), &ready)), vec![400]);
+
+    let mut p = Procedures::new();
+    p.submit(CommandSample::new(2, CommandKind::Arm, 0.0));
+    p.poll(t0, &ready);
+    p.on_setup(SetupState::Failed(
+        "parameter COM_OBL_RC_ACT was not set to 5".into(),
+    ));
+    let results = done(&p.poll(at(t0, 100), &ready));
+    assert_eq!(results.len(), 1);
+    let reason = results[0].reason().unwrap_or_default();
+    assert!(reason.contains("COM_OBL_RC_ACT"), "{reason}");
 }

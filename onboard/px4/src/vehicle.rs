@@ -5,6 +5,7 @@
 
 use crate::procedure::AutopilotFacts;
 use crate::reference::VehicleView;
+use crate::setup::GeoFix;
 use std::time::{Duration, Instant};
 use tacos_shared::Vec3;
 use tacos_shared::frames::{Home, ned_vector_to_enu};
@@ -82,6 +83,8 @@ pub struct VehicleTracker {
     amsl: Option<(f64, Instant)>,
     /// NED heading (radians from north, clockwise), when reported.
     heading: Option<f64>,
+    /// The last geodetic fix (lat, lon in degrees × 10⁷) with the world position at that time.
+    geo: Option<GeoFix>,
     /// The heading when PX4 entered OFFBOARD: held while it stays there.
     offboard_heading: Option<f64>,
     landed_state: Option<u8>,
@@ -105,6 +108,7 @@ impl VehicleTracker {
             position_at: None,
             amsl: None,
             heading: None,
+            geo: None,
             offboard_heading: None,
             landed_state: None,
         }
@@ -144,6 +148,26 @@ impl VehicleTracker {
         if hdg_cdeg != u16::MAX {
             self.heading = Some(f64::from(hdg_cdeg).to_radians() / 100.0);
         }
+    }
+
+    /// GLOBAL_POSITION_INT's latitude and longitude (degrees × 10⁷), paired with the world
+    /// position known now (none before the first LOCAL_POSITION_NED).
+    pub fn on_geodetic(&mut self, lat_e7: i32, lon_e7: i32) {
+        if lat_e7 == 0 && lon_e7 == 0 {
+            return; // no fix yet
+        }
+        if let Some((here, _)) = self.position {
+            self.geo = Some(GeoFix {
+                here,
+                lat_e7,
+                lon_e7,
+            });
+        }
+    }
+
+    /// Where the vehicle is on Earth and in the world, once both are known.
+    pub fn geo_fix(&self) -> Option<GeoFix> {
+        self.geo
     }
 
     /// The heading to stream when the planner gives none: the one PX4 had when it entered

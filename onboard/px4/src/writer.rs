@@ -15,8 +15,11 @@ use crate::mav::{self, Datagram, Encoder};
 use crate::procedure::{ProcedureEvent, Procedures};
 use crate::ratelimit::RateLimit;
 use crate::reference::{ReferenceKeeper, Source};
+use crate::setup::{AutopilotSetup, SetupMessage, SetupRequest, SetupState};
 use crate::vehicle::{HeartbeatVerdict, LinkChange, VehicleTracker};
-use mavlink::dialects::common::{MavAutopilot, MavMessage, MavSeverity};
+use mavlink::dialects::common::{MavAutopilot, MavMessage, MavMissionType, MavSeverity};
+
+const FENCE: MavMissionType = MavMissionType::MAV_MISSION_TYPE_FENCE;
 use std::io::ErrorKind;
 use std::net::{Ipv4Addr, Ipv6Addr, SocketAddr, UdpSocket};
 use std::sync::Mutex;
@@ -65,6 +68,8 @@ struct Shared {
     texts: Vec<String>,
     /// The link came up and the stream thread has not asked for the streams yet.
     request_streams: bool,
+    /// Parameter and fence messages for the stream thread's setup.
+    setup: Vec<SetupMessage>,
 }
 
 struct Ctx<'a> {
@@ -137,6 +142,7 @@ pub fn run(config: &WriterConfig, shutdown: &AtomicBool) -> Result<RunSummary, P
             acks: Vec::new(),
             texts: Vec::new(),
             request_streams: false,
+            setup: Vec::new(),
         }),
         epoch,
         shutdown,
@@ -179,6 +185,8 @@ struct Stream<'a> {
     encoder: Encoder,
     keeper: ReferenceKeeper,
     procedures: Procedures,
+    setup: AutopilotSetup,
+    setup_reported: SetupState,
     summary: RunSummary,
     last_source: Option<Source>,
     send_log: RateLimit,
@@ -201,6 +209,30 @@ impl Stream<'_> {
                 false
             }
         }
+    }
+
+    /// Logs each change of the setup's state (the parameters' values once done).
+    fn report_setup(&mut self) {
+        let state = self.setup.state();
+        if state == self.setup_reported {
+            return;
+        }
+        match &state {
+            SetupState::Done => {
+                for (name, before, after) in self.setup.report() {
+                    info!(name, before = ?before.map(|v| v.to_string()), after = ?after.map(|v| v.to_string()), "autopilot parameter");
+                }
+                info!(geofence = ?self.ctx.config.geofence, "autopilot set up: failsafe parameters and geofence confirmed");
+            }
+            SetupState::Failed(why) => {
+                warn!(why, "the autopilot could not be set up: arming is refused")
+            }
+            SetupState::Skipped => warn!(
+                "autopilot setup skipped (--no-autopilot-setup): its failsafes are as configured by hand"
+            ),
+            SetupState::Pending => {}
+        }
+        self.setup_reported = state;
     }
 
     fn publish_result(&mut self, result: CommandResultSample, now: Instant) {
@@ -304,6 +336,8 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
         encoder: Encoder::new(ctx.config.sysid),
         keeper: ReferenceKeeper::new(ctx.config.onboard_timeout),
         procedures: Procedures::new(),
+        setup: AutopilotSetup::skipped(),
+        setup_reported: SetupState::Skipped,
         summary: RunSummary::default(),
         last_source: None,
         send_log: RateLimit::new(LOG_INTERVAL),
@@ -317,11 +351,30 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
         let now = Instant::now();
         let fresh = s.drain_ipc(now);
 
+        let mut setup_out: Vec<SetupRequest> = Vec::new();
         let (acks, texts, request_streams, mut facts, target, view, peer, heading) = {
             let mut shared = ctx.shared();
             let acks = std::mem::take(&mut shared.acks);
             let texts = std::mem::take(&mut shared.texts);
             let request_streams = std::mem::take(&mut shared.request_streams);
+            let messages = std::mem::take(&mut shared.setup);
+            if request_streams {
+                // A new link (first contact, or an autopilot that rebooted): set it up anew.
+                s.setup = if ctx.config.autopilot_setup {
+                    AutopilotSetup::new(
+                        ctx.config.params.clone(),
+                        ctx.config.geofence,
+                        ctx.config.home.enu.z,
+                    )
+                } else {
+                    AutopilotSetup::skipped()
+                };
+            }
+            for message in messages {
+                let out = s.setup.on_message(message, now);
+                setup_out.extend(out);
+            }
+            setup_out.extend(s.setup.poll(now, shared.vehicle.geo_fix()));
             let ap = shared.vehicle.autopilot();
             (
                 acks,
@@ -343,6 +396,15 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
         for text in texts {
             s.procedures.on_status_text(&text, now);
         }
+        if let (Some(peer), Some((sysid, compid))) = (peer, target) {
+            for request in &setup_out {
+                debug!(?request, "autopilot setup");
+                let msg = mav::setup_message(request, sysid, compid);
+                s.send(peer, &msg, now);
+            }
+        }
+        s.report_setup();
+        s.procedures.on_setup(s.setup.state());
         let mut events = Vec::new();
         for (command, result) in acks {
             let Ok(command) = u16::try_from(command) else {
@@ -398,6 +460,9 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
 
         let mut deadline = next_tick.min(next_heartbeat);
         if let Some(d) = s.procedures.next_deadline() {
+            deadline = deadline.min(d);
+        }
+        if let Some(d) = s.setup.next_deadline() {
             deadline = deadline.min(d);
         }
         let timeout = deadline.saturating_duration_since(Instant::now());
@@ -552,7 +617,34 @@ fn handle_datagram(
                 }
             }
             MavMessage::GLOBAL_POSITION_INT(g) => {
-                shared.vehicle.on_global_position(g.alt, g.hdg, now)
+                shared.vehicle.on_global_position(g.alt, g.hdg, now);
+                shared.vehicle.on_geodetic(g.lat, g.lon);
+            }
+            MavMessage::PARAM_VALUE(p) => {
+                let value = crate::params::ParamValue::from_wire(p.param_value, p.param_type as u8);
+                if let Some(value) = value {
+                    let name = mav::param_name(&p.param_id[..]);
+                    shared.setup.push(SetupMessage::ParamValue { name, value });
+                }
+            }
+            MavMessage::MISSION_REQUEST_INT(r) if r.mission_type == FENCE => {
+                shared.setup.push(SetupMessage::FenceRequest(r.seq))
+            }
+            MavMessage::MISSION_ACK(a) if a.mission_type == FENCE => {
+                shared.setup.push(SetupMessage::FenceAck(a.mavtype as u8))
+            }
+            MavMessage::MISSION_COUNT(c) if c.mission_type == FENCE => {
+                shared.setup.push(SetupMessage::FenceCount(c.count))
+            }
+            MavMessage::MISSION_ITEM_INT(i) if i.mission_type == FENCE => {
+                shared.setup.push(SetupMessage::FenceItem {
+                    seq: i.seq,
+                    command: i.command as u16,
+                    vertex: crate::fence::Vertex {
+                        lat_e7: i.x,
+                        lon_e7: i.y,
+                    },
+                })
             }
             MavMessage::EXTENDED_SYS_STATE(s) => {
                 shared.vehicle.on_extended_sys_state(s.landed_state as u8)

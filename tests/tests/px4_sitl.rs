@@ -1,0 +1,212 @@
+//! Real PX4 (SITL with SIH) under the whole stack. The conformance scenario is written once and
+//! flown on both autopilots, `tacos-sitl` and PX4: they must show the same sequence. Checks are
+//! made on the simulator's truth, which with PX4 is what each vehicle reports on its own GCS
+//! link, independently of the writer that flies it.
+
+use std::time::Duration;
+use tacos_ground::demo::{DemoOptions, DemoPlan, run_demo};
+use tacos_ground::direct::{DirectError, run_actions};
+use tacos_ground::launch::{AutopilotKind, Role};
+use tacos_ground::safety::SafetyGate;
+use tacos_shared::action::Action;
+use tacos_shared::messages::FailureReason;
+use tacos_shared::px4_mode::Px4Mode;
+use tacos_shared::{DroneId, Vec3};
+use tacos_tests::{SimSwarm, all_ready, id, px4_sitl_or_skip, truth_until, vehicle};
+
+/// Time for one action (PX4 climbs at 1.5 m/s and lands at 0.7 m/s).
+const STEP: Duration = Duration::from_secs(90);
+
+/// What one scenario step showed: its name and what was seen, in words both autopilots share.
+type Observation = (&'static str, String);
+
+async fn act(sim: &SimSwarm, gate: &SafetyGate, drone: &DroneId, action: Action) -> String {
+    match run_actions(&sim.link, gate, &[(drone.clone(), action)], None, STEP).await {
+        Ok(()) => "done".into(),
+        Err(DirectError::Failed { reason, .. }) => format!("failed: {}", kind_of(&reason)),
+        Err(e) => format!("error: {e}"),
+    }
+}
+
+fn kind_of(reason: &FailureReason) -> &'static str {
+    match reason {
+        FailureReason::InvalidForMode(_) => "invalid for mode",
+        FailureReason::Rejected(_) => "rejected",
+        FailureReason::Unreachable(_) => "unreachable",
+        FailureReason::TimedOut => "timed out",
+        FailureReason::Preempted => "preempted",
+        FailureReason::AutopilotLinkLost => "link lost",
+        FailureReason::TargetLost(_) => "target lost",
+        FailureReason::Failsafe(_) => "failsafe",
+    }
+}
+
+/// Take-off, offboard goto, land, the mode after landing (a second take-off must work), a
+/// writer killed mid-air (the autopilot's configured failsafe: hold) and restarted, land.
+async fn conformance(autopilot: AutopilotKind, tag: &str) -> anyhow::Result<Vec<Observation>> {
+    let mut sim = SimSwarm::start_with(tag, "city", 1, |c| c.autopilot = autopilot).await?;
+    let result = conformance_steps(&mut sim).await;
+    if result.is_err() {
+        eprintln!("logs: {}", sim.stack.config.log_dir.display());
+    }
+    sim.stop().await;
+    result
+}
+
+async fn conformance_steps(sim: &mut SimSwarm) -> anyhow::Result<Vec<Observation>> {
+    let alfa = id("alfa");
+    let gate = SafetyGate::new(sim.scenario.clone());
+    let mut truth = sim.link.watch_truth().await?;
+    all_ready(sim, std::slice::from_ref(&alfa)).await?;
+    let home = sim
+        .scenario
+        .drone(&alfa)
+        .map(|s| s.home)
+        .unwrap_or_default();
+    let alt = sim.scenario.limits.takeoff_altitude;
+    let mut seen = Vec::new();
+
+    seen.push(("take off", act(sim, &gate, &alfa, Action::ArmTakeoff).await));
+    let t = truth_until(
+        &mut truth,
+        Duration::from_secs(10),
+        "alfa at take-off altitude",
+        |t| vehicle(t, &alfa).is_some_and(|v| v.armed && (v.position.z - home.z - alt).abs() < 1.0),
+    )
+    .await?;
+    let mode = vehicle(&t, &alfa).map(|v| Px4Mode::from_custom_mode(v.custom_mode));
+    seen.push(("mode after take-off", format!("{mode:?}")));
+
+    let goal = home + Vec3::new(5.0, 15.0, alt);
+    seen.push((
+        "goto",
+        act(sim, &gate, &alfa, Action::Goto { target: goal }).await,
+    ));
+    truth_until(
+        &mut truth,
+        Duration::from_secs(10),
+        "alfa at its goto point",
+        |t| vehicle(t, &alfa).is_some_and(|v| (v.position - goal).norm() < 1.0),
+    )
+    .await?;
+
+    seen.push(("land", act(sim, &gate, &alfa, Action::Land).await));
+    let t = truth_until(
+        &mut truth,
+        Duration::from_secs(15),
+        "alfa landed and disarmed",
+        |t| vehicle(t, &alfa).is_some_and(|v| v.landed && !v.armed),
+    )
+    .await?;
+    let mode = vehicle(&t, &alfa).map(|v| Px4Mode::from_custom_mode(v.custom_mode));
+    seen.push(("mode after landing", format!("{mode:?}")));
+
+    // PX4 is back in OFFBOARD after an offboard flight and refuses to arm there: the writer
+    // switches to Hold first.
+    all_ready(sim, std::slice::from_ref(&alfa)).await?;
+    seen.push((
+        "take off again",
+        act(sim, &gate, &alfa, Action::ArmTakeoff).await,
+    ));
+
+    // The writer dies mid-air: no setpoints, so the autopilot's offboard-loss failsafe holds it.
+    let before = truth
+        .borrow()
+        .as_ref()
+        .and_then(|t| vehicle(t, &alfa).map(|v| v.position));
+    let exit = sim.stack.crash(Role::Writer, Some(&alfa)).await;
+    anyhow::ensure!(exit.is_some(), "alfa's writer was not running");
+    tokio::time::sleep(Duration::from_secs(4)).await;
+    let t = truth.borrow().clone();
+    let after = t.as_ref().and_then(|t| vehicle(t, &alfa));
+    let held = match (before, after) {
+        (Some(b), Some(v)) => {
+            let mode = Px4Mode::from_custom_mode(v.custom_mode);
+            format!(
+                "armed {}, mode {mode:?}, moved under 1.5 m: {}",
+                v.armed,
+                (v.position - b).norm() < 1.5
+            )
+        }
+        _ => "no truth".into(),
+    };
+    seen.push(("writer killed", held));
+    sim.stack.restart(Role::Writer, Some(&alfa))?;
+    sim.link
+        .wait_for_drones(std::slice::from_ref(&alfa), Duration::from_secs(30), |s| {
+            s.autopilot_link
+        })
+        .await?;
+    seen.push((
+        "land after the writer came back",
+        act(sim, &gate, &alfa, Action::Land).await,
+    ));
+    truth_until(
+        &mut truth,
+        Duration::from_secs(15),
+        "alfa landed and disarmed",
+        |t| vehicle(t, &alfa).is_some_and(|v| v.landed && !v.armed),
+    )
+    .await?;
+    Ok(seen)
+}
+
+fn expected() -> Vec<Observation> {
+    vec![
+        ("take off", "done".into()),
+        (
+            "mode after take-off",
+            format!("{:?}", Some(Px4Mode::Offboard)),
+        ),
+        ("goto", "done".into()),
+        ("land", "done".into()),
+        (
+            "mode after landing",
+            format!("{:?}", Some(Px4Mode::Offboard)),
+        ),
+        ("take off again", "done".into()),
+        (
+            "writer killed",
+            format!(
+                "armed true, mode {:?}, moved under 1.5 m: true",
+                Px4Mode::Hold
+            ),
+        ),
+        ("land after the writer came back", "done".into()),
+    ]
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn conformance_on_the_stand_in() -> anyhow::Result<()> {
+    let seen = conformance(AutopilotKind::Sitl, "confsitl").await?;
+    assert_eq!(seen, expected());
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn conformance_on_real_px4() -> anyhow::Result<()> {
+    let Some(dir) = px4_sitl_or_skip("conformance_on_real_px4") else {
+        return Ok(());
+    };
+    let seen = conformance(AutopilotKind::Px4Sitl { dir }, "confpx4").await?;
+    assert_eq!(seen, expected());
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn three_drones_fly_the_fixed_pattern_on_real_px4() -> anyhow::Result<()> {
+    let Some(dir) = px4_sitl_or_skip("three_drones_fly_the_fixed_pattern_on_real_px4") else {
+        return Ok(());
+    };
+    let scenario = tacos_bus::load_scenario("city")?;
+    let opts = DemoOptions {
+        scenario_arg: "city".into(),
+        scenario,
+        drones: 3,
+        sim_speed: 1.0,
+        autopilot: AutopilotKind::Px4Sitl { dir },
+        verbose: true,
+    };
+    run_demo(opts, DemoPlan::Fixed, std::future::pending()).await?;
+    Ok(())
+}
