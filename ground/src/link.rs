@@ -57,6 +57,8 @@ struct Shared {
     /// Joins and departures only: rare, so a slow reader never misses one to lag.
     membership: broadcast::Sender<SwarmChange>,
     malformed_status: AtomicU64,
+    /// False while the ground plays dead (`set_heartbeat`).
+    heartbeat_on: std::sync::atomic::AtomicBool,
 }
 
 impl Shared {
@@ -122,6 +124,7 @@ impl GroundLink {
             changes,
             membership,
             malformed_status: AtomicU64::new(0),
+            heartbeat_on: std::sync::atomic::AtomicBool::new(true),
         });
         let mut tasks = Vec::new();
 
@@ -163,11 +166,15 @@ impl GroundLink {
 
         let hb_session = session.clone();
         let hb_key = keys.ground_heartbeat();
+        let hb_shared = shared.clone();
         tasks.push(tokio::spawn(async move {
             let mut tick = tokio::time::interval(HEARTBEAT_PERIOD);
             let mut counter = 0u64;
             loop {
                 tick.tick().await;
+                if !hb_shared.heartbeat_on.load(Ordering::Relaxed) {
+                    continue;
+                }
                 counter += 1;
                 if let Err(e) =
                     tacos_bus::put(&hb_session, &hb_key, &GroundHeartbeat { counter }, false).await
@@ -247,6 +254,12 @@ impl GroundLink {
     /// Drones joining and leaving the swarm.
     pub fn membership(&self) -> broadcast::Receiver<SwarmChange> {
         self.shared.membership.subscribe()
+    }
+
+    /// Stops (false) or resumes (true) the ground heartbeat, as a ground station that dies or
+    /// loses its network would: the drones' ground-silence failsafe is tested with it.
+    pub fn set_heartbeat(&self, on: bool) {
+        self.shared.heartbeat_on.store(on, Ordering::Relaxed);
     }
 
     pub fn malformed_status_count(&self) -> u64 {

@@ -67,15 +67,14 @@ async fn conformance_steps(sim: &mut SimSwarm) -> anyhow::Result<Vec<Observation
     let mut seen = Vec::new();
 
     seen.push(("take off", act(sim, &gate, &alfa, Action::ArmTakeoff).await));
-    let t = truth_until(
+    truth_until(
         &mut truth,
         Duration::from_secs(10),
         "alfa at take-off altitude",
         |t| vehicle(t, &alfa).is_some_and(|v| v.armed && (v.position.z - home.z - alt).abs() < 1.0),
     )
     .await?;
-    let mode = vehicle(&t, &alfa).map(|v| Px4Mode::from_custom_mode(v.custom_mode));
-    seen.push(("mode after take-off", format!("{mode:?}")));
+    seen.push(("mode after take-off", settled_mode(&mut truth, &alfa).await));
 
     let goal = home + Vec3::new(5.0, 15.0, alt);
     seen.push((
@@ -91,15 +90,14 @@ async fn conformance_steps(sim: &mut SimSwarm) -> anyhow::Result<Vec<Observation
     .await?;
 
     seen.push(("land", act(sim, &gate, &alfa, Action::Land).await));
-    let t = truth_until(
+    truth_until(
         &mut truth,
         Duration::from_secs(15),
         "alfa landed and disarmed",
         |t| vehicle(t, &alfa).is_some_and(|v| v.landed && !v.armed),
     )
     .await?;
-    let mode = vehicle(&t, &alfa).map(|v| Px4Mode::from_custom_mode(v.custom_mode));
-    seen.push(("mode after landing", format!("{mode:?}")));
+    seen.push(("mode after landing", settled_mode(&mut truth, &alfa).await));
 
     // PX4 is back in OFFBOARD after an offboard flight and refuses to arm there: the writer
     // switches to Hold first.
@@ -149,6 +147,32 @@ async fn conformance_steps(sim: &mut SimSwarm) -> anyhow::Result<Vec<Observation
     )
     .await?;
     Ok(seen)
+}
+
+type Truth = tokio::sync::watch::Receiver<Option<tacos_shared::messages::SimTruth>>;
+
+/// The mode the vehicle reports once its heartbeat (1 Hz) has caught up: unchanged for 2 s
+/// (within 8 s at most).
+async fn settled_mode(truth: &mut Truth, drone: &DroneId) -> String {
+    let mode_now = |truth: &Truth| {
+        truth
+            .borrow()
+            .as_ref()
+            .and_then(|t| vehicle(t, drone))
+            .map(|v| Px4Mode::from_custom_mode(v.custom_mode))
+    };
+    let mut last = mode_now(truth);
+    let mut since = tokio::time::Instant::now();
+    let deadline = since + Duration::from_secs(8);
+    while tokio::time::Instant::now() < deadline && since.elapsed() < Duration::from_secs(2) {
+        let _ = tokio::time::timeout(Duration::from_millis(200), truth.changed()).await;
+        let now = mode_now(truth);
+        if now != last {
+            last = now;
+            since = tokio::time::Instant::now();
+        }
+    }
+    format!("{last:?}")
 }
 
 fn expected() -> Vec<Observation> {
@@ -208,5 +232,74 @@ async fn three_drones_fly_the_fixed_pattern_on_real_px4() -> anyhow::Result<()> 
         verbose: true,
     };
     run_demo(opts, DemoPlan::Fixed, std::future::pending()).await?;
+    Ok(())
+}
+
+/// The fault table on real PX4: the onboard killed (the writer holds the last setpoint and PX4
+/// stays in OFFBOARD), then the ground silent (the drone holds, then lands by itself).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn faults_on_real_px4() -> anyhow::Result<()> {
+    let Some(dir) = px4_sitl_or_skip("faults_on_real_px4") else {
+        return Ok(());
+    };
+    let mut sim = SimSwarm::start_with("faultpx4", "city", 1, |c| {
+        c.autopilot = AutopilotKind::Px4Sitl { dir };
+        c.onboard_args = vec!["--failsafe-land-s".into(), "8".into()];
+    })
+    .await?;
+    let result = fault_steps(&mut sim).await;
+    if result.is_err() {
+        eprintln!("logs: {}", sim.stack.config.log_dir.display());
+    }
+    sim.stop().await;
+    result
+}
+
+async fn fault_steps(sim: &mut SimSwarm) -> anyhow::Result<()> {
+    let alfa = id("alfa");
+    let gate = SafetyGate::new(sim.scenario.clone());
+    let mut truth = sim.link.watch_truth().await?;
+    all_ready(sim, std::slice::from_ref(&alfa)).await?;
+    anyhow::ensure!(
+        act(sim, &gate, &alfa, Action::ArmTakeoff).await == "done",
+        "take-off"
+    );
+    let position = |truth: &Truth| {
+        truth
+            .borrow()
+            .as_ref()
+            .and_then(|t| vehicle(t, &alfa).cloned())
+    };
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let before = position(&truth).ok_or_else(|| anyhow::anyhow!("no truth"))?;
+
+    let exit = sim.stack.crash(Role::Onboard, Some(&alfa)).await;
+    anyhow::ensure!(exit.is_some(), "alfa's onboard was not running");
+    tokio::time::sleep(Duration::from_secs(4)).await;
+    let after = position(&truth).ok_or_else(|| anyhow::anyhow!("no truth"))?;
+    let drift = (after.position - before.position).norm();
+    let mode = Px4Mode::from_custom_mode(after.custom_mode);
+    anyhow::ensure!(
+        after.armed && mode == Px4Mode::Offboard && drift < 1.0,
+        "with its onboard dead the drone should hold in OFFBOARD: armed {}, {mode:?}, moved {drift:.2} m",
+        after.armed
+    );
+
+    sim.stack.restart(Role::Onboard, Some(&alfa))?;
+    sim.link
+        .wait_for_drones(std::slice::from_ref(&alfa), Duration::from_secs(30), |s| {
+            s.autopilot_link
+        })
+        .await?;
+    // The ground goes silent: hold after 3 s, land after 8 s.
+    sim.link.set_heartbeat(false);
+    truth_until(
+        &mut truth,
+        Duration::from_secs(60),
+        "alfa landed by its failsafe",
+        |t| vehicle(t, &alfa).is_some_and(|v| v.landed && !v.armed),
+    )
+    .await?;
+    sim.link.set_heartbeat(true);
     Ok(())
 }
