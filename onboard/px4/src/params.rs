@@ -280,9 +280,10 @@ mod tests {
 
     #[test]
     fn integers_travel_byte_for_byte_as_px4_sends_them() {
-        // Measured: PX4 SITL answers COM_OBL_RC_ACT = 5 with param_value 7.0e-45, type 6.
+        // Measured: PX4 SITL answers COM_OBL_RC_ACT = 5 with param_value 7.0e-45 (the bits of
+        // 5), type 6.
         assert_eq!(
-            ParamValue::from_wire(7.006_492e-45, TYPE_INT32),
+            ParamValue::from_wire(f32::from_bits(5), TYPE_INT32),
             Some(ParamValue::Int(5))
         );
         assert_eq!(ParamValue::Int(5).to_wire().1, TYPE_INT32);

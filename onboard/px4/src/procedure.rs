@@ -449,9 +449,13 @@ impl Procedures {
         }
     }
 
-    /// Advances waits and timeouts, starts queued commands.
-    pub fn poll(&mut self, now: Instant, facts: &AutopilotFacts) -> Vec<ProcedureEvent> {
-        let mut events = Vec::new();
+    /// The command protocol's sends, and the commands it ended.
+    fn poll_runner(
+        &mut self,
+        now: Instant,
+        facts: &AutopilotFacts,
+        events: &mut Vec<ProcedureEvent>,
+    ) {
         for event in self.runner.poll(now, facts.link_ok) {
             match event {
                 CommandEvent::Send(msg) => events.push(ProcedureEvent::Send(msg)),
@@ -461,6 +465,12 @@ impl Procedures {
                 }
             }
         }
+    }
+
+    /// Advances waits and timeouts, starts queued commands.
+    pub fn poll(&mut self, now: Instant, facts: &AutopilotFacts) -> Vec<ProcedureEvent> {
+        let mut events = Vec::new();
+        self.poll_runner(now, facts, &mut events);
         // Each pass either starts a job or leaves one waiting, so this ends.
         for _ in 0..=self.queue.len() {
             if self.job.is_none() {
@@ -481,15 +491,7 @@ impl Procedures {
             }
         }
         // Commands submitted just now go out in the same poll.
-        for event in self.runner.poll(now, facts.link_ok) {
-            match event {
-                CommandEvent::Send(msg) => events.push(ProcedureEvent::Send(msg)),
-                CommandEvent::Done { id, outcome } => {
-                    let done = self.on_command_done(id, outcome, now, facts);
-                    events.extend(done);
-                }
-            }
-        }
+        self.poll_runner(now, facts, &mut events);
         events
     }
 

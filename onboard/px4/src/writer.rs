@@ -337,7 +337,8 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
         keeper: ReferenceKeeper::new(ctx.config.onboard_timeout),
         procedures: Procedures::new(),
         setup: AutopilotSetup::skipped(),
-        setup_reported: SetupState::Skipped,
+        // Reported once the link is up: a skipped setup is warned about too.
+        setup_reported: SetupState::Pending,
         summary: RunSummary::default(),
         last_source: None,
         send_log: RateLimit::new(LOG_INTERVAL),
@@ -486,7 +487,11 @@ fn receive_loop(ctx: &Ctx<'_>) -> Result<(), Px4Error> {
     let mut last_state = Instant::now();
     let mut malformed_log = RateLimit::new(LOG_INTERVAL);
     let mut ipc_log = RateLimit::new(LOG_INTERVAL);
-    let mut foreign_log = RateLimit::new(Duration::from_secs(60));
+    // One limiter for each kind of stranger, so one cannot silence the other's warning.
+    let mut foreign_log = [
+        RateLimit::new(Duration::from_secs(60)),
+        RateLimit::new(Duration::from_secs(60)),
+    ];
     while !ctx.stopping() {
         let received = match ctx.socket.recv_from(&mut buf) {
             Ok((n, from)) => Some((n, from)),
@@ -560,7 +565,7 @@ fn handle_datagram(
     datagram: Datagram,
     from: SocketAddr,
     now: Instant,
-    foreign_log: &mut RateLimit,
+    foreign_log: &mut [RateLimit; 2],
 ) -> bool {
     let mut position = false;
     let mut shared = ctx.shared();
@@ -578,7 +583,7 @@ fn handle_datagram(
                 }
                 let relearn = udpin && !from_peer && !shared.vehicle.link_ok(now);
                 if !from_peer && !relearn {
-                    if let Some(skipped) = foreign_log.allow(now) {
+                    if let Some(skipped) = foreign_log[0].allow(now) {
                         warn!(%from, sysid, skipped, "ignoring an autopilot heartbeat from another address while the link is up");
                     }
                     continue;
@@ -598,7 +603,7 @@ fn handle_datagram(
                         }
                     }
                     HeartbeatVerdict::Foreign => {
-                        if let Some(skipped) = foreign_log.allow(now) {
+                        if let Some(skipped) = foreign_log[1].allow(now) {
                             debug!(
                                 sysid,
                                 compid, skipped, "ignoring a heartbeat from another system"

@@ -31,7 +31,14 @@ fn pymavlink_autopilot_accepts_everything_the_writer_sends() {
     let swarm = unique_swarm("pym");
     let node = IpcNode::new(&swarm, &drone()).expect("iceoryx2 node");
     let ports = node.onboard_ports().expect("onboard ports");
-    let writer = WriterProcess::start(&swarm, "100,-50,2", free_udp_port(), &[]);
+    // With the scenario's box as the geofence, as the launcher runs it: the pymavlink autopilot
+    // checks the parameter and mission protocols too.
+    let writer = WriterProcess::start(
+        &swarm,
+        "100,-50,2",
+        free_udp_port(),
+        &["--geofence=-100,-100,0,300,100,62"],
+    );
     let mut fake = Command::new(&python)
         .arg(&script)
         .args(["--writer", &format!("127.0.0.1:{}", writer.port)])
@@ -155,7 +162,29 @@ fn pymavlink_autopilot_accepts_everything_the_writer_sends() {
         serde_json::json!(["MAV_FRAME_LOCAL_NED"])
     );
     assert_eq!(summary["pymavlink_receive_errors"], serde_json::json!(0));
-    assert_eq!(summary["writer_ids"], serde_json::json!([[245, 191]]));
+    // Our system id is the autopilot's by default.
+    assert_eq!(summary["writer_ids"], serde_json::json!([[1, 191]]));
+    // The failsafe parameters and the fence's limit and action, as PX4 holds them (integers as
+    // integers: they travelled byte for byte).
+    assert_eq!(
+        summary["params"],
+        serde_json::json!({
+            "COM_OBL_RC_ACT": 5, "COM_OF_LOSS_T": 1.0, "NAV_DLL_ACT": 0, "COM_RCL_EXCEPT": 4,
+            "NAV_RCL_ACT": 2, "COM_RC_IN_MODE": 1, "GF_ACTION": 2, "GF_MAX_VER_DIST": 60.0,
+        })
+    );
+    assert_eq!(
+        summary["param_sets"],
+        serde_json::json!(["COM_OBL_RC_ACT", "COM_RCL_EXCEPT", "GF_MAX_VER_DIST"])
+    );
+    assert_eq!(summary["unknown_params"], serde_json::json!([]));
+    assert_eq!(
+        summary["fence_results"],
+        serde_json::json!([0]),
+        "fence accepted once"
+    );
+    assert_eq!(summary["fence"].as_array().map(Vec::len), Some(4));
+    assert_eq!(summary["fence_read_back"], serde_json::Value::Bool(true));
     assert!(
         summary["messages"]["SET_POSITION_TARGET_LOCAL_NED"]
             .as_u64()

@@ -4,7 +4,9 @@
 mod common;
 
 use common::*;
-use mavlink::dialects::common::{MavFrame, MavResult};
+use mavlink::dialects::common::{
+    MavFrame, MavMessage, MavMissionResult, MavMissionType, MavParamType, MavResult,
+};
 use std::process::Command;
 use std::time::{Duration, Instant};
 use tacos_ipc::{IpcNode, OnboardPorts};
@@ -27,11 +29,16 @@ impl Rig {
     /// Writer with home (100, -50, 2), a fake autopilot, and the planner's ports; returns once the
     /// writer publishes state with the link up.
     fn start(tag: &str) -> Rig {
+        Self::start_with(tag, &[], |_| {})
+    }
+
+    /// [`Rig::start`] with more writer arguments and the autopilot set up by `configure`.
+    fn start_with(tag: &str, extra: &[&str], configure: impl FnOnce(&mut ApState)) -> Rig {
         let swarm = unique_swarm(tag);
         let node = IpcNode::new(&swarm, &drone()).expect("iceoryx2 node");
         let ports = node.onboard_ports().expect("onboard ports");
-        let writer = WriterProcess::start(&swarm, "100,-50,2", free_udp_port(), &[]);
-        let autopilot = FakeAutopilot::start(writer.addr());
+        let writer = WriterProcess::start(&swarm, "100,-50,2", free_udp_port(), extra);
+        let autopilot = FakeAutopilot::start_configured(writer.addr(), 1, configure);
         let rig = Rig {
             writer,
             autopilot,
@@ -100,7 +107,9 @@ fn setpoints_stream_in_ned_at_rate_and_hold_when_the_planner_stops() {
         })
     });
     let (header, hb) = hb.unwrap_or_else(|| panic!("{}", rig.fail("no heartbeat from the writer")));
-    assert_eq!((header.system_id, header.component_id), (245, 191));
+    // By default our system id is the autopilot's (PX4 tracks its onboard computer's heartbeat
+    // only from its own system), with component 191.
+    assert_eq!((header.system_id, header.component_id), (1, 191));
     assert_eq!(
         hb.mavtype,
         mavlink::dialects::common::MavType::MAV_TYPE_ONBOARD_CONTROLLER
@@ -233,9 +242,12 @@ fn setpoints_stream_in_ned_at_rate_and_hold_when_the_planner_stops() {
 
 #[test]
 fn commands_are_acked_retried_and_timed_out() {
-    let rig = Rig::start("cmd");
+    let rig = Rig::start_with("cmd", &[], |ap| {
+        // On the ground at its origin: a take-off needs the vehicle's AMSL altitude.
+        ap.position_ned = Some([0.0, 0.0, 0.0]);
+    });
 
-    // Accepted.
+    // Accepted (once the failsafe parameters are set: the arm waits for them).
     rig.ports
         .send_command(CommandSample::new(1, CommandKind::Arm, 0.0))
         .expect("send command");
@@ -246,7 +258,9 @@ fn commands_are_acked_retried_and_timed_out() {
         (r.kind, r.outcome(), r.mav_result),
         (CommandKind::Arm as u32, Some(CommandOutcome::Accepted), 0)
     );
-    let arms = command_longs(&rig.autopilot.state());
+    // Already in Hold and ready (STANDBY): no mode switch first, one ARM.
+    assert!(commands_of(&rig.autopilot.state(), 176).is_empty());
+    let arms = commands_of(&rig.autopilot.state(), 400);
     assert_eq!(arms.len(), 1);
     let arm = &arms[0].1;
     assert_eq!(
@@ -282,7 +296,8 @@ fn commands_are_acked_retried_and_timed_out() {
 
     // Unanswered: three tries, one second apart, confirmation 0, 1, 2, then TimedOut.
     rig.autopilot.state().ack = AckPolicy::Ignore;
-    let before = command_longs(&rig.autopilot.state()).len();
+    let before = commands_of(&rig.autopilot.state(), 22).len();
+    assert_eq!(before, 0);
     let t0 = Instant::now();
     rig.ports
         .send_command(CommandSample::new(3, CommandKind::Takeoff, 10.0))
@@ -299,10 +314,13 @@ fn commands_are_acked_retried_and_timed_out() {
         took >= Duration::from_millis(2900) && took < Duration::from_millis(4000),
         "timed out after {took:?}"
     );
-    let tries: Vec<_> = command_longs(&rig.autopilot.state())
+    // Nothing but the take-off was sent meanwhile (the altitude was known: no request).
+    let since: Vec<_> = command_longs(&rig.autopilot.state())
         .into_iter()
-        .skip(before)
+        .filter(|(at, _)| *at >= t0)
         .collect();
+    let tries = commands_of(&rig.autopilot.state(), 22);
+    assert_eq!(since.len(), tries.len(), "{}", rig.fail("other commands"));
     assert_eq!(
         tries
             .iter()
@@ -310,8 +328,13 @@ fn commands_are_acked_retried_and_timed_out() {
             .collect::<Vec<_>>(),
         vec![0, 1, 2]
     );
+    // PX4's take-off altitude is AMSL: the vehicle's 489.4 m plus the 10 m asked for.
     for (_, c) in &tries {
-        assert_eq!((c.command as u32, c.param7), (22, 10.0));
+        assert!(
+            (c.param7 - (HOME_AMSL_M + 10.0)).abs() < 0.01,
+            "take-off param7 {}",
+            c.param7
+        );
     }
     for w in tries.windows(2) {
         let gap = w[1].0 - w[0].0;
@@ -543,8 +566,14 @@ fn udpout_sends_to_the_autopilot_from_an_ephemeral_port() {
     let socket = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
     let ap_addr = socket.local_addr().expect("addr");
     let autopilot = FakeAutopilot::listen(socket);
-    let writer =
-        WriterProcess::start_with_link(&swarm, "0,0,0", &format!("udpout:{ap_addr}"), 0, &[]);
+    // Our system id given explicitly this time.
+    let writer = WriterProcess::start_with_link(
+        &swarm,
+        "0,0,0",
+        &format!("udpout:{ap_addr}"),
+        0,
+        &["--sysid", "245"],
+    );
     let up = poll_until(START_TIMEOUT, || {
         ports
             .state
@@ -571,4 +600,280 @@ fn udpout_sends_to_the_autopilot_from_an_ephemeral_port() {
     });
     let sp = sp.unwrap_or_else(|| panic!("no setpoint over udpout; log:\n{}", writer.log_text()));
     assert_eq!((sp.x, sp.y, sp.z), (2.0, 1.0, -3.0));
+    let ids: std::collections::BTreeSet<_> = autopilot
+        .state()
+        .received
+        .iter()
+        .map(|r| (r.header.system_id, r.header.component_id))
+        .collect();
+    assert_eq!(ids, [(245, 191)].into_iter().collect(), "--sysid 245");
+}
+
+fn is_param(m: &MavMessage) -> bool {
+    matches!(
+        m,
+        MavMessage::PARAM_REQUEST_READ(_)
+            | MavMessage::PARAM_REQUEST_LIST(_)
+            | MavMessage::PARAM_SET(_)
+    )
+}
+
+fn is_arm(m: &MavMessage) -> bool {
+    matches!(m, MavMessage::COMMAND_LONG(c) if c.command as u32 == 400)
+}
+
+const FENCE: MavMissionType = MavMissionType::MAV_MISSION_TYPE_FENCE;
+
+#[test]
+fn the_autopilot_is_set_up_before_it_may_arm() {
+    // The box around home (100, -50, 2): 200 m west and east, 50 m south, 150 m north, up to
+    // 62 m (60 m above home).
+    // Left in OFFBOARD (as PX4 is after an offboard flight): the arm switches to Hold first.
+    let rig = Rig::start_with("setup", &["--geofence=-100,-100,0,300,100,62"], |ap| {
+        ap.position_ned = Some([0.0, 0.0, 0.0]);
+        ap.custom_mode = tacos_shared::px4_mode::Px4Mode::Offboard.custom_mode();
+    });
+    rig.ports
+        .send_command(CommandSample::new(1, CommandKind::Arm, 0.0))
+        .expect("send command");
+    let r = rig
+        .wait_result(Duration::from_secs(5), 1)
+        .unwrap_or_else(|| panic!("{}", rig.fail("no result for arm")));
+    assert_eq!(
+        r.outcome(),
+        Some(CommandOutcome::Accepted),
+        "{}",
+        rig.fail(r.reason().unwrap_or(""))
+    );
+    let ap = rig.autopilot.state();
+
+    // The failsafe parameters and the fence's altitude limit and action, in PX4's types.
+    use Param::{Int, Real};
+    for (name, want) in [
+        ("COM_OBL_RC_ACT", Int(5)),
+        ("COM_OF_LOSS_T", Real(1.0)),
+        ("NAV_DLL_ACT", Int(0)),
+        ("COM_RCL_EXCEPT", Int(4)),
+        ("NAV_RCL_ACT", Int(2)),
+        ("COM_RC_IN_MODE", Int(1)),
+        ("GF_ACTION", Int(2)),
+        ("GF_MAX_VER_DIST", Real(60.0)),
+    ] {
+        assert_eq!(ap.param(name), Some(want), "{name}");
+    }
+    // Only what differed from PX4's defaults was set, each in its parameter's type.
+    let sets: Vec<_> = ap
+        .received
+        .iter()
+        .filter_map(|r| match &r.msg {
+            MavMessage::PARAM_SET(p) => Some((
+                String::from_utf8_lossy(&p.param_id[..])
+                    .trim_end_matches('\0')
+                    .to_owned(),
+                p.param_type,
+            )),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(
+        sets,
+        vec![
+            (
+                "COM_OBL_RC_ACT".to_owned(),
+                MavParamType::MAV_PARAM_TYPE_INT32
+            ),
+            (
+                "COM_RCL_EXCEPT".to_owned(),
+                MavParamType::MAV_PARAM_TYPE_INT32
+            ),
+            (
+                "GF_MAX_VER_DIST".to_owned(),
+                MavParamType::MAV_PARAM_TYPE_REAL32
+            ),
+        ]
+    );
+
+    // The fence: one inclusion polygon of four vertices, accepted, around the vehicle.
+    assert_eq!(
+        ap.fence_results,
+        vec![MavMissionResult::MAV_MISSION_ACCEPTED]
+    );
+    assert_eq!(ap.fence.len(), 4);
+    for item in &ap.fence {
+        assert!(is_inclusion_vertex(item), "{item:?}");
+        assert_eq!(item.param1, 4.0, "vertex count");
+        assert_eq!(item.frame, MavFrame::MAV_FRAME_GLOBAL);
+    }
+    let v = ap.fence_vertices();
+    let lat_of = |north_m: f64| ORIGIN_LAT_E7 + (north_m / 111_319.49 * 1e7).round() as i32;
+    let lon_scale = 111_319.49 * (f64::from(ORIGIN_LAT_E7) / 1e7).to_radians().cos();
+    let lon_of = |east_m: f64| ORIGIN_LON_E7 + (east_m / lon_scale * 1e7).round() as i32;
+    let near = |a: i32, b: i32| (a - b).abs() <= 2;
+    let (min_lat, max_lat) = (v.iter().map(|p| p.0).min(), v.iter().map(|p| p.0).max());
+    let (min_lon, max_lon) = (v.iter().map(|p| p.1).min(), v.iter().map(|p| p.1).max());
+    assert!(
+        near(min_lat.unwrap_or(0), lat_of(-50.0)) && near(max_lat.unwrap_or(0), lat_of(150.0)),
+        "latitudes {v:?}"
+    );
+    assert!(
+        near(min_lon.unwrap_or(0), lon_of(-200.0)) && near(max_lon.unwrap_or(0), lon_of(200.0)),
+        "longitudes {v:?}"
+    );
+
+    // Read back (list, every item, closed by the writer's ack), and only then the arm.
+    let writer_sent =
+        |pred: &dyn Fn(&MavMessage) -> bool| ap.received.iter().filter(|r| pred(&r.msg)).count();
+    assert_eq!(
+        writer_sent(
+            &|m| matches!(m, MavMessage::MISSION_REQUEST_LIST(l) if l.mission_type == FENCE)
+        ),
+        1
+    );
+    assert_eq!(
+        writer_sent(
+            &|m| matches!(m, MavMessage::MISSION_REQUEST_INT(q) if q.mission_type == FENCE)
+        ),
+        4
+    );
+    let read_back_closed = last_at(
+        &ap,
+        |m| matches!(m, MavMessage::MISSION_ACK(a) if a.mission_type == FENCE),
+    );
+    let last_param = last_at(&ap, is_param);
+    let arm = first_at(&ap, is_arm);
+    assert!(
+        read_back_closed.is_some()
+            && last_param.is_some()
+            && arm > read_back_closed
+            && arm > last_param,
+        "{}",
+        rig.fail("armed before the setup was confirmed")
+    );
+    let hold = commands_of(&ap, 176);
+    assert_eq!(hold.len(), 1, "one switch to Hold");
+    assert_eq!((hold[0].1.param2, hold[0].1.param3), (4.0, 3.0));
+    assert!(arm.is_some_and(|arm| hold[0].0 < arm));
+    drop(ap);
+    assert!(rig.writer.log_text().contains("autopilot set up"));
+}
+
+#[test]
+fn without_the_parameter_protocol_arming_is_refused_unless_the_setup_is_skipped() {
+    let no_params = |ap: &mut ApState| ap.param_protocol = false;
+    let rig = Rig::start_with("noparam", &[], no_params);
+    rig.ports
+        .send_command(CommandSample::new(1, CommandKind::Arm, 0.0))
+        .expect("send command");
+    // Three tries of one second for the first parameter, then the refusal.
+    let r = rig
+        .wait_result(Duration::from_secs(6), 1)
+        .unwrap_or_else(|| panic!("{}", rig.fail("no result for arm")));
+    assert_eq!(r.outcome(), Some(CommandOutcome::Rejected));
+    let reason = r.reason().unwrap_or("").to_owned();
+    assert!(reason.contains("COM_OBL_RC_ACT"), "{reason}");
+    assert!(
+        commands_of(&rig.autopilot.state(), 400).is_empty(),
+        "an ARM was sent"
+    );
+    assert_eq!(
+        rig.autopilot
+            .state()
+            .received
+            .iter()
+            .filter(|r| is_param(&r.msg))
+            .count(),
+        3,
+        "asked three times"
+    );
+    drop(rig);
+
+    // `--no-autopilot-setup`: the same autopilot arms, and is not asked about parameters.
+    let rig = Rig::start_with("skip", &["--no-autopilot-setup"], no_params);
+    rig.ports
+        .send_command(CommandSample::new(1, CommandKind::Arm, 0.0))
+        .expect("send command");
+    let r = rig
+        .wait_result(Duration::from_secs(3), 1)
+        .unwrap_or_else(|| panic!("{}", rig.fail("no result for arm")));
+    assert_eq!(r.outcome(), Some(CommandOutcome::Accepted));
+    assert!(rig.autopilot.state().armed);
+    let ap = rig.autopilot.state();
+    assert!(
+        !ap.received.iter().any(|r| is_param(&r.msg)
+            || matches!(
+                r.msg,
+                MavMessage::MISSION_COUNT(_) | MavMessage::MISSION_REQUEST_LIST(_)
+            )),
+        "setup messages despite --no-autopilot-setup"
+    );
+}
+
+#[test]
+fn only_the_configured_autopilot_at_its_first_address_counts() {
+    let swarm = unique_swarm("pin");
+    let node = IpcNode::new(&swarm, &drone()).expect("iceoryx2 node");
+    let ports = node.onboard_ports().expect("onboard ports");
+    let writer = WriterProcess::start(
+        &swarm,
+        "0,0,0",
+        free_udp_port(),
+        &["--autopilot-sysid", "3"],
+    );
+    // System 1 talks first: not ours.
+    let other = FakeAutopilot::start_as(writer.addr(), 1);
+    std::thread::sleep(Duration::from_millis(600));
+    let ours = FakeAutopilot::start_as(writer.addr(), 3);
+    let up = poll_until(START_TIMEOUT, || {
+        ports
+            .state
+            .drain()
+            .ok()?
+            .into_iter()
+            .find(|s| s.link_ok == 1)
+    });
+    assert!(up.is_some(), "no link; log:\n{}", writer.log_text());
+    // Once the link is up, system 3 from another address is ignored: it claims to be armed in
+    // OFFBOARD, and the state must not follow it.
+    let impostor = FakeAutopilot::start_configured(writer.addr(), 3, |ap| {
+        ap.armed = true;
+        ap.custom_mode = tacos_shared::px4_mode::Px4Mode::Offboard.custom_mode();
+    });
+    ports
+        .send_command(CommandSample::new(1, CommandKind::Arm, 0.0))
+        .expect("send command");
+    let result = poll_until(Duration::from_secs(4), || {
+        ports.results.drain().ok()?.into_iter().find(|r| r.seq == 1)
+    });
+    assert_eq!(
+        result.and_then(|r| r.outcome()),
+        Some(CommandOutcome::Accepted),
+        "log:\n{}",
+        writer.log_text()
+    );
+    let t0 = Instant::now();
+    let mut modes = Vec::new();
+    poll_until(Duration::from_secs(3), || {
+        modes.extend(ports.state.drain().ok()?.into_iter().map(|s| s.mode()));
+        (t0.elapsed() >= Duration::from_millis(1200)).then_some(())
+    });
+    assert!(!modes.is_empty());
+    assert!(
+        modes
+            .iter()
+            .all(|m| *m == tacos_shared::px4_mode::Px4Mode::Hold),
+        "the impostor's mode got through: {modes:?}"
+    );
+    // Everything went to system 3 at its first address, as system 3, addressed to system 3.
+    let s = ours.state();
+    let arm = commands_of(&s, 400);
+    assert_eq!(arm.len(), 1);
+    assert_eq!((arm[0].1.target_system, arm[0].1.target_component), (3, 1));
+    assert!(s.received.iter().all(|r| r.header.system_id == 3));
+    assert!(s.armed);
+    drop(s);
+    assert!(other.state().received.is_empty(), "system 1 was talked to");
+    assert!(
+        impostor.state().received.is_empty(),
+        "the second address was talked to"
+    );
 }

@@ -1,6 +1,10 @@
-//! What one simulator run is made of: the scenario, how many vehicles, their ports, the speed.
+//! What one simulator run is made of: the scenario, how many vehicles, their ports, the speed,
+//! and how PX4-like the vehicles are set up.
 
 use crate::error::SitlError;
+use crate::geo::GeoOrigin;
+use crate::streams::LinkProfile;
+use crate::vehicle::DEFAULT_READINESS_DELAY;
 use tacos_bus::BusArgs;
 use tacos_shared::scenario::{DroneSlot, Scenario};
 
@@ -8,6 +12,60 @@ use tacos_shared::scenario::{DroneSlot, Scenario};
 pub const DEFAULT_MAVLINK_BASE_PORT: u16 = 14540;
 /// PX4 SITL instance i binds 14580+i locally.
 pub const DEFAULT_SITL_BASE_PORT: u16 = 14580;
+
+/// The longest readiness delay accepted (s).
+pub const MAX_READINESS_DELAY: f64 = 600.0;
+
+/// How the simulated PX4s are set up.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Px4Options {
+    /// Where world ENU (0, 0, 0) is on the Earth; altitudes are reported AMSL from it.
+    pub origin: GeoOrigin,
+    /// Seconds after start before a vehicle's health checks pass and it can arm.
+    pub readiness_delay_s: f64,
+    /// The default stream rates of every vehicle's link.
+    pub link_profile: LinkProfile,
+}
+
+impl Default for Px4Options {
+    fn default() -> Self {
+        Px4Options {
+            origin: GeoOrigin::default(),
+            readiness_delay_s: DEFAULT_READINESS_DELAY,
+            link_profile: LinkProfile::default(),
+        }
+    }
+}
+
+impl Px4Options {
+    pub fn validate(&self) -> Result<(), SitlError> {
+        if !self.origin.is_valid() {
+            return Err(SitlError::Config(format!(
+                "the geodetic origin {:?} is not a place on the Earth (|lat| <= 85, |lon| <= 180, \
+                 |amsl| <= 100 km)",
+                self.origin
+            )));
+        }
+        if !(self.readiness_delay_s.is_finite()
+            && (0.0..=MAX_READINESS_DELAY).contains(&self.readiness_delay_s))
+        {
+            return Err(SitlError::Config(format!(
+                "--readiness-delay must be in [0, {MAX_READINESS_DELAY}] s, got {}",
+                self.readiness_delay_s
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Real PX4 SITL vehicles to observe instead of simulating: drone slot i is PX4 instance
+/// (first) + i, read on its GCS link at 127.0.0.1:(`gcs_base_port` + i) with system id
+/// `first_sysid` + i.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ObservePx4 {
+    pub gcs_base_port: u16,
+    pub first_sysid: u8,
+}
 
 /// Everything [`crate::run`] needs; built by the binary from its flags, or by a test directly.
 #[derive(Debug, Clone)]
@@ -21,6 +79,9 @@ pub struct SitlConfig {
     pub sitl_base_port: u16,
     /// Sim seconds per wall second while no model call is in flight (see [`SitlConfig::rate`]).
     pub speed: f64,
+    pub px4: Px4Options,
+    /// With `Some`, no vehicle is simulated: the world observes these real ones.
+    pub observe: Option<ObservePx4>,
     pub bus: BusArgs,
 }
 
@@ -33,6 +94,8 @@ impl SitlConfig {
             mavlink_base_port: DEFAULT_MAVLINK_BASE_PORT,
             sitl_base_port: DEFAULT_SITL_BASE_PORT,
             speed: 1.0,
+            px4: Px4Options::default(),
+            observe: None,
             bus,
         }
     }
@@ -55,6 +118,7 @@ impl SitlConfig {
                 self.speed
             )));
         }
+        self.px4.validate()?;
         // MAVLink system ids are 1..=255 and vehicle i is system i + 1.
         if !(1..=255).contains(&self.drones) {
             return Err(SitlError::Config(format!(
@@ -139,6 +203,20 @@ mod tests {
         let mut c = config(3);
         c.sitl_base_port = u16::MAX;
         assert!(c.validate().is_err());
+        let mut c = config(3);
+        c.px4.readiness_delay_s = -1.0;
+        assert!(c.validate().is_err());
+        let mut c = config(3);
+        c.px4.origin.lat_deg = f64::NAN;
+        assert!(c.validate().is_err());
+    }
+
+    #[test]
+    fn px4_defaults_are_sihs() {
+        let c = config(1);
+        assert_eq!(c.px4.origin.amsl_m, 489.4);
+        assert_eq!(c.px4.readiness_delay_s, 2.0);
+        assert_eq!(c.px4.link_profile, LinkProfile::Onboard);
     }
 
     #[test]

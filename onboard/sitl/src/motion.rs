@@ -12,25 +12,41 @@ const POSITION_GAIN: f64 = 1.2;
 /// Velocity error → acceleration gain (1/s).
 const VELOCITY_GAIN: f64 = 4.0;
 
+/// PX4's `MPC_Z_VEL_MAX_UP`: the fastest climb (m/s).
+pub const MAX_CLIMB_SPEED: f64 = 3.0;
+/// PX4's `MPC_Z_VEL_MAX_DN`: the fastest descent (m/s).
+pub const MAX_DESCENT_SPEED: f64 = 1.5;
+
 /// The envelope of one vehicle.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MotionLimits {
     /// Bound on the norm of the velocity (m/s).
     pub max_speed: f64,
-    /// Bound on the vertical speed (m/s), up or down.
-    pub max_vertical_speed: f64,
+    /// Bound on the upward speed (m/s; NED z < 0).
+    pub max_climb_speed: f64,
+    /// Bound on the downward speed (m/s; NED z > 0).
+    pub max_descent_speed: f64,
     /// Bound on the norm of the acceleration (m/s²).
     pub max_accel: f64,
 }
 
 impl MotionLimits {
-    /// The scenario's limits, with the vertical speed at half the horizontal as PX4's defaults
-    /// roughly have it.
+    /// The scenario's limits, with PX4's default vertical speeds (3 m/s up, 1.5 m/s down)
+    /// within the scenario's speed bound.
     pub fn from_scenario(max_speed: f64, max_accel: f64) -> Self {
         MotionLimits {
             max_speed,
-            max_vertical_speed: max_speed / 2.0,
+            max_climb_speed: MAX_CLIMB_SPEED.min(max_speed),
+            max_descent_speed: MAX_DESCENT_SPEED.min(max_speed),
             max_accel,
+        }
+    }
+
+    /// The same envelope with the climb capped at `speed` (PX4's `MPC_TKO_SPEED` in take-off).
+    pub fn with_climb_at_most(self, speed: f64) -> Self {
+        MotionLimits {
+            max_climb_speed: self.max_climb_speed.min(speed),
+            ..self
         }
     }
 
@@ -39,7 +55,7 @@ impl MotionLimits {
     /// velocity farther than the step that produced it: the acceleration bound survives it.
     pub fn clamp_velocity(&self, v: Vec3) -> Vec3 {
         let mut v = v;
-        v.z = v.z.clamp(-self.max_vertical_speed, self.max_vertical_speed);
+        v.z = v.z.clamp(-self.max_climb_speed, self.max_descent_speed);
         clamp_norm(v, self.max_speed)
     }
 }
@@ -149,7 +165,8 @@ mod tests {
 
     const LIMITS: MotionLimits = MotionLimits {
         max_speed: 5.0,
-        max_vertical_speed: 2.5,
+        max_climb_speed: 3.0,
+        max_descent_speed: 1.5,
         max_accel: 3.0,
     };
     const DT: f64 = 0.01;
@@ -162,11 +179,34 @@ mod tests {
             let before = body.velocity;
             body.track(&Reference::hold(goal), &LIMITS, DT);
             assert!(body.velocity.norm() <= LIMITS.max_speed + 1e-9);
-            assert!(body.velocity.z.abs() <= LIMITS.max_vertical_speed + 1e-9);
+            assert!(body.velocity.z >= -LIMITS.max_climb_speed - 1e-9);
+            assert!(body.velocity.z <= LIMITS.max_descent_speed + 1e-9);
             assert!((body.velocity - before).norm() / DT <= LIMITS.max_accel + 1e-9);
         }
         assert!((body.position - goal).norm() < 0.05, "{:?}", body.position);
         assert!(body.velocity.norm() < 0.05);
+    }
+
+    #[test]
+    fn climbs_faster_than_it_descends() {
+        let limits = MotionLimits::from_scenario(8.0, 3.0);
+        assert_eq!(
+            (limits.max_climb_speed, limits.max_descent_speed),
+            (3.0, 1.5)
+        );
+        let slow = MotionLimits::from_scenario(1.0, 1.0);
+        assert_eq!((slow.max_climb_speed, slow.max_descent_speed), (1.0, 1.0));
+        let mut body = PointMass::at_rest(Vec3::zeros());
+        for _ in 0..500 {
+            body.track(&Reference::hold(Vec3::new(0.0, 0.0, -100.0)), &limits, DT);
+        }
+        assert!((body.velocity.z + 3.0).abs() < 1e-6, "{}", body.velocity.z);
+        for _ in 0..1000 {
+            body.track(&Reference::hold(Vec3::new(0.0, 0.0, 100.0)), &limits, DT);
+        }
+        assert!((body.velocity.z - 1.5).abs() < 1e-6, "{}", body.velocity.z);
+        let takeoff = limits.with_climb_at_most(1.5);
+        assert_eq!((takeoff.max_climb_speed, takeoff.max_speed), (1.5, 8.0));
     }
 
     #[test]

@@ -62,7 +62,9 @@ impl ObservedVehicle {
         match msg {
             MavMessage::HEARTBEAT(hb) if hb.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID => {
                 self.last_heartbeat = Some(now);
-                self.armed = hb.base_mode.contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED);
+                self.armed = hb
+                    .base_mode
+                    .contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED);
                 self.custom_mode = hb.custom_mode;
             }
             MavMessage::LOCAL_POSITION_NED(p) => {
@@ -89,7 +91,8 @@ impl ObservedVehicle {
     }
 
     pub fn velocity_enu(&self) -> Vec3 {
-        self.ned.map_or(Vec3::zeros(), |(_, v)| ned_vector_to_enu(&v))
+        self.ned
+            .map_or(Vec3::zeros(), |(_, v)| ned_vector_to_enu(&v))
     }
 
     pub fn landed(&self) -> bool {

@@ -6,10 +6,17 @@
 //! while the ground says a model call is in flight (`sim/pace`). It is published on
 //! `sim/clock` for the other processes of the run to follow (`--sim-clock`).
 
-use crate::config::SitlConfig;
+use crate::config::{ObservePx4, SitlConfig};
+use crate::observed::ObservedVehicle;
+use tacos_shared::frames::Home;
+
+/// The observer's MAVLink identity on the vehicles' GCS links (a ground station's).
+const GCS_SYSTEM_ID: u8 = 255;
+/// MAV_COMP_ID_MISSIONPLANNER.
+const GCS_COMPONENT_ID: u8 = 190;
 use crate::error::SitlError;
 use crate::link::{self, AUTOPILOT_COMPONENT, Handled};
-use crate::sim::Simulation;
+use crate::sim::{Response, Simulation};
 use mavlink::MavHeader;
 use mavlink::dialects::common::MavMessage;
 use serde::Serialize;
@@ -32,10 +39,8 @@ const TICK: Duration = Duration::from_millis(10);
 /// After a stall (a suspended process, a loaded machine), catch up at most this much wall time
 /// at once rather than jumping the vehicles.
 const MAX_CATCH_UP: f64 = 0.1;
-/// The periods below are simulated seconds: the telemetry keeps its rate in simulated time.
-const HEARTBEAT_PERIOD: f64 = 1.0;
-const LOCAL_POSITION_PERIOD: f64 = 0.02;
-const EXTENDED_SYS_STATE_PERIOD: f64 = 0.2;
+/// The periods below are simulated seconds, as are the MAVLink stream rates (`streams`): the
+/// telemetry keeps its rate in simulated time, at most one of each message per tick.
 const TARGETS_PERIOD: f64 = 0.05;
 const TRUTH_PERIOD: f64 = 0.1;
 /// How often `sim/clock` is published (wall clock), besides at every change of rate.
@@ -50,6 +55,10 @@ pub async fn run(config: SitlConfig, shutdown: impl Future<Output = ()>) -> Resu
     let slots = config.validate()?.to_vec();
     let mut links = Vec::with_capacity(slots.len());
     for (i, slot) in slots.iter().enumerate() {
+        if let Some(observe) = config.observe {
+            links.push(observer_link(slot, i, observe).await?);
+            continue;
+        }
         let local = SocketAddr::from((Ipv4Addr::LOCALHOST, config.sitl_port(i)));
         let socket = UdpSocket::bind(local)
             .await
@@ -61,17 +70,35 @@ pub async fn run(config: SitlConfig, shutdown: impl Future<Output = ()>) -> Resu
         links.push(VehicleLink {
             socket: Arc::new(socket),
             peer: SocketAddr::from((Ipv4Addr::LOCALHOST, config.mavlink_port(i))),
+            peer_locked: false,
             local,
             system_id: u32::try_from(i + 1).unwrap_or(u32::MAX),
+            component_id: AUTOPILOT_COMPONENT,
             sequence: 0,
-            last_state: None,
         });
     }
     let session = config.bus.open().await?;
     let keys = config.bus.keys();
     let faults = tacos_bus::subscribe(&session, &keys.sim_faults()).await?;
     let pace = tacos_bus::subscribe_latest(&session, &keys.sim_pace(), 4).await?;
-    let mut sim = Simulation::new(&config.scenario, &slots);
+    let mut sim = match config.observe {
+        None => Simulation::with_px4(&config.scenario, &slots, &config.px4),
+        Some(observe) => Simulation::observing(
+            &config.scenario,
+            slots
+                .iter()
+                .zip(0u8..)
+                .map(|(slot, i)| {
+                    ObservedVehicle::new(
+                        slot.id.clone(),
+                        Home::new(slot.home),
+                        observe.first_sysid.saturating_add(i),
+                    )
+                })
+                .collect(),
+        ),
+    };
+    let mut next_gcs_heartbeat = 0.0;
 
     let (tx, mut rx) = mpsc::channel::<Datagram>(1024);
     let mut receivers = JoinSet::new();
@@ -90,6 +117,9 @@ pub async fn run(config: SitlConfig, shutdown: impl Future<Output = ()>) -> Resu
         scenario = %config.scenario.name,
         swarm = %config.bus.swarm,
         speed = config.speed,
+        readiness_delay_s = config.px4.readiness_delay_s,
+        origin_amsl_m = config.px4.origin.amsl_m,
+        link_profile = %config.px4.link_profile,
         "all {} vehicles up: {}",
         links.len(),
         ports.join(", ")
@@ -106,9 +136,6 @@ pub async fn run(config: SitlConfig, shutdown: impl Future<Output = ()>) -> Resu
     // Simulated time on the Unix scale starts at the wall clock, so stamps look like times.
     let epoch_unix = wall_unix() - sim.time();
     let start = sim.time();
-    let mut heartbeat = Every::new(HEARTBEAT_PERIOD, start);
-    let mut local_position = Every::new(LOCAL_POSITION_PERIOD, start);
-    let mut sys_state = Every::new(EXTENDED_SYS_STATE_PERIOD, start);
     let mut targets = Every::new(TARGETS_PERIOD, start);
     let mut truth = Every::new(TRUTH_PERIOD, start);
     let clock_key = keys.sim_clock();
@@ -124,7 +151,11 @@ pub async fn run(config: SitlConfig, shutdown: impl Future<Output = ()>) -> Resu
         tokio::select! {
             () = &mut shutdown => break,
             Some(datagram) = rx.recv() => {
-                if let Some(link) = links.get_mut(datagram.vehicle) {
+                if config.observe.is_some() {
+                    for (header, message) in link::decode_datagram(&datagram.bytes).0 {
+                        sim.observe(datagram.vehicle, &header, &message);
+                    }
+                } else if let Some(link) = links.get_mut(datagram.vehicle) {
                     on_datagram(&mut sim, link, datagram);
                 }
             }
@@ -182,9 +213,21 @@ pub async fn run(config: SitlConfig, shutdown: impl Future<Output = ()>) -> Resu
                     let anchor = SimClock { sim_unix_s: epoch_unix + t, wall_unix_s: wall_unix(), rate };
                     shell.publish_urgent(&clock_key, &anchor).await;
                 }
-                let (hb, lp, ss) = (heartbeat.due(t), local_position.due(t), sys_state.due(t));
-                for (i, link) in links.iter_mut().enumerate() {
-                    send_telemetry(&sim, i, link, hb, lp, ss);
+                if config.observe.is_some() {
+                    // A ground station's heartbeat: PX4 streams its GCS link to the first
+                    // address that talks to it.
+                    if t >= next_gcs_heartbeat {
+                        next_gcs_heartbeat = t + 1.0;
+                        for link in &mut links {
+                            link.send(&crate::observed::gcs_heartbeat());
+                        }
+                    }
+                } else {
+                    for (i, link) in links.iter_mut().enumerate() {
+                        for message in sim.telemetry(i) {
+                            link.send(&message);
+                        }
+                    }
                 }
                 if targets.due(t) {
                     shell.publish(&targets_key, &sim.targets_message()).await;
@@ -249,21 +292,52 @@ async fn receive(vehicle: usize, socket: Arc<UdpSocket>, tx: mpsc::Sender<Datagr
 /// Vehicle i's end of its MAVLink link.
 struct VehicleLink {
     socket: Arc<UdpSocket>,
-    /// Where telemetry goes: the configured remote port until a packet arrives, then the source
-    /// of the latest packet (PX4 does the same).
+    /// Where everything goes, replies included: the configured remote port until a packet
+    /// arrives, then the source of that first packet for good. PX4 does the same
+    /// (`mavlink_receiver.cpp`: the client address is set once), so a client that comes back
+    /// from another port is not heard from again.
     peer: SocketAddr,
+    peer_locked: bool,
     local: SocketAddr,
     system_id: u32,
+    component_id: u8,
     sequence: u8,
-    /// (custom_mode, armed) in the last heartbeat, to send one at once when either changes.
-    last_state: Option<(u32, bool)>,
+}
+
+/// The observer's end of real vehicle `i`'s GCS link: an ephemeral local port talking to PX4's.
+async fn observer_link(
+    slot: &tacos_shared::scenario::DroneSlot,
+    i: usize,
+    observe: ObservePx4,
+) -> Result<VehicleLink, SitlError> {
+    let local = SocketAddr::from((Ipv4Addr::LOCALHOST, 0));
+    let socket = UdpSocket::bind(local)
+        .await
+        .map_err(|error| SitlError::Bind {
+            drone: slot.id.to_string(),
+            addr: local,
+            error,
+        })?;
+    let port = u16::try_from(i)
+        .ok()
+        .and_then(|i| observe.gcs_base_port.checked_add(i))
+        .ok_or_else(|| SitlError::Config(format!("no GCS port for vehicle {i}")))?;
+    Ok(VehicleLink {
+        local: socket.local_addr().unwrap_or(local),
+        socket: Arc::new(socket),
+        peer: SocketAddr::from((Ipv4Addr::LOCALHOST, port)),
+        peer_locked: true,
+        system_id: u32::from(GCS_SYSTEM_ID),
+        component_id: GCS_COMPONENT_ID,
+        sequence: 0,
+    })
 }
 
 impl VehicleLink {
     fn send(&mut self, message: &MavMessage) {
         let header = MavHeader {
             system_id: self.system_id,
-            component_id: AUTOPILOT_COMPONENT,
+            component_id: self.component_id,
             sequence: self.sequence,
         };
         self.sequence = self.sequence.wrapping_add(1);
@@ -283,7 +357,20 @@ fn on_datagram(sim: &mut Simulation, link: &mut VehicleLink, datagram: Datagram)
     if !sim.link_up(datagram.vehicle) {
         return;
     }
-    link.peer = datagram.from;
+    if !link.peer_locked {
+        link.peer_locked = true;
+        if link.peer != datagram.from {
+            info!(vehicle = datagram.vehicle, partner = %datagram.from, "MAVLink partner");
+        }
+        link.peer = datagram.from;
+    } else if datagram.from != link.peer {
+        debug!(
+            vehicle = datagram.vehicle,
+            from = %datagram.from,
+            partner = %link.peer,
+            "datagram from another address: answered at the first partner, as PX4 does"
+        );
+    }
     let (messages, bad) = link::decode_datagram(&datagram.bytes);
     if bad > 0 {
         debug!(
@@ -291,45 +378,26 @@ fn on_datagram(sim: &mut Simulation, link: &mut VehicleLink, datagram: Datagram)
             bad, "unparsable MAVLink frames skipped"
         );
     }
-    for (_, message) in messages {
-        if let Some(Handled::Command { command, result }) =
-            sim.handle_mavlink(datagram.vehicle, &message)
+    for (header, message) in messages {
+        let Some(Response { handled, replies }) =
+            sim.handle_mavlink(datagram.vehicle, &header, &message)
+        else {
+            continue;
+        };
+        if let Handled::Command {
+            command, results, ..
+        } = &handled
         {
             let drone = sim
                 .vehicles()
                 .get(datagram.vehicle)
                 .map(|v| v.id.to_string())
                 .unwrap_or_default();
-            info!(%drone, "{command:?} → {result:?}");
-            link.send(&link::command_ack(command, result));
+            info!(%drone, "{command:?} → {results:?}");
         }
-    }
-}
-
-fn send_telemetry(
-    sim: &Simulation,
-    i: usize,
-    link: &mut VehicleLink,
-    heartbeat: bool,
-    position: bool,
-    sys_state: bool,
-) {
-    if !sim.link_up(i) {
-        return;
-    }
-    let Some(v) = sim.vehicles().get(i).map(|v| &v.vehicle) else {
-        return;
-    };
-    let state = (v.custom_mode(), v.armed());
-    if heartbeat || link.last_state != Some(state) {
-        link.last_state = Some(state);
-        link.send(&link::heartbeat(v));
-    }
-    if position {
-        link.send(&link::local_position(v));
-    }
-    if sys_state {
-        link.send(&link::extended_sys_state(v));
+        for reply in &replies {
+            link.send(reply);
+        }
     }
 }
 

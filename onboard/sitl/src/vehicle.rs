@@ -1,54 +1,120 @@
-//! One simulated PX4 vehicle: arming, flight modes, the offboard rules, the land detector and the
-//! auto-disarm timers, driving a [`PointMass`]. Pure: time only advances through [`Vehicle::step`],
-//! and everything is in the vehicle's own local NED frame (origin at its home, ground at z = 0).
+//! One simulated PX4 vehicle: readiness, arming, flight modes, the offboard rules, the land
+//! detector and the auto-disarm timers, driving a [`PointMass`]. Pure: time only advances
+//! through [`Vehicle::step`], and everything is in the vehicle's own local NED frame (origin at
+//! its spawn point on the ground, z = 0; that point is `ground_amsl` metres above sea level).
 //!
-//! The PX4 behaviour reproduced (parameter names are PX4's):
-//! - `MAV_CMD_COMPONENT_ARM_DISARM`: disarming in the air is DENIED unless forced (param2 = 21196).
-//! - `MAV_CMD_NAV_TAKEOFF`: TEMPORARILY_REJECTED while disarmed; AUTO.TAKEOFF climbs, then AUTO.LOITER.
-//! - `MAV_CMD_NAV_LAND`: AUTO.LAND descends; once landed it disarms after `COM_DISARM_LAND` (2 s).
-//! - Armed on the ground without ever taking off: disarms after `COM_DISARM_PRFLT` (10 s).
-//! - OFFBOARD is only entered when setpoints have been streaming (> 2 Hz) for at least 1 s, and is
-//!   left for AUTO.LOITER when they stop for `COM_OF_LOSS_T` (1 s).
+//! The PX4 behaviour reproduced (measured on PX4 main SITL with SIH; parameter names are PX4's)
+//! is listed on [`commands`] for the commands and here for the rest:
+//! - Readiness: for `readiness_delay` seconds after boot the health checks fail ("Preflight Fail:
+//!   heading estimate invalid", repeated); then "Ready for takeoff!" once.
+//! - HEARTBEAT.system_status ([`Vehicle::system_status`]): UNINIT while it cannot arm in the
+//!   current mode, STANDBY when it can, ACTIVE when armed, CRITICAL in the offboard-loss failsafe.
+//! - Boots in AUTO.LOITER. After a disarm it returns to the last mode chosen by command that
+//!   does not prevent arming (PX4's `UserModeIntention`): after an offboard flight, OFFBOARD,
+//!   where it cannot arm again until setpoints stream or it is switched to AUTO.LOITER.
+//! - The offboard-loss failsafe, armed only: when setpoints stop for `COM_OF_LOSS_T` (default
+//!   1 s) in OFFBOARD, the vehicle does what `COM_OBL_RC_ACT` says ([`OffboardLossAction`]):
+//!   5 holds where it is (AUTO.LOITER), 4 lands where it is (AUTO.LAND), 0–3 return (AUTO.RTL:
+//!   0–2 are manual modes that need a remote control, which a simulated vehicle never has; PX4
+//!   with no RC returns for its default 0, see `deploy/README.md`).
+//!   The return is approximated: it flies at its current altitude straight to above home (no
+//!   climb to PX4's `RTL_RETURN_ALT`), then lands there. 6 (Terminate) and 7 (Disarm) stop the
+//!   motors. PX4's default is 0, so a vehicle nobody set up returns; the writer sets 5.
+//! - Parameters ([`crate::params`]) and the geofence ([`crate::fence`]) are read and written
+//!   over MAVLink as on PX4; of the parameters only the two above change the flight, and the
+//!   geofence is held, not enforced (nor are `GF_ACTION` and `GF_MAX_VER_DIST`).
+//! - Take-off climbs at `MPC_TKO_SPEED` (1.5 m/s) and ends within `NAV_MC_ALT_RAD` (0.8 m) of its
+//!   altitude, in AUTO.LOITER at that altitude. Vertical speeds 3 m/s up, 1.5 m/s down.
+//! - Landed: disarms after `COM_DISARM_LAND` (2 s), or `COM_DISARM_PRFLT` + `COM_SPOOLUP_TIME`
+//!   (11 s) after an arming that never left the ground. Home moves at every arming and touchdown.
 
+pub mod commands;
+#[cfg(test)]
+mod tests;
+
+use crate::fence::Geofence;
+use crate::geo::DEFAULT_ORIGIN_AMSL_M;
 use crate::motion::{MotionLimits, PointMass, Reference};
-use mavlink::dialects::common::{MavCmd, MavResult};
+use crate::params::{OffboardLossAction, Px4Params};
+use mavlink::dialects::common::{MavSeverity, MavState};
 use tacos_shared::Vec3;
-use tacos_shared::px4_mode::{self, Px4Mode};
+use tacos_shared::px4_mode::Px4Mode;
 use tacos_shared::scenario::FlightLimits;
 
 /// PX4's magic param2 that forces a disarm in the air.
 pub const FORCE_DISARM_MAGIC: f32 = 21196.0;
-/// `COM_OF_LOSS_T`: offboard setpoints older than this → leave offboard.
+/// `COM_OF_LOSS_T`'s default: offboard setpoints older than this → the offboard-loss failsafe.
 pub const OFFBOARD_LOSS_TIMEOUT: f64 = 1.0;
+/// AUTO.RTL: the return, flown at this height above home at the least (m).
+pub const RETURN_MIN_HEIGHT: f64 = 1.0;
+/// `NAV_ACC_RAD`-like: within this horizontal distance of home the return descends (m).
+pub const RETURN_ACCEPTANCE: f64 = 1.0;
+/// PX4's AUTO.RTL.
+pub const RETURN: Px4Mode = Px4Mode::Other {
+    main: tacos_shared::px4_mode::MAIN_AUTO,
+    sub: tacos_shared::px4_mode::AUTO_RTL,
+};
 /// Setpoints further apart than this do not count as a stream (the stream must exceed 2 Hz).
 pub const OFFBOARD_MAX_GAP: f64 = 0.5;
-/// How long setpoints must have been streaming before OFFBOARD is accepted.
+/// How long setpoints must have been streaming before an armed vehicle accepts OFFBOARD. PX4
+/// only wants the last one within `COM_OF_LOSS_T`; the stand-in is stricter on purpose.
 pub const OFFBOARD_MIN_STREAM: f64 = 1.0;
 /// `COM_DISARM_LAND`.
 pub const DISARM_AFTER_LANDING: f64 = 2.0;
-/// `COM_DISARM_PRFLT`.
-pub const DISARM_PREFLIGHT: f64 = 10.0;
-/// Takeoff is complete within this many metres of the takeoff altitude.
-pub const TAKEOFF_ACCEPTANCE: f64 = 0.1;
+/// `COM_DISARM_PRFLT` (10 s) + `COM_SPOOLUP_TIME` (1 s).
+pub const DISARM_PREFLIGHT: f64 = 11.0;
+/// `NAV_MC_ALT_RAD`: take-off is complete within this many metres of its altitude.
+pub const TAKEOFF_ACCEPTANCE: f64 = 0.8;
+/// `MPC_TKO_SPEED`: the climb rate of a take-off (m/s).
+pub const TAKEOFF_SPEED: f64 = 1.5;
+/// `MIS_TAKEOFF_ALT`: the take-off height when NAV_TAKEOFF gives no altitude (param7 NaN).
+pub const MIS_TAKEOFF_ALT: f64 = 2.5;
 /// `MPC_LAND_SPEED`, capped by the vehicle's vertical speed limit.
 pub const LAND_SPEED: f64 = 0.7;
+/// How long after boot the stand-in is not ready to arm, by default (PX4 SITL takes several
+/// seconds; kept short so tests stay fast).
+pub const DEFAULT_READINESS_DELAY: f64 = 2.0;
+/// How often "Preflight Fail: heading estimate invalid" repeats while not ready.
+pub const PREFLIGHT_TEXT_PERIOD: f64 = 1.0;
 /// Within this height above the ground, a vehicle that is not climbing has touched down.
 pub const GROUND_CONTACT: f64 = 0.02;
-/// A powered touchdown faster than this (m/s down, about twice `LAND_SPEED`) is a crash into
+/// A powered touchdown faster than this (m/s down, well above `LAND_SPEED`) is a crash into
 /// the ground, not a landing.
-pub const HARD_TOUCHDOWN_SPEED: f64 = 1.5;
+pub const HARD_TOUCHDOWN_SPEED: f64 = 1.0;
+/// Status texts kept for the link; older ones are dropped when nobody collects them.
+const MAX_PENDING_TEXTS: usize = 32;
 
 const GRAVITY: f64 = 9.81;
 /// A falling vehicle's terminal speed (m/s).
 const TERMINAL_SPEED: f64 = 25.0;
 
-/// A vehicle's tuning, from the scenario's limits.
+/// What PX4 says in STATUSTEXT (without the trailing tab PX4 puts on texts that also exist as
+/// events).
+pub mod text {
+    pub const HEADING_INVALID: &str = "Preflight Fail: heading estimate invalid";
+    pub const ARMING_DENIED: &str = "Arming denied: Resolve system health failures first";
+    pub const READY: &str = "Ready for takeoff!";
+    pub const ALREADY_HIGHER: &str = "Already higher than takeoff altitude";
+    pub const DISARMING_DENIED: &str = "Disarming denied: not landed";
+    pub const ARMED: &str = "Armed by external command";
+    pub const DISARMED: &str = "Disarmed by external command";
+    pub const DISARMED_LANDING: &str = "Disarmed by landing";
+    pub const DISARMED_PREFLIGHT: &str = "Disarmed by auto preflight disarming";
+    pub const TAKEOFF_DETECTED: &str = "Takeoff detected";
+    pub const LANDING_DETECTED: &str = "Landing detected";
+}
+
+/// A vehicle's tuning, from the scenario's limits, and where it stands.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct VehicleParams {
     pub limits: MotionLimits,
-    /// Used when a takeoff names no altitude (param7 NaN), like PX4's `MIS_TAKEOFF_ALT`.
-    pub takeoff_altitude: f64,
+    /// Height of a take-off that names no altitude (param7 NaN), PX4's `MIS_TAKEOFF_ALT`.
+    pub default_takeoff_height: f64,
     pub land_speed: f64,
+    /// Metres above mean sea level of the local origin (the spawn point, on the ground).
+    pub ground_amsl: f64,
+    /// Seconds after boot before the vehicle can arm.
+    pub readiness_delay: f64,
 }
 
 impl VehicleParams {
@@ -56,8 +122,10 @@ impl VehicleParams {
         let motion = MotionLimits::from_scenario(limits.max_speed, limits.max_accel);
         VehicleParams {
             limits: motion,
-            takeoff_altitude: limits.takeoff_altitude,
-            land_speed: LAND_SPEED.min(motion.max_vertical_speed),
+            default_takeoff_height: MIS_TAKEOFF_ALT,
+            land_speed: LAND_SPEED.min(motion.max_descent_speed),
+            ground_amsl: DEFAULT_ORIGIN_AMSL_M,
+            readiness_delay: DEFAULT_READINESS_DELAY,
         }
     }
 }
@@ -71,6 +139,13 @@ pub enum LandedState {
     Landing,
 }
 
+/// One STATUSTEXT.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StatusText {
+    pub severity: MavSeverity,
+    pub text: String,
+}
+
 #[derive(Debug, Clone)]
 pub struct Vehicle {
     params: VehicleParams,
@@ -79,12 +154,18 @@ pub struct Vehicle {
     body: PointMass,
     armed: bool,
     mode: Px4Mode,
+    /// The mode a disarm returns to (PX4's `_nav_state_after_disarming`).
+    mode_after_disarm: Px4Mode,
+    /// In the offboard-loss failsafe (holding although OFFBOARD was asked for).
+    failsafe: bool,
     landed: bool,
     alive: bool,
     /// Left the ground since it was last armed (selects which auto-disarm timer applies).
     flown_since_arming: bool,
     /// When the vehicle last became both armed and landed.
     armed_on_ground_since: f64,
+    /// Home in the local frame: set at every arming and every touchdown.
+    home: Vec3,
     /// Where AUTO.LOITER holds.
     hold_at: Vec3,
     /// Where AUTO.TAKEOFF climbs to.
@@ -94,14 +175,23 @@ pub struct Vehicle {
     setpoint: Option<Reference>,
     last_setpoint: Option<f64>,
     stream_since: Option<f64>,
+    announced_ready: bool,
+    next_preflight_text: f64,
+    texts: Vec<StatusText>,
     /// Set by a powered touchdown faster than `HARD_TOUCHDOWN_SPEED`; read (and cleared) by
     /// `take_ground_strike`.
     struck_ground: bool,
+    /// PX4's parameters (the few modelled).
+    px4: Px4Params,
+    geofence: Geofence,
+    /// AUTO.RTL: the altitude (local z) it flies back at, and whether it is descending yet.
+    return_z: f64,
+    return_landing: bool,
 }
 
 impl Vehicle {
-    /// A vehicle on the ground at its home, disarmed, in AUTO.LOITER (what PX4 boots into
-    /// without a remote control).
+    /// A vehicle on the ground at its spawn point, disarmed, in AUTO.LOITER (what this PX4
+    /// build boots into), not ready yet.
     pub fn new(params: VehicleParams) -> Self {
         Vehicle {
             params,
@@ -109,18 +199,46 @@ impl Vehicle {
             body: PointMass::at_rest(Vec3::zeros()),
             armed: false,
             mode: Px4Mode::Hold,
+            mode_after_disarm: Px4Mode::Hold,
+            failsafe: false,
             landed: true,
             alive: true,
             flown_since_arming: false,
             armed_on_ground_since: 0.0,
+            home: Vec3::zeros(),
             hold_at: Vec3::zeros(),
             takeoff_to: Vec3::zeros(),
             land_at: Vec3::zeros(),
             setpoint: None,
             last_setpoint: None,
             stream_since: None,
+            announced_ready: false,
+            next_preflight_text: 0.0,
+            texts: Vec::new(),
             struck_ground: false,
+            px4: Px4Params::default(),
+            geofence: Geofence::default(),
+            return_z: 0.0,
+            return_landing: false,
         }
+    }
+
+    /// PX4's parameters.
+    pub fn px4_params(&self) -> &Px4Params {
+        &self.px4
+    }
+
+    pub fn px4_params_mut(&mut self) -> &mut Px4Params {
+        &mut self.px4
+    }
+
+    /// The geofence as uploaded (held, not enforced).
+    pub fn geofence(&self) -> &Geofence {
+        &self.geofence
+    }
+
+    pub fn geofence_mut(&mut self) -> &mut Geofence {
+        &mut self.geofence
     }
 
     /// True once after the vehicle flew into the ground under power (see
@@ -128,6 +246,11 @@ impl Vehicle {
     /// the fault that was injected, not something the flight software did.
     pub fn take_ground_strike(&mut self) -> bool {
         std::mem::take(&mut self.struck_ground)
+    }
+
+    /// The STATUSTEXTs said since the last call, oldest first.
+    pub fn take_status_texts(&mut self) -> Vec<StatusText> {
+        std::mem::take(&mut self.texts)
     }
 
     pub fn time(&self) -> f64 {
@@ -140,6 +263,21 @@ impl Vehicle {
 
     pub fn velocity(&self) -> Vec3 {
         self.body.velocity
+    }
+
+    /// Metres above mean sea level.
+    pub fn amsl(&self) -> f64 {
+        self.params.ground_amsl - self.body.position.z
+    }
+
+    /// Home in the local frame.
+    pub fn home(&self) -> Vec3 {
+        self.home
+    }
+
+    /// Home's altitude, metres above mean sea level.
+    pub fn home_amsl(&self) -> f64 {
+        self.params.ground_amsl - self.home.z
     }
 
     pub fn armed(&self) -> bool {
@@ -167,36 +305,45 @@ impl Vehicle {
         &self.params
     }
 
+    /// The health checks pass (the readiness delay after boot is over).
+    pub fn ready(&self) -> bool {
+        self.alive && self.time + 1e-9 >= self.params.readiness_delay
+    }
+
+    /// Whether an ARM would be accepted now, in the current mode (PX4's `canArm(nav_state)`).
+    pub fn can_arm(&self) -> bool {
+        self.ready()
+            && match self.mode {
+                Px4Mode::Hold | Px4Mode::Takeoff => true,
+                Px4Mode::Offboard => self.setpoints_fresh(self.px4.offboard_loss_timeout()),
+                // Manual modes want a remote control; Land and the rest prevent arming or need
+                // what the stand-in does not model.
+                _ => false,
+            }
+    }
+
+    /// HEARTBEAT.system_status as PX4 sets it.
+    pub fn system_status(&self) -> MavState {
+        if self.armed {
+            if self.failsafe {
+                MavState::MAV_STATE_CRITICAL
+            } else {
+                MavState::MAV_STATE_ACTIVE
+            }
+        } else if self.can_arm() {
+            MavState::MAV_STATE_STANDBY
+        } else {
+            MavState::MAV_STATE_UNINIT
+        }
+    }
+
     pub fn landed_state(&self) -> LandedState {
         match (self.landed, self.mode) {
             (true, _) => LandedState::OnGround,
             (false, Px4Mode::Takeoff) => LandedState::Takeoff,
             (false, Px4Mode::Land) => LandedState::Landing,
+            (false, RETURN) if self.return_landing => LandedState::Landing,
             (false, _) => LandedState::InAir,
-        }
-    }
-
-    /// A COMMAND_LONG addressed to this vehicle; the result goes back in COMMAND_ACK.
-    pub fn handle_command(&mut self, command: MavCmd, params: [f32; 7]) -> MavResult {
-        if !self.alive {
-            return MavResult::MAV_RESULT_FAILED;
-        }
-        match command {
-            MavCmd::MAV_CMD_COMPONENT_ARM_DISARM => {
-                let force = params[1] == FORCE_DISARM_MAGIC;
-                if params[0] > 0.5 {
-                    self.arm()
-                } else {
-                    self.disarm(force)
-                }
-            }
-            MavCmd::MAV_CMD_NAV_TAKEOFF => self.takeoff(params[6]),
-            MavCmd::MAV_CMD_NAV_LAND => {
-                self.start_landing();
-                MavResult::MAV_RESULT_ACCEPTED
-            }
-            MavCmd::MAV_CMD_DO_SET_MODE => self.set_mode(params[0], params[1], params[2]),
-            _ => MavResult::MAV_RESULT_UNSUPPORTED,
         }
     }
 
@@ -228,11 +375,13 @@ impl Vehicle {
             return;
         }
         self.time += dt;
+        self.report_readiness();
         if self.alive
+            && self.armed
             && self.mode == Px4Mode::Offboard
-            && !self.setpoints_fresh(OFFBOARD_LOSS_TIMEOUT)
+            && !self.setpoints_fresh(self.px4.offboard_loss_timeout())
         {
-            self.enter_hold();
+            self.offboard_lost();
         }
         if !self.armed {
             if !self.landed {
@@ -243,114 +392,80 @@ impl Vehicle {
 
         let reference = self.reference();
         let limits = self.params.limits;
-        let a = self.body.command(&reference, &limits);
+        let control = if self.mode == Px4Mode::Takeoff {
+            limits.with_climb_at_most(TAKEOFF_SPEED)
+        } else {
+            limits
+        };
+        let a = self.body.command(&reference, &control);
         // On the ground, only a climb command lifts the vehicle; it does not slide about.
         if !(self.landed && a.z >= 0.0) {
             self.body.integrate(a, dt, &limits);
             if self.body.position.z < 0.0 && self.landed {
                 self.landed = false;
                 self.flown_since_arming = true;
+                self.say(MavSeverity::MAV_SEVERITY_INFO, text::TAKEOFF_DETECTED);
             }
             self.check_ground_contact();
         }
 
+        if self.mode == RETURN && !self.return_landing {
+            let p = self.body.position;
+            let off = Vec3::new(p.x - self.home.x, p.y - self.home.y, 0.0);
+            if off.norm() <= RETURN_ACCEPTANCE {
+                // Above home: the landing phase of the return.
+                self.return_landing = true;
+                self.land_at = Vec3::new(self.home.x, self.home.y, p.z);
+            }
+        }
         if self.mode == Px4Mode::Takeoff
             && !self.landed
             && (self.body.position.z - self.takeoff_to.z).abs() <= TAKEOFF_ACCEPTANCE
         {
-            self.mode = Px4Mode::Hold;
+            // Commander's switch to AUTO.LOITER, holding at the take-off altitude.
+            self.select_mode(Px4Mode::Hold);
             self.hold_at = self.takeoff_to;
         }
         self.auto_disarm();
     }
 
-    // ---- commands ------------------------------------------------------------------------------
+    // ---- status ----------------------------------------------------------------------------------
 
-    fn arm(&mut self) -> MavResult {
-        if !self.armed {
-            self.armed = true;
-            self.flown_since_arming = !self.landed;
-            self.armed_on_ground_since = self.time;
-            if self.landed && self.mode == Px4Mode::Hold {
-                self.hold_at = self.body.position;
-            }
+    fn say(&mut self, severity: MavSeverity, text: impl Into<String>) {
+        if self.texts.len() >= MAX_PENDING_TEXTS {
+            self.texts.remove(0);
         }
-        MavResult::MAV_RESULT_ACCEPTED
+        self.texts.push(StatusText {
+            severity,
+            text: text.into(),
+        });
     }
 
-    fn disarm(&mut self, force: bool) -> MavResult {
-        if self.armed && !self.landed && !force {
-            return MavResult::MAV_RESULT_DENIED;
+    fn report_readiness(&mut self) {
+        if !self.alive {
+            return;
         }
-        self.armed = false;
-        MavResult::MAV_RESULT_ACCEPTED
+        if self.ready() {
+            if !self.announced_ready {
+                self.announced_ready = true;
+                self.say(MavSeverity::MAV_SEVERITY_INFO, text::READY);
+            }
+        } else if self.time + 1e-9 >= self.next_preflight_text {
+            self.next_preflight_text = self.time + PREFLIGHT_TEXT_PERIOD;
+            self.say(MavSeverity::MAV_SEVERITY_CRITICAL, text::HEADING_INVALID);
+        }
     }
 
-    fn takeoff(&mut self, altitude: f32) -> MavResult {
-        if !self.armed {
-            return MavResult::MAV_RESULT_TEMPORARILY_REJECTED;
-        }
-        let altitude = if altitude.is_finite() {
-            f64::from(altitude)
-        } else {
-            self.params.takeoff_altitude
-        };
-        if altitude <= TAKEOFF_ACCEPTANCE {
-            return MavResult::MAV_RESULT_DENIED;
-        }
-        self.begin_takeoff(altitude);
-        MavResult::MAV_RESULT_ACCEPTED
-    }
+    // ---- modes -----------------------------------------------------------------------------------
 
-    fn begin_takeoff(&mut self, altitude: f64) {
-        let p = self.body.position;
-        self.takeoff_to = Vec3::new(p.x, p.y, -altitude);
-        self.mode = Px4Mode::Takeoff;
-    }
-
-    fn set_mode(&mut self, base_mode: f32, main: f32, sub: f32) -> MavResult {
-        let as_u8 = |x: f32| {
-            if x.is_finite() && (0.0..=255.0).contains(&x) {
-                Some(x as u8)
-            } else {
-                None
-            }
-        };
-        let (Some(base), Some(main), Some(sub)) = (as_u8(base_mode), as_u8(main), as_u8(sub))
-        else {
-            return MavResult::MAV_RESULT_DENIED;
-        };
-        if base & px4_mode::BASE_MODE_CUSTOM_ENABLED == 0 {
-            return MavResult::MAV_RESULT_UNSUPPORTED;
+    /// A mode chosen by command (PX4's user intention): it ends a failsafe, and becomes the
+    /// mode after disarming unless it prevents arming.
+    fn select_mode(&mut self, mode: Px4Mode) {
+        self.mode = mode;
+        self.failsafe = false;
+        if !prevents_arming(mode) {
+            self.mode_after_disarm = mode;
         }
-        let custom = (u32::from(main) << 16) | (u32::from(sub) << 24);
-        match Px4Mode::from_custom_mode(custom) {
-            Px4Mode::Offboard => {
-                if self.mode != Px4Mode::Offboard && !self.offboard_stream_ok() {
-                    return MavResult::MAV_RESULT_TEMPORARILY_REJECTED;
-                }
-                self.mode = Px4Mode::Offboard;
-            }
-            Px4Mode::Hold => {
-                if self.mode != Px4Mode::Hold {
-                    self.enter_hold();
-                }
-            }
-            Px4Mode::Land => {
-                if self.mode != Px4Mode::Land {
-                    self.start_landing();
-                }
-            }
-            Px4Mode::Takeoff => {
-                if self.mode != Px4Mode::Takeoff {
-                    self.begin_takeoff(self.params.takeoff_altitude);
-                }
-            }
-            // Manual modes need a remote control, which a simulated vehicle does not have; the
-            // other auto modes need a mission or a home position the simulator does not model.
-            _ => return MavResult::MAV_RESULT_TEMPORARILY_REJECTED,
-        }
-        MavResult::MAV_RESULT_ACCEPTED
     }
 
     fn enter_hold(&mut self) {
@@ -361,6 +476,42 @@ impl Vehicle {
     fn start_landing(&mut self) {
         self.mode = Px4Mode::Land;
         self.land_at = self.body.position;
+    }
+
+    /// AUTO.RTL (approximated): straight to above home at the current altitude (at least
+    /// `RETURN_MIN_HEIGHT` above home), then land there.
+    fn start_return(&mut self) {
+        self.mode = RETURN;
+        self.return_z = self.body.position.z.min(self.home.z - RETURN_MIN_HEIGHT);
+        self.return_landing = false;
+    }
+
+    /// The offboard-loss failsafe (`COM_OBL_RC_ACT`). The mode asked for stays OFFBOARD: it is
+    /// where a disarm returns to, and a mode command ends the failsafe.
+    fn offboard_lost(&mut self) {
+        match self.px4.offboard_loss_action() {
+            OffboardLossAction::Hold => self.enter_hold(),
+            OffboardLossAction::Land => self.start_landing(),
+            OffboardLossAction::Return => self.start_return(),
+            OffboardLossAction::MotorsOff => {
+                // Terminate or disarm in the air: the motors stop and it falls.
+                self.armed = false;
+                self.failsafe = false;
+                self.mode = self.mode_after_disarm;
+                return;
+            }
+        }
+        self.failsafe = true;
+    }
+
+    fn on_disarmed(&mut self, reason: &'static str) {
+        self.armed = false;
+        self.failsafe = false;
+        self.say(MavSeverity::MAV_SEVERITY_INFO, reason);
+        self.mode = self.mode_after_disarm;
+        if self.mode == Px4Mode::Hold {
+            self.hold_at = self.body.position;
+        }
     }
 
     fn setpoints_fresh(&self, max_age: f64) -> bool {
@@ -380,20 +531,25 @@ impl Vehicle {
     fn reference(&self) -> Reference {
         match self.mode {
             Px4Mode::Takeoff => Reference::hold(self.takeoff_to),
-            Px4Mode::Land => {
-                let height = -self.body.position.z;
-                // Slow down for the last metre, like PX4's MPC_LAND_ALT2.
-                let speed = self.params.land_speed * height.clamp(0.4, 1.0);
-                Reference {
-                    position: [Some(self.land_at.x), Some(self.land_at.y), None],
-                    velocity: [None, None, Some(speed)],
-                    acceleration: [None; 3],
-                }
-            }
+            Px4Mode::Land => self.landing_reference(),
             Px4Mode::Offboard => self
                 .setpoint
                 .unwrap_or_else(|| Reference::hold(self.hold_at)),
+            RETURN if self.return_landing => self.landing_reference(),
+            RETURN => Reference::hold(Vec3::new(self.home.x, self.home.y, self.return_z)),
             _ => Reference::hold(self.hold_at),
+        }
+    }
+
+    /// AUTO.LAND's descent over `land_at`.
+    fn landing_reference(&self) -> Reference {
+        let height = -self.body.position.z;
+        // Slow down for the last metre, like PX4's MPC_LAND_ALT2.
+        let speed = self.params.land_speed * height.clamp(0.4, 1.0);
+        Reference {
+            position: [Some(self.land_at.x), Some(self.land_at.y), None],
+            velocity: [None, None, Some(speed)],
+            acceleration: [None; 3],
         }
     }
 
@@ -405,6 +561,8 @@ impl Vehicle {
             self.body.velocity = Vec3::zeros();
             self.landed = true;
             self.armed_on_ground_since = self.time;
+            self.home = self.body.position;
+            self.say(MavSeverity::MAV_SEVERITY_INFO, text::LANDING_DETECTED);
             if self.mode == Px4Mode::Hold {
                 self.hold_at = self.body.position;
             }
@@ -415,13 +573,13 @@ impl Vehicle {
         if !(self.armed && self.landed) {
             return;
         }
-        let after = if self.flown_since_arming {
-            DISARM_AFTER_LANDING
+        let (after, reason) = if self.flown_since_arming {
+            (DISARM_AFTER_LANDING, text::DISARMED_LANDING)
         } else {
-            DISARM_PREFLIGHT
+            (DISARM_PREFLIGHT, text::DISARMED_PREFLIGHT)
         };
-        if self.time - self.armed_on_ground_since >= after {
-            self.armed = false;
+        if self.time - self.armed_on_ground_since >= after - 1e-9 {
+            self.on_disarmed(reason);
         }
     }
 
@@ -447,382 +605,16 @@ impl Vehicle {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    const DT: f64 = 0.01;
-
-    fn params() -> VehicleParams {
-        VehicleParams {
-            limits: MotionLimits {
-                max_speed: 4.0,
-                max_vertical_speed: 2.0,
-                max_accel: 3.0,
-            },
-            takeoff_altitude: 5.0,
-            land_speed: 0.7,
+/// Modes PX4 never arms in, so a disarm does not return to them (`mode_req_prevent_arming`).
+fn prevents_arming(mode: Px4Mode) -> bool {
+    use tacos_shared::px4_mode::{AUTO_RTL, MAIN_AUTO};
+    /// PX4's AUTO.PRECLAND sub mode.
+    const AUTO_PRECLAND: u8 = 9;
+    match mode {
+        Px4Mode::Land => true,
+        Px4Mode::Other { main, sub } => {
+            main == MAIN_AUTO && (sub == AUTO_RTL || sub == AUTO_PRECLAND)
         }
-    }
-
-    fn arm(v: &mut Vehicle) -> MavResult {
-        v.handle_command(
-            MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
-            [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
-        )
-    }
-
-    fn takeoff(v: &mut Vehicle, altitude: f32) -> MavResult {
-        v.handle_command(
-            MavCmd::MAV_CMD_NAV_TAKEOFF,
-            [0.0, 0.0, 0.0, f32::NAN, f32::NAN, f32::NAN, altitude],
-        )
-    }
-
-    fn set_mode(v: &mut Vehicle, main: u8, sub: u8) -> MavResult {
-        v.handle_command(
-            MavCmd::MAV_CMD_DO_SET_MODE,
-            [1.0, f32::from(main), f32::from(sub), 0.0, 0.0, 0.0, 0.0],
-        )
-    }
-
-    fn offboard(v: &mut Vehicle) -> MavResult {
-        set_mode(v, px4_mode::MAIN_OFFBOARD, 0)
-    }
-
-    /// Steps for `seconds`, checking the envelope on every step the vehicle is flying.
-    fn run(v: &mut Vehicle, seconds: f64) {
-        let steps = (seconds / DT).round() as usize;
-        for _ in 0..steps {
-            step_checked(v);
-        }
-    }
-
-    fn step_checked(v: &mut Vehicle) {
-        let before = (v.velocity(), v.landed());
-        v.step(DT);
-        let limits = v.params().limits;
-        assert!(
-            v.velocity().norm() <= limits.max_speed + 1e-9,
-            "speed {}",
-            v.velocity().norm()
-        );
-        assert!(v.velocity().z.abs() <= limits.max_vertical_speed + 1e-9);
-        // Touchdown is a contact, not a commanded acceleration.
-        if !before.1 && !v.landed() {
-            let accel = (v.velocity() - before.0).norm() / DT;
-            assert!(accel <= limits.max_accel + 1e-6, "accel {accel}");
-        }
-        assert!(v.position().z <= 0.0, "below the ground");
-    }
-
-    fn airborne(altitude: f32) -> Vehicle {
-        let mut v = Vehicle::new(params());
-        assert_eq!(arm(&mut v), MavResult::MAV_RESULT_ACCEPTED);
-        assert_eq!(takeoff(&mut v, altitude), MavResult::MAV_RESULT_ACCEPTED);
-        run(&mut v, 15.0);
-        v
-    }
-
-    /// Airborne at `altitude` and switched to offboard, setpoints streaming at where it hovers
-    /// (returned with it).
-    fn offboard_at(altitude: f32) -> (Vehicle, Vec3) {
-        let mut v = airborne(altitude);
-        let here = v.position();
-        stream(&mut v, here, 1.2);
-        assert_eq!(offboard(&mut v), MavResult::MAV_RESULT_ACCEPTED);
-        (v, here)
-    }
-
-    fn stream(v: &mut Vehicle, target: Vec3, seconds: f64) {
-        let steps = (seconds / DT).round() as usize;
-        for i in 0..steps {
-            if i % 5 == 0 {
-                v.handle_setpoint(Reference::hold(target));
-            }
-            step_checked(v);
-        }
-    }
-
-    #[test]
-    fn boots_disarmed_on_the_ground_in_hold() {
-        let v = Vehicle::new(params());
-        assert!(!v.armed() && v.landed());
-        assert_eq!(v.mode(), Px4Mode::Hold);
-        assert_eq!(v.landed_state(), LandedState::OnGround);
-    }
-
-    #[test]
-    fn arm_takeoff_hold_reaches_altitude() {
-        let mut v = Vehicle::new(params());
-        assert_eq!(arm(&mut v), MavResult::MAV_RESULT_ACCEPTED);
-        assert!(v.armed());
-        assert_eq!(takeoff(&mut v, 8.0), MavResult::MAV_RESULT_ACCEPTED);
-        assert_eq!(v.mode(), Px4Mode::Takeoff);
-        run(&mut v, 1.0);
-        assert_eq!(v.landed_state(), LandedState::Takeoff);
-        assert!(v.position().z < -0.5, "climbing: {}", v.position().z);
-        run(&mut v, 14.0);
-        assert_eq!(v.mode(), Px4Mode::Hold, "takeoff ends in AUTO.LOITER");
-        assert_eq!(v.landed_state(), LandedState::InAir);
-        assert!((v.position().z + 8.0).abs() < 0.15, "at {}", v.position().z);
-        assert!(v.position().xy().norm() < 1e-6, "straight up");
-        run(&mut v, 5.0);
-        assert!(
-            (v.position().z + 8.0).abs() < 0.15 && v.armed(),
-            "and it stays there"
-        );
-    }
-
-    #[test]
-    fn takeoff_without_altitude_uses_the_default() {
-        let v = airborne(f32::NAN);
-        assert!((v.position().z + 5.0).abs() < 0.15);
-    }
-
-    #[test]
-    fn takeoff_while_disarmed_is_temporarily_rejected() {
-        let mut v = Vehicle::new(params());
-        assert_eq!(
-            takeoff(&mut v, 5.0),
-            MavResult::MAV_RESULT_TEMPORARILY_REJECTED
-        );
-        run(&mut v, 2.0);
-        assert!(v.landed() && v.position().z == 0.0);
-        assert_eq!(v.mode(), Px4Mode::Hold);
-    }
-
-    #[test]
-    fn disarm_in_the_air_needs_force() {
-        let mut v = airborne(5.0);
-        let disarm = |v: &mut Vehicle, p2: f32| {
-            v.handle_command(
-                MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
-                [0.0, p2, 0.0, 0.0, 0.0, 0.0, 0.0],
-            )
-        };
-        assert_eq!(disarm(&mut v, 0.0), MavResult::MAV_RESULT_DENIED);
-        assert!(v.armed());
-        assert_eq!(
-            disarm(&mut v, FORCE_DISARM_MAGIC),
-            MavResult::MAV_RESULT_ACCEPTED
-        );
-        assert!(!v.armed());
-        for _ in 0..500 {
-            v.step(DT);
-        }
-        assert!(v.landed() && v.position().z == 0.0, "it fell");
-    }
-
-    #[test]
-    fn offboard_needs_a_second_of_setpoints() {
-        let mut v = airborne(5.0);
-        assert_eq!(
-            offboard(&mut v),
-            MavResult::MAV_RESULT_TEMPORARILY_REJECTED,
-            "no stream at all"
-        );
-        let here = v.position();
-        stream(&mut v, here, 0.5);
-        assert_eq!(
-            offboard(&mut v),
-            MavResult::MAV_RESULT_TEMPORARILY_REJECTED,
-            "only 0.5 s of stream"
-        );
-        stream(&mut v, here, 0.6);
-        assert_eq!(offboard(&mut v), MavResult::MAV_RESULT_ACCEPTED);
-        assert_eq!(v.mode(), Px4Mode::Offboard);
-    }
-
-    #[test]
-    fn a_slow_stream_does_not_count() {
-        let mut v = airborne(5.0);
-        let here = v.position();
-        // 1 Hz for 3 s: each setpoint restarts the stream.
-        for _ in 0..3 {
-            v.handle_setpoint(Reference::hold(here));
-            run(&mut v, 1.0);
-        }
-        v.handle_setpoint(Reference::hold(here));
-        assert_eq!(offboard(&mut v), MavResult::MAV_RESULT_TEMPORARILY_REJECTED);
-    }
-
-    #[test]
-    fn offboard_flies_the_setpoints_then_holds_when_they_stop() {
-        let (mut v, _) = offboard_at(5.0);
-        let goal = Vec3::new(12.0, -6.0, -7.0);
-        stream(&mut v, goal, 15.0);
-        assert_eq!(v.mode(), Px4Mode::Offboard);
-        assert!((v.position() - goal).norm() < 0.1, "at {:?}", v.position());
-
-        // Setpoints stop (the last one 0.05 s before the stream ended): still offboard just
-        // before COM_OF_LOSS_T, hold just after.
-        run(&mut v, 0.9);
-        assert_eq!(v.mode(), Px4Mode::Offboard);
-        run(&mut v, 0.1);
-        assert_eq!(v.mode(), Px4Mode::Hold);
-        let held = v.position();
-        run(&mut v, 5.0);
-        assert!(
-            (v.position() - held).norm() < 0.05,
-            "holds where hold began"
-        );
-    }
-
-    #[test]
-    fn hold_while_moving_brakes_and_returns_within_limits() {
-        let (mut v, _) = offboard_at(5.0);
-        // Full speed, then a hold command mid-flight.
-        let far = Vec3::new(200.0, 0.0, -5.0);
-        stream(&mut v, far, 5.0);
-        assert!(v.velocity().norm() > 3.9, "at full speed");
-        assert_eq!(
-            set_mode(&mut v, px4_mode::MAIN_AUTO, px4_mode::AUTO_LOITER),
-            MavResult::MAV_RESULT_ACCEPTED
-        );
-        let held = v.position();
-        stream(&mut v, far, 10.0);
-        assert_eq!(
-            v.mode(),
-            Px4Mode::Hold,
-            "setpoints do not move a holding vehicle"
-        );
-        assert!((v.position() - held).norm() < 0.1);
-    }
-
-    #[test]
-    fn velocity_setpoints_are_honoured() {
-        let mut v = airborne(5.0);
-        let vel = Reference::velocity(Vec3::new(0.0, 2.0, 0.0));
-        for _ in 0..120 {
-            v.handle_setpoint(vel);
-            step_checked(&mut v);
-        }
-        assert_eq!(offboard(&mut v), MavResult::MAV_RESULT_ACCEPTED);
-        for _ in 0..300 {
-            v.handle_setpoint(vel);
-            step_checked(&mut v);
-        }
-        assert!(
-            (v.velocity() - Vec3::new(0.0, 2.0, 0.0)).norm() < 0.01,
-            "{:?}",
-            v.velocity()
-        );
-    }
-
-    #[test]
-    fn land_descends_touches_down_and_disarms() {
-        let mut v = airborne(5.0);
-        assert_eq!(
-            v.handle_command(MavCmd::MAV_CMD_NAV_LAND, [0.0; 7]),
-            MavResult::MAV_RESULT_ACCEPTED
-        );
-        assert_eq!(v.mode(), Px4Mode::Land);
-        run(&mut v, 1.0);
-        assert_eq!(v.landed_state(), LandedState::Landing);
-        let mut touchdown = None;
-        for _ in 0..3000 {
-            step_checked(&mut v);
-            if touchdown.is_none() && v.landed() {
-                touchdown = Some(v.time());
-            }
-            if !v.armed() {
-                break;
-            }
-        }
-        let touchdown = touchdown.expect("it touched down");
-        assert!(!v.armed(), "auto-disarmed");
-        let waited = v.time() - touchdown;
-        assert!(
-            (DISARM_AFTER_LANDING - 0.02..DISARM_AFTER_LANDING + 0.05).contains(&waited),
-            "{waited}"
-        );
-        assert_eq!(v.landed_state(), LandedState::OnGround);
-        assert_eq!(v.position().z, 0.0);
-    }
-
-    #[test]
-    fn flying_into_the_ground_is_a_strike_and_a_landing_or_a_fall_is_not() {
-        // Offboard setpoints 20 m below the ground: the vehicle descends at full vertical speed
-        // and hits it.
-        let (mut v, here) = offboard_at(5.0);
-        let mut strikes = 0;
-        for i in 0..1000 {
-            if i % 5 == 0 {
-                v.handle_setpoint(Reference::hold(Vec3::new(here.x, here.y, 20.0)));
-            }
-            step_checked(&mut v);
-            strikes += usize::from(v.take_ground_strike());
-        }
-        assert!(v.landed());
-        assert_eq!(strikes, 1, "one strike, reported once");
-
-        // Setpoints that come down to the ground itself slow to a gentle touchdown.
-        let (mut v, here) = offboard_at(5.0);
-        stream(&mut v, Vec3::new(here.x, here.y, 0.0), 20.0);
-        assert!(v.landed() && !v.take_ground_strike());
-
-        let mut v = airborne(5.0);
-        v.handle_command(MavCmd::MAV_CMD_NAV_LAND, [0.0; 7]);
-        run(&mut v, 30.0);
-        assert!(v.landed() && !v.take_ground_strike(), "a landing");
-
-        let mut v = airborne(5.0);
-        v.kill();
-        for _ in 0..1000 {
-            v.step(DT);
-        }
-        assert!(
-            v.landed() && !v.take_ground_strike(),
-            "a fall without power"
-        );
-    }
-
-    #[test]
-    fn armed_on_the_ground_disarms_after_the_preflight_timeout() {
-        let mut v = Vehicle::new(params());
-        arm(&mut v);
-        run(&mut v, DISARM_PREFLIGHT - 0.1);
-        assert!(v.armed());
-        run(&mut v, 0.2);
-        assert!(!v.armed());
-    }
-
-    #[test]
-    fn unknown_commands_are_unsupported_and_manual_modes_rejected() {
-        let mut v = Vehicle::new(params());
-        assert_eq!(
-            v.handle_command(MavCmd::MAV_CMD_DO_REPOSITION, [0.0; 7]),
-            MavResult::MAV_RESULT_UNSUPPORTED
-        );
-        assert_eq!(
-            set_mode(&mut v, px4_mode::MAIN_POSCTL, 0),
-            MavResult::MAV_RESULT_TEMPORARILY_REJECTED
-        );
-        let no_custom = [
-            0.0,
-            f32::from(px4_mode::MAIN_AUTO),
-            f32::from(px4_mode::AUTO_LAND),
-            0.0,
-            0.0,
-            0.0,
-            0.0,
-        ];
-        assert_eq!(
-            v.handle_command(MavCmd::MAV_CMD_DO_SET_MODE, no_custom),
-            MavResult::MAV_RESULT_UNSUPPORTED
-        );
-    }
-
-    #[test]
-    fn a_dead_vehicle_falls_and_stays_down() {
-        let mut v = airborne(5.0);
-        v.kill();
-        for _ in 0..500 {
-            v.step(DT);
-        }
-        assert!(!v.alive() && !v.armed() && v.landed());
-        assert_eq!(arm(&mut v), MavResult::MAV_RESULT_FAILED);
-        assert!(!v.armed());
+        _ => false,
     }
 }

@@ -4,8 +4,11 @@
 
 use mavlink::MavHeader;
 use mavlink::dialects::common::{
-    COMMAND_LONG_DATA, MavAutopilot, MavCmd, MavFrame, MavMessage, MavModeFlag, MavResult, MavType,
-    PositionTargetTypemask, SET_POSITION_TARGET_LOCAL_NED_DATA,
+    COMMAND_LONG_DATA, MISSION_ACK_DATA, MISSION_COUNT_DATA, MISSION_ITEM_INT_DATA,
+    MISSION_REQUEST_INT_DATA, MISSION_REQUEST_LIST_DATA, MavAutopilot, MavCmd, MavFrame,
+    MavMessage, MavMissionResult, MavMissionType, MavModeFlag, MavParamType, MavResult, MavState,
+    MavType, PARAM_REQUEST_READ_DATA, PARAM_SET_DATA, PositionTargetTypemask,
+    SET_POSITION_TARGET_LOCAL_NED_DATA,
 };
 use std::net::{Ipv4Addr, SocketAddr};
 use std::sync::Arc;
@@ -24,6 +27,7 @@ use tokio::task::JoinHandle;
 use tokio::time::{Instant, timeout, timeout_at};
 
 const GCS_SYSTEM: u32 = 255;
+const GCS_COMPONENT: u8 = 190;
 
 fn unique_swarm(tag: &str) -> SwarmId {
     static COUNTER: AtomicU32 = AtomicU32::new(0);
@@ -87,6 +91,8 @@ impl Sitl {
             mavlink_base_port,
             sitl_base_port,
             speed: 1.0,
+            px4: Default::default(),
+            observe: None,
             bus,
         };
         let (stop, stopped) = oneshot::channel::<()>();
@@ -125,7 +131,7 @@ fn encode(sequence: u8, message: &MavMessage) -> Vec<u8> {
     let mut out = Vec::new();
     let header = MavHeader {
         system_id: GCS_SYSTEM,
-        component_id: 190,
+        component_id: GCS_COMPONENT,
         sequence,
     };
     mavlink::write_v2_msg(&mut out, header, message).expect("encode");
@@ -173,7 +179,14 @@ impl Client {
         }
     }
 
-    async fn command(&mut self, command: MavCmd, params: [f32; 7]) -> MavResult {
+    /// Sends a COMMAND_LONG and returns the results of its first `acks` COMMAND_ACKs, checking
+    /// they are addressed to this client.
+    async fn command_acks(
+        &mut self,
+        command: MavCmd,
+        params: [f32; 7],
+        acks: usize,
+    ) -> Vec<MavResult> {
         let message = MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
             param1: params[0],
             param2: params[1],
@@ -188,24 +201,75 @@ impl Client {
             confirmation: 0,
         });
         self.send(&message).await;
-        self.wait_for(
-            Duration::from_secs(3),
-            &format!("COMMAND_ACK for {command:?}"),
-            |_, m| match m {
-                MavMessage::COMMAND_ACK(ack) if ack.command == command => Some(ack.result),
-                _ => None,
-            },
-        )
-        .await
+        let mut results = Vec::new();
+        while results.len() < acks {
+            let result = self
+                .wait_for(
+                    Duration::from_secs(3),
+                    &format!("COMMAND_ACK for {command:?}"),
+                    |_, m| match m {
+                        MavMessage::COMMAND_ACK(ack) if ack.command == command => {
+                            assert_eq!(
+                                (u32::from(ack.target_system), ack.target_component),
+                                (GCS_SYSTEM, GCS_COMPONENT),
+                                "PX4 addresses its acks"
+                            );
+                            Some(ack.result)
+                        }
+                        _ => None,
+                    },
+                )
+                .await;
+            results.push(result);
+        }
+        results
     }
 
+    async fn command(&mut self, command: MavCmd, params: [f32; 7]) -> MavResult {
+        let results = self.command_acks(command, params, 1).await;
+        results[0]
+    }
+
+    /// DO_SET_MODE: PX4 acks it twice (the MAVLink receiver accepts, then commander answers);
+    /// the second is the real result.
     async fn set_mode(&mut self, main: u8, sub: u8) -> MavResult {
         let base = f32::from(px4_mode::BASE_MODE_CUSTOM_ENABLED);
-        self.command(
-            MavCmd::MAV_CMD_DO_SET_MODE,
-            [base, f32::from(main), f32::from(sub), 0.0, 0.0, 0.0, 0.0],
-        )
-        .await
+        let results = self
+            .command_acks(
+                MavCmd::MAV_CMD_DO_SET_MODE,
+                [base, f32::from(main), f32::from(sub), 0.0, 0.0, 0.0, 0.0],
+                2,
+            )
+            .await;
+        assert_eq!(
+            results[0],
+            MavResult::MAV_RESULT_ACCEPTED,
+            "the receiver's ack"
+        );
+        results[1]
+    }
+
+    /// PARAM_SET of an INT32 (byte for byte, as PX4 takes it), confirmed by PX4's echo.
+    async fn set_int_param(&mut self, name: &str, value: i32) {
+        self.send(&MavMessage::PARAM_SET(PARAM_SET_DATA {
+            param_value: f32::from_le_bytes(value.to_le_bytes()),
+            target_system: self.system_id,
+            target_component: 1,
+            param_id: tacos_sitl::params::param_id(name),
+            param_type: MavParamType::MAV_PARAM_TYPE_INT32,
+        }))
+        .await;
+        let echo = self
+            .wait_for(
+                Duration::from_secs(2),
+                &format!("the echo of {name}"),
+                |_, m| param_value(m).filter(|(n, _, _)| n == name),
+            )
+            .await;
+        assert_eq!(
+            (echo.1.to_bits() as i32, echo.2),
+            (value, MavParamType::MAV_PARAM_TYPE_INT32)
+        );
     }
 
     async fn wait_for_mode(&self, mode: Px4Mode, within: Duration) {
@@ -264,11 +328,19 @@ impl Client {
 
 const ARM: [f32; 7] = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
 
+fn statustext(m: &MavMessage) -> Option<String> {
+    match m {
+        MavMessage::STATUSTEXT(t) => t.text.to_str().ok().map(str::to_string),
+        _ => None,
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn answers_like_px4_over_udp() {
     let socket = consecutive_sockets(1).await.remove(0);
     let mavlink_port = socket.local_addr().expect("address").port();
     let bus = BusArgs::loopback(unique_swarm("udp"), Some("tcp/127.0.0.1:0".into()), vec![]);
+    // PX4's default readiness delay (2 s), so that the refusal before it is seen.
     let sitl = Sitl::start(1, mavlink_port, bus);
     let mut px4 = Client::new(socket, sitl.sitl_base_port, 1);
 
@@ -296,6 +368,46 @@ async fn answers_like_px4_over_udp() {
     );
     // PX4's encoding: main mode in bits 16..24, sub mode in 24..32; AUTO.LOITER = 4 | 3 << 8.
     assert_eq!(hb.custom_mode, (4 << 16) | (3 << 24));
+    assert_eq!(
+        hb.system_status,
+        MavState::MAV_STATE_UNINIT,
+        "not ready yet"
+    );
+
+    // Not ready: ARM is refused.
+    assert_eq!(
+        px4.command(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, ARM).await,
+        MavResult::MAV_RESULT_TEMPORARILY_REJECTED
+    );
+    // Ready: STANDBY, and PX4 says so.
+    px4.wait_for(Duration::from_secs(5), "\"Ready for takeoff!\"", |_, m| {
+        (statustext(m).as_deref() == Some("Ready for takeoff!")).then_some(())
+    })
+    .await;
+    px4.wait_for(
+        Duration::from_secs(3),
+        "a STANDBY heartbeat",
+        |_, m| match m {
+            MavMessage::HEARTBEAT(hb) if hb.system_status == MavState::MAV_STATE_STANDBY => {
+                Some(())
+            }
+            _ => None,
+        },
+    )
+    .await;
+
+    // The altitude PX4 reports is AMSL: SIH's origin, 489.4 m.
+    let ground_mm = px4
+        .wait_for(
+            Duration::from_secs(3),
+            "GLOBAL_POSITION_INT",
+            |_, m| match m {
+                MavMessage::GLOBAL_POSITION_INT(g) => Some(g.alt),
+                _ => None,
+            },
+        )
+        .await;
+    assert_eq!(ground_mm, 489_400);
 
     assert_eq!(
         px4.command(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, ARM).await,
@@ -310,16 +422,19 @@ async fn answers_like_px4_over_udp() {
                     .base_mode
                     .contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED) =>
             {
+                assert_eq!(hb.system_status, MavState::MAV_STATE_ACTIVE);
                 Some(())
             }
             _ => None,
         },
     )
     .await;
+    // Take-off to 1.5 m above the ground: param7 is AMSL.
+    let takeoff_amsl = ground_mm as f32 / 1000.0 + 1.5;
     assert_eq!(
         px4.command(
             MavCmd::MAV_CMD_NAV_TAKEOFF,
-            [0.0, 0.0, 0.0, f32::NAN, f32::NAN, f32::NAN, 1.5]
+            [0.0, 0.0, 0.0, f32::NAN, f32::NAN, f32::NAN, takeoff_amsl]
         )
         .await,
         MavResult::MAV_RESULT_ACCEPTED
@@ -335,7 +450,10 @@ async fn answers_like_px4_over_udp() {
     )
     .await;
 
-    // OFFBOARD without a setpoint stream: refused.
+    // Hold on offboard loss, as the writer sets it (PX4's default, 0, would return).
+    px4.set_int_param("COM_OBL_RC_ACT", 5).await;
+
+    // OFFBOARD without a setpoint stream: refused (by commander, after the receiver's ACCEPTED).
     assert_eq!(
         px4.set_mode(px4_mode::MAIN_OFFBOARD, 0).await,
         MavResult::MAV_RESULT_TEMPORARILY_REJECTED
@@ -365,11 +483,12 @@ async fn answers_like_px4_over_udp() {
     px4.wait_for_mode(Px4Mode::Offboard, Duration::from_secs(2))
         .await;
 
-    // The stream stops: COM_OF_LOSS_T (1 s) later the vehicle holds.
+    // The stream stops: COM_OF_LOSS_T (1 s) later the vehicle holds. Mode changes show in the
+    // 1 Hz heartbeat only, so allow for up to a second more.
     stream.abort();
     let _ = stream.await;
     let stopped = Instant::now();
-    px4.wait_for_mode(Px4Mode::Hold, Duration::from_millis(1500))
+    px4.wait_for_mode(Px4Mode::Hold, Duration::from_millis(2500))
         .await;
     let took = stopped.elapsed();
     assert!(
@@ -381,8 +500,260 @@ async fn answers_like_px4_over_udp() {
     assert_eq!(
         px4.command(MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, [0.0; 7])
             .await,
-        MavResult::MAV_RESULT_DENIED
+        MavResult::MAV_RESULT_TEMPORARILY_REJECTED
     );
+
+    // Stream rates: LOCAL_POSITION_NED (30 Hz by default) down to 2 Hz; HEARTBEAT stays 1 Hz.
+    assert_eq!(
+        px4.command(
+            MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
+            [32.0, 500_000.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+        )
+        .await,
+        MavResult::MAV_RESULT_ACCEPTED
+    );
+    let (mut positions, mut heartbeats) = (0, 0);
+    let window = Instant::now() + Duration::from_millis(3000);
+    let mut buf = vec![0u8; 4096];
+    while let Ok(Ok((n, _))) = timeout_at(window, px4.socket.recv_from(&mut buf)).await {
+        let mut reader = mavlink::MavlinkReader::new(&buf[..n]);
+        while let Ok((_, m)) = reader.read_any_message::<MavMessage>() {
+            match m {
+                MavMessage::LOCAL_POSITION_NED(_) => positions += 1,
+                MavMessage::HEARTBEAT(_) => heartbeats += 1,
+                _ => {}
+            }
+        }
+    }
+    assert!((5..=8).contains(&positions), "{positions} positions in 3 s");
+    assert!(
+        (2..=4).contains(&heartbeats),
+        "{heartbeats} heartbeats in 3 s"
+    );
+
+    // PX4 answers its first client only: a request from another port is answered there.
+    let stranger = UdpSocket::bind((Ipv4Addr::LOCALHOST, 0))
+        .await
+        .expect("bind");
+    let request = MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+        param1: 242.0,
+        param2: 0.0,
+        param3: 0.0,
+        param4: 0.0,
+        param5: 0.0,
+        param6: 0.0,
+        param7: 0.0,
+        command: MavCmd::MAV_CMD_REQUEST_MESSAGE,
+        target_system: 1,
+        target_component: 1,
+        confirmation: 0,
+    });
+    stranger
+        .send_to(&encode(1, &request), px4.vehicle)
+        .await
+        .expect("send");
+    let home = px4
+        .wait_for(
+            Duration::from_secs(3),
+            "the requested HOME_POSITION",
+            |_, m| match m {
+                MavMessage::HOME_POSITION(h) => Some(h.clone()),
+                _ => None,
+            },
+        )
+        .await;
+    // Home moved to where the vehicle armed: the spawn point, 489.4 m AMSL.
+    assert_eq!(home.altitude, 489_400);
+    let heard = timeout(Duration::from_millis(500), stranger.recv_from(&mut buf)).await;
+    assert!(heard.is_err(), "the second client was answered");
+    sitl.stop().await;
+}
+
+fn param_value(m: &MavMessage) -> Option<(String, f32, MavParamType)> {
+    match m {
+        MavMessage::PARAM_VALUE(p) => Some((
+            tacos_sitl::params::name_of(&p.param_id[..]),
+            p.param_value,
+            p.param_type,
+        )),
+        _ => None,
+    }
+}
+
+/// What the writer does at link-up, over real UDP: parameters read and set (INT32 byte for
+/// byte), a fence uploaded and read back, each reply addressed to this client.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn parameters_and_the_geofence_over_udp() {
+    let socket = consecutive_sockets(1).await.remove(0);
+    let mavlink_port = socket.local_addr().expect("address").port();
+    let bus = BusArgs::loopback(
+        unique_swarm("setup"),
+        Some("tcp/127.0.0.1:0".into()),
+        vec![],
+    );
+    let sitl = Sitl::start(1, mavlink_port, bus);
+    let mut px4 = Client::new(socket, sitl.sitl_base_port, 1);
+    px4.wait_for(Duration::from_secs(10), "a heartbeat", |_, m| {
+        matches!(m, MavMessage::HEARTBEAT(_)).then_some(())
+    })
+    .await;
+    let id = tacos_sitl::params::param_id;
+    let read = |name: &str| {
+        MavMessage::PARAM_REQUEST_READ(PARAM_REQUEST_READ_DATA {
+            param_index: -1,
+            target_system: 1,
+            target_component: 1,
+            param_id: id(name),
+        })
+    };
+    let value_of = |name: &'static str| {
+        move |_: &MavHeader, m: &MavMessage| param_value(m).filter(|(n, _, _)| n == name)
+    };
+    px4.send(&read("COM_OBL_RC_ACT")).await;
+    let (_, raw, kind) = px4
+        .wait_for(
+            Duration::from_secs(2),
+            "COM_OBL_RC_ACT",
+            value_of("COM_OBL_RC_ACT"),
+        )
+        .await;
+    assert_eq!(
+        (raw.to_bits(), kind),
+        (0, MavParamType::MAV_PARAM_TYPE_INT32),
+        "PX4's default"
+    );
+    px4.send(&MavMessage::PARAM_SET(PARAM_SET_DATA {
+        param_value: f32::from_bits(5),
+        target_system: 1,
+        target_component: 1,
+        param_id: id("COM_OBL_RC_ACT"),
+        param_type: MavParamType::MAV_PARAM_TYPE_INT32,
+    }))
+    .await;
+    let (_, raw, _) = px4
+        .wait_for(
+            Duration::from_secs(2),
+            "the echo",
+            value_of("COM_OBL_RC_ACT"),
+        )
+        .await;
+    assert_eq!(raw.to_bits(), 5);
+    px4.send(&read("COM_OF_LOSS_T")).await;
+    let (_, value, kind) = px4
+        .wait_for(
+            Duration::from_secs(2),
+            "COM_OF_LOSS_T",
+            value_of("COM_OF_LOSS_T"),
+        )
+        .await;
+    assert_eq!((value, kind), (1.0, MavParamType::MAV_PARAM_TYPE_REAL32));
+
+    // The fence: count, a request per item, the ack; then the read-back.
+    let fence = MavMissionType::MAV_MISSION_TYPE_FENCE;
+    let corners = [(-1000, -1000), (-1000, 1000), (1000, 1000), (1000, -1000)];
+    let item = |seq: u16| {
+        let (dlat, dlon) = corners[usize::from(seq)];
+        MISSION_ITEM_INT_DATA {
+            param1: 4.0,
+            x: 473_977_420 + dlat,
+            y: 85_455_940 + dlon,
+            seq,
+            command: MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
+            target_system: 1,
+            target_component: 1,
+            frame: MavFrame::MAV_FRAME_GLOBAL,
+            autocontinue: 1,
+            mission_type: fence,
+            ..Default::default()
+        }
+    };
+    // PX4 addresses its mission messages to the client. The stand-in's pure link does that
+    // (`link::handle_from`), but the simulation does not pass it the sender yet, so for now
+    // they go to the broadcast address (0, 0).
+    let to_us = |target_system: u8, target_component: u8| {
+        let to = (u32::from(target_system), target_component);
+        assert!(
+            to == (GCS_SYSTEM, GCS_COMPONENT) || to == (0, 0),
+            "addressed to {to:?}"
+        );
+    };
+    px4.send(&MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+        count: 4,
+        target_system: 1,
+        target_component: 1,
+        mission_type: fence,
+        opaque_id: 0,
+    }))
+    .await;
+    for seq in 0..4u16 {
+        let asked = px4
+            .wait_for(
+                Duration::from_secs(2),
+                "MISSION_REQUEST_INT",
+                |_, m| match m {
+                    MavMessage::MISSION_REQUEST_INT(r) if r.mission_type == fence => {
+                        Some((r.seq, r.target_system, r.target_component))
+                    }
+                    _ => None,
+                },
+            )
+            .await;
+        assert_eq!(asked.0, seq);
+        to_us(asked.1, asked.2);
+        px4.send(&MavMessage::MISSION_ITEM_INT(item(seq))).await;
+    }
+    let ack = px4
+        .wait_for(Duration::from_secs(2), "MISSION_ACK", |_, m| match m {
+            MavMessage::MISSION_ACK(a) if a.mission_type == fence => Some(a.clone()),
+            _ => None,
+        })
+        .await;
+    assert_eq!(ack.mavtype, MavMissionResult::MAV_MISSION_ACCEPTED);
+    to_us(ack.target_system, ack.target_component);
+    px4.send(&MavMessage::MISSION_REQUEST_LIST(
+        MISSION_REQUEST_LIST_DATA {
+            target_system: 1,
+            target_component: 1,
+            mission_type: fence,
+        },
+    ))
+    .await;
+    let count = px4
+        .wait_for(Duration::from_secs(2), "MISSION_COUNT", |_, m| match m {
+            MavMessage::MISSION_COUNT(c) if c.mission_type == fence => Some(c.count),
+            _ => None,
+        })
+        .await;
+    assert_eq!(count, 4);
+    for seq in 0..4u16 {
+        px4.send(&MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA {
+            seq,
+            target_system: 1,
+            target_component: 1,
+            mission_type: fence,
+        }))
+        .await;
+        let got = px4
+            .wait_for(Duration::from_secs(2), "MISSION_ITEM_INT", |_, m| match m {
+                MavMessage::MISSION_ITEM_INT(i) if i.mission_type == fence => Some(i.clone()),
+                _ => None,
+            })
+            .await;
+        let want = item(seq);
+        assert_eq!(
+            (got.seq, got.x, got.y, got.param1),
+            (seq, want.x, want.y, 4.0)
+        );
+        assert_eq!(got.command, want.command);
+    }
+    px4.send(&MavMessage::MISSION_ACK(MISSION_ACK_DATA {
+        target_system: 1,
+        target_component: 1,
+        mavtype: MavMissionResult::MAV_MISSION_ACCEPTED,
+        mission_type: fence,
+        opaque_id: 0,
+    }))
+    .await;
     sitl.stop().await;
 }
 
@@ -487,7 +858,7 @@ async fn publishes_truth_and_takes_faults_over_zenoh() {
     }
     // Bravo is silent from now on. Drain what it sent before the fault (a live vehicle would
     // keep this loop busy until the deadline), then expect nothing at all for 2.5 s: heartbeats
-    // are 1 Hz and LOCAL_POSITION_NED 50 Hz, so a live vehicle would be heard.
+    // are 1 Hz and LOCAL_POSITION_NED 30 Hz, so a live vehicle would be heard.
     let mut buf = [0u8; 2048];
     let drain_deadline = Instant::now() + Duration::from_secs(1);
     while let Ok(Ok(_)) = timeout_at(drain_deadline, bravo.socket.recv_from(&mut buf)).await {}

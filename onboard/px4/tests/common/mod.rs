@@ -4,11 +4,17 @@
 
 use mavlink::dialects::common::{
     COMMAND_ACK_DATA, GLOBAL_POSITION_INT_DATA, HEARTBEAT_DATA, LOCAL_POSITION_NED_DATA,
-    MavAutopilot, MavMessage, MavModeFlag, MavResult, MavState, MavType,
+    MISSION_ACK_DATA, MISSION_COUNT_DATA, MISSION_ITEM_INT_DATA, MISSION_REQUEST_INT_DATA,
+    MavAutopilot, MavCmd, MavFrame, MavMessage, MavMissionResult, MavMissionType, MavModeFlag,
+    MavParamType, MavResult, MavState, MavType, PARAM_VALUE_DATA,
 };
 
 /// The fake's home altitude above mean sea level, as PX4 SIH's (489.4 m).
 pub const HOME_AMSL_M: f32 = 489.4;
+/// The fake's latitude and longitude (degrees × 10⁷) at its NED origin: SIH's default.
+pub const ORIGIN_LAT_E7: i32 = 473_977_420;
+pub const ORIGIN_LON_E7: i32 = 85_455_940;
+const METRES_PER_DEG_LAT: f64 = 111_319.49;
 use mavlink::{MavHeader, MavlinkReader};
 use std::net::{SocketAddr, UdpSocket};
 use std::path::PathBuf;
@@ -121,6 +127,52 @@ pub struct Received {
     pub msg: MavMessage,
 }
 
+/// A PX4 parameter's value in its own type.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Param {
+    Int(i32),
+    Real(f32),
+}
+
+impl Param {
+    /// PARAM_VALUE's float field and type: an INT32 travels byte for byte, as PX4 sends it.
+    fn to_wire(self) -> (f32, MavParamType) {
+        match self {
+            Param::Int(v) => (
+                f32::from_le_bytes(v.to_le_bytes()),
+                MavParamType::MAV_PARAM_TYPE_INT32,
+            ),
+            Param::Real(v) => (v, MavParamType::MAV_PARAM_TYPE_REAL32),
+        }
+    }
+
+    /// PARAM_SET's float field read in this parameter's type. PX4 copies the four bytes into
+    /// the parameter whatever param_type says, so a float sent for an integer arrives garbled.
+    fn with_wire(self, value: f32) -> Param {
+        match self {
+            Param::Int(_) => Param::Int(i32::from_le_bytes(value.to_le_bytes())),
+            Param::Real(_) => Param::Real(value),
+        }
+    }
+}
+
+/// PX4's defaults of the parameters the writer reads and sets (measured on PX4 SITL).
+pub fn px4_default_params() -> Vec<(String, Param)> {
+    [
+        ("COM_OBL_RC_ACT", Param::Int(0)),
+        ("COM_OF_LOSS_T", Param::Real(1.0)),
+        ("NAV_DLL_ACT", Param::Int(0)),
+        ("COM_RCL_EXCEPT", Param::Int(0)),
+        ("NAV_RCL_ACT", Param::Int(2)),
+        ("COM_RC_IN_MODE", Param::Int(1)),
+        ("GF_ACTION", Param::Int(2)),
+        ("GF_MAX_VER_DIST", Param::Real(0.0)),
+    ]
+    .into_iter()
+    .map(|(n, v)| (n.to_owned(), v))
+    .collect()
+}
+
 pub struct ApState {
     pub received: Vec<Received>,
     pub heartbeats: bool,
@@ -130,10 +182,33 @@ pub struct ApState {
     pub custom_mode: u32,
     pub armed: bool,
     pub decode_errors: usize,
+    /// The parameter table, in index order; unknown names get no answer, as on PX4.
+    pub params: Vec<(String, Param)>,
+    /// False: an autopilot without the parameter protocol (PARAM_* go unanswered).
+    pub param_protocol: bool,
+    /// The geofence items accepted by the last complete upload.
+    pub fence: Vec<MISSION_ITEM_INT_DATA>,
+    /// A fence upload in progress: its count and the items so far.
+    pub fence_upload: Option<(u16, Vec<MISSION_ITEM_INT_DATA>)>,
+    /// The MISSION_ACK results this autopilot sent for fence uploads.
+    pub fence_results: Vec<MavMissionResult>,
+}
+
+impl ApState {
+    pub fn param(&self, name: &str) -> Option<Param> {
+        self.params.iter().find(|(n, _)| n == name).map(|(_, v)| *v)
+    }
+
+    /// The stored fence's vertices (lat, lon in degrees × 10⁷).
+    pub fn fence_vertices(&self) -> Vec<(i32, i32)> {
+        self.fence.iter().map(|i| (i.x, i.y)).collect()
+    }
 }
 
 struct Inner {
     socket: UdpSocket,
+    /// Our MAVLink system id (component 1).
+    sysid: u8,
     /// Where the writer is: given (udpin writer) or learnt from its first packet (udpout writer).
     writer: Mutex<Option<SocketAddr>>,
     stop: AtomicBool,
@@ -141,10 +216,12 @@ struct Inner {
     changed: Condvar,
 }
 
-/// A minimal PX4 (system 1, component 1) on a real UDP socket, run by a background thread:
-/// heartbeats at 4 Hz (while enabled), positions at 10 Hz (when set, with GLOBAL_POSITION_INT
-/// at PX4 SIH's AMSL altitude), acks per policy (a mode switch answered twice and applied, as
-/// PX4 does), and a log of everything the writer sent.
+/// A minimal PX4 (system 1 unless told otherwise, component 1) on a real UDP socket, run by a
+/// background thread: heartbeats at 4 Hz (while enabled), positions at 10 Hz (when set, with
+/// GLOBAL_POSITION_INT at PX4 SIH's origin and AMSL altitude), acks per policy (a mode switch
+/// answered twice and applied, as PX4 does), PX4's parameter protocol over a table of PX4's
+/// defaults (read by name or index, set with an echo; INT32 byte for byte), PX4's mission
+/// protocol for the geofence (upload and read-back), and a log of everything the writer sent.
 pub struct FakeAutopilot {
     inner: Arc<Inner>,
     thread: Option<JoinHandle<()>>,
@@ -153,34 +230,64 @@ pub struct FakeAutopilot {
 impl FakeAutopilot {
     /// An autopilot that talks first, to a writer bound at `writer` (udpin).
     pub fn start(writer: SocketAddr) -> FakeAutopilot {
+        Self::start_as(writer, 1)
+    }
+
+    /// [`FakeAutopilot::start`] as MAVLink system `sysid`.
+    pub fn start_as(writer: SocketAddr, sysid: u8) -> FakeAutopilot {
+        Self::start_configured(writer, sysid, |_| {})
+    }
+
+    /// [`FakeAutopilot::start_as`] with its state changed by `configure` before it says
+    /// anything.
+    pub fn start_configured(
+        writer: SocketAddr,
+        sysid: u8,
+        configure: impl FnOnce(&mut ApState),
+    ) -> FakeAutopilot {
         Self::start_inner(
             UdpSocket::bind("127.0.0.1:0").expect("binding the fake autopilot"),
             Some(writer),
+            sysid,
+            configure,
         )
     }
 
     /// An autopilot bound at `socket` that answers whoever writes to it (for a udpout writer).
     pub fn listen(socket: UdpSocket) -> FakeAutopilot {
-        Self::start_inner(socket, None)
+        Self::start_inner(socket, None, 1, |_| {})
     }
 
-    fn start_inner(socket: UdpSocket, writer: Option<SocketAddr>) -> FakeAutopilot {
+    fn start_inner(
+        socket: UdpSocket,
+        writer: Option<SocketAddr>,
+        sysid: u8,
+        configure: impl FnOnce(&mut ApState),
+    ) -> FakeAutopilot {
+        let mut state = ApState {
+            received: Vec::new(),
+            heartbeats: true,
+            ack: AckPolicy::Accept,
+            position_ned: None,
+            custom_mode: tacos_shared::px4_mode::Px4Mode::Hold.custom_mode(),
+            armed: false,
+            decode_errors: 0,
+            params: px4_default_params(),
+            param_protocol: true,
+            fence: Vec::new(),
+            fence_upload: None,
+            fence_results: Vec::new(),
+        };
+        configure(&mut state);
         socket
             .set_read_timeout(Some(Duration::from_millis(10)))
             .expect("read timeout");
         let inner = Arc::new(Inner {
             socket,
+            sysid,
             writer: Mutex::new(writer),
             stop: AtomicBool::new(false),
-            state: Mutex::new(ApState {
-                received: Vec::new(),
-                heartbeats: true,
-                ack: AckPolicy::Accept,
-                position_ned: None,
-                custom_mode: tacos_shared::px4_mode::Px4Mode::Hold.custom_mode(),
-                armed: false,
-                decode_errors: 0,
-            }),
+            state: Mutex::new(state),
             changed: Condvar::new(),
         });
         let thread = std::thread::spawn({
@@ -244,7 +351,7 @@ fn run_autopilot(inner: &Inner) {
     let mut seq = 0u8;
     let mut send = |msg: &MavMessage| {
         let header = MavHeader {
-            system_id: 1,
+            system_id: u32::from(inner.sysid),
             component_id: 1,
             sequence: seq,
         };
@@ -300,9 +407,15 @@ fn run_autopilot(inner: &Inner) {
             let global = s
                 .position_ned
                 .filter(|_| now >= next_position)
-                .map(|[_, _, z]| {
+                .map(|[x, y, z]| {
                     MavMessage::GLOBAL_POSITION_INT(GLOBAL_POSITION_INT_DATA {
                         time_boot_ms: boot.elapsed().as_millis() as u32,
+                        lat: ORIGIN_LAT_E7 + (f64::from(x) / METRES_PER_DEG_LAT * 1e7) as i32,
+                        lon: ORIGIN_LON_E7
+                            + (f64::from(y)
+                                / (METRES_PER_DEG_LAT
+                                    * (f64::from(ORIGIN_LAT_E7) / 1e7).to_radians().cos())
+                                * 1e7) as i32,
                         alt: ((HOME_AMSL_M - z) * 1000.0) as i32,
                         relative_alt: (-z * 1000.0) as i32,
                         hdg: 9_000,
@@ -375,6 +488,7 @@ fn run_autopilot(inner: &Inner) {
                                 replies.push(ack);
                             }
                         }
+                        setup_protocols(&mut s, &header, &msg, &mut replies);
                         s.received.push(Received { at, header, msg });
                     }
                     Err(mavlink::error::MessageReadError::Parse(_)) => s.decode_errors += 1,
@@ -390,6 +504,168 @@ fn run_autopilot(inner: &Inner) {
             send(&r);
         }
     }
+}
+
+fn param_value(params: &[(String, Param)], index: usize) -> Option<MavMessage> {
+    let (name, value) = params.get(index)?;
+    let (param_value, param_type) = value.to_wire();
+    let mut id = [0u8; 16];
+    for (slot, byte) in id.iter_mut().zip(name.bytes()) {
+        *slot = byte;
+    }
+    Some(MavMessage::PARAM_VALUE(PARAM_VALUE_DATA {
+        param_value,
+        param_count: params.len() as u16,
+        param_index: index as u16,
+        param_id: mavlink::types::CharArray::new(id),
+        param_type,
+    }))
+}
+
+fn name_of(id: &[u8]) -> String {
+    let end = id.iter().position(|b| *b == 0).unwrap_or(id.len());
+    String::from_utf8_lossy(&id[..end]).into_owned()
+}
+
+const FENCE: MavMissionType = MavMissionType::MAV_MISSION_TYPE_FENCE;
+
+/// Whether a completed fence upload is one PX4 takes: fence commands only, global frames, and
+/// polygons of at least three vertices whose param1 says how many.
+fn check_fence(items: &[MISSION_ITEM_INT_DATA]) -> MavMissionResult {
+    for item in items {
+        let command = item.command as u32;
+        if !(5000..=5004).contains(&command) {
+            return MavMissionResult::MAV_MISSION_UNSUPPORTED;
+        }
+        // MAV_FRAME_GLOBAL_INT is deprecated for MAV_FRAME_GLOBAL (which MISSION_ITEM_INT
+        // carries scaled by 10⁷); PX4 takes both.
+        #[allow(deprecated)]
+        let global = matches!(
+            item.frame,
+            MavFrame::MAV_FRAME_GLOBAL | MavFrame::MAV_FRAME_GLOBAL_INT
+        );
+        if !global {
+            return MavMissionResult::MAV_MISSION_UNSUPPORTED_FRAME;
+        }
+        if (command == 5001 || command == 5002) && (item.param1.is_nan() || item.param1 < 3.0) {
+            return MavMissionResult::MAV_MISSION_INVALID_PARAM1;
+        }
+    }
+    MavMissionResult::MAV_MISSION_ACCEPTED
+}
+
+/// PX4's parameter and mission (geofence) protocols: the replies to one message.
+fn setup_protocols(
+    s: &mut ApState,
+    header: &MavHeader,
+    msg: &MavMessage,
+    replies: &mut Vec<MavMessage>,
+) {
+    let (to_system, to_component) = (header.system_id as u8, header.component_id);
+    let ack = |result| {
+        MavMessage::MISSION_ACK(MISSION_ACK_DATA {
+            target_system: to_system,
+            target_component: to_component,
+            mavtype: result,
+            mission_type: FENCE,
+            opaque_id: 0,
+        })
+    };
+    let request = |seq| {
+        MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA {
+            seq,
+            target_system: to_system,
+            target_component: to_component,
+            mission_type: FENCE,
+        })
+    };
+    match msg {
+        MavMessage::PARAM_REQUEST_READ(r) if s.param_protocol => {
+            let index = if r.param_index < 0 {
+                let name = name_of(&r.param_id[..]);
+                s.params.iter().position(|(n, _)| *n == name)
+            } else {
+                Some(r.param_index as usize)
+            };
+            replies.extend(index.and_then(|i| param_value(&s.params, i)));
+        }
+        MavMessage::PARAM_REQUEST_LIST(_) if s.param_protocol => {
+            replies.extend((0..s.params.len()).filter_map(|i| param_value(&s.params, i)));
+        }
+        MavMessage::PARAM_SET(p) if s.param_protocol => {
+            let name = name_of(&p.param_id[..]);
+            if let Some(i) = s.params.iter().position(|(n, _)| *n == name) {
+                s.params[i].1 = s.params[i].1.with_wire(p.param_value);
+                replies.extend(param_value(&s.params, i));
+            }
+        }
+        MavMessage::MISSION_COUNT(c) if c.mission_type == FENCE => {
+            if c.count == 0 {
+                s.fence.clear();
+                s.fence_upload = None;
+                s.fence_results.push(MavMissionResult::MAV_MISSION_ACCEPTED);
+                replies.push(ack(MavMissionResult::MAV_MISSION_ACCEPTED));
+            } else {
+                // A repeated count restarts the upload.
+                s.fence_upload = Some((c.count, Vec::new()));
+                replies.push(request(0));
+            }
+        }
+        MavMessage::MISSION_ITEM_INT(item) if item.mission_type == FENCE => {
+            let Some((count, items)) = s.fence_upload.as_mut() else {
+                return;
+            };
+            let expected = items.len() as u16;
+            if item.seq + 1 == expected {
+                return; // a repeat of the last one: its request is already out
+            }
+            if item.seq != expected {
+                s.fence_upload = None;
+                s.fence_results
+                    .push(MavMissionResult::MAV_MISSION_INVALID_SEQUENCE);
+                replies.push(ack(MavMissionResult::MAV_MISSION_INVALID_SEQUENCE));
+                return;
+            }
+            items.push(item.clone());
+            if items.len() < usize::from(*count) {
+                replies.push(request(expected + 1));
+                return;
+            }
+            let items = std::mem::take(items);
+            s.fence_upload = None;
+            let result = check_fence(&items);
+            if result == MavMissionResult::MAV_MISSION_ACCEPTED {
+                s.fence = items;
+            }
+            s.fence_results.push(result);
+            replies.push(ack(result));
+        }
+        MavMessage::MISSION_REQUEST_LIST(r) if r.mission_type == FENCE => {
+            replies.push(MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+                count: s.fence.len() as u16,
+                target_system: to_system,
+                target_component: to_component,
+                mission_type: FENCE,
+                opaque_id: 0,
+            }));
+        }
+        MavMessage::MISSION_REQUEST_INT(r) if r.mission_type == FENCE => {
+            match s.fence.get(usize::from(r.seq)) {
+                Some(item) => replies.push(MavMessage::MISSION_ITEM_INT(MISSION_ITEM_INT_DATA {
+                    target_system: to_system,
+                    target_component: to_component,
+                    ..item.clone()
+                })),
+                None => replies.push(ack(MavMissionResult::MAV_MISSION_INVALID_SEQUENCE)),
+            }
+        }
+        _ => {}
+    }
+}
+
+/// Whether a fence item is a vertex of an inclusion polygon (what the writer uploads).
+pub fn is_inclusion_vertex(item: &MISSION_ITEM_INT_DATA) -> bool {
+    item.command == MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION
 }
 
 /// The SET_POSITION_TARGET_LOCAL_NED messages received, with their arrival times.
@@ -417,4 +693,25 @@ pub fn command_longs(s: &ApState) -> Vec<(Instant, mavlink::dialects::common::CO
             _ => None,
         })
         .collect()
+}
+
+/// The COMMAND_LONGs received with MAV_CMD `command`.
+pub fn commands_of(
+    s: &ApState,
+    command: u32,
+) -> Vec<(Instant, mavlink::dialects::common::COMMAND_LONG_DATA)> {
+    command_longs(s)
+        .into_iter()
+        .filter(|(_, c)| c.command as u32 == command)
+        .collect()
+}
+
+/// When the first message matching `pred` arrived.
+pub fn first_at(s: &ApState, pred: impl Fn(&MavMessage) -> bool) -> Option<Instant> {
+    s.received.iter().find(|r| pred(&r.msg)).map(|r| r.at)
+}
+
+/// When the last message matching `pred` arrived.
+pub fn last_at(s: &ApState, pred: impl Fn(&MavMessage) -> bool) -> Option<Instant> {
+    s.received.iter().rev().find(|r| pred(&r.msg)).map(|r| r.at)
 }

@@ -1,0 +1,718 @@
+use super::*;
+use crate::params::{COM_OBL_RC_ACT, COM_OF_LOSS_T, ParamValue};
+use mavlink::dialects::common::{MavCmd, MavResult};
+use tacos_shared::px4_mode;
+
+const DT: f64 = 0.01;
+const GROUND: f64 = 489.4;
+
+fn params() -> VehicleParams {
+    VehicleParams {
+        limits: MotionLimits {
+            max_speed: 4.0,
+            max_climb_speed: 3.0,
+            max_descent_speed: 1.5,
+            max_accel: 3.0,
+        },
+        default_takeoff_height: MIS_TAKEOFF_ALT,
+        land_speed: 0.7,
+        ground_amsl: GROUND,
+        readiness_delay: 0.0,
+    }
+}
+
+/// A vehicle that is ready and has said so ("Ready for takeoff!" collected).
+fn ready_vehicle() -> Vehicle {
+    let mut v = Vehicle::new(params());
+    v.step(DT);
+    assert_eq!(texts(&mut v), vec![text::READY]);
+    v
+}
+
+fn arm(v: &mut Vehicle) -> MavResult {
+    v.handle_command(
+        MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+        [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+    )
+}
+
+fn disarm(v: &mut Vehicle, param2: f32) -> MavResult {
+    v.handle_command(
+        MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+        [0.0, param2, 0.0, 0.0, 0.0, 0.0, 0.0],
+    )
+}
+
+/// NAV_TAKEOFF with param7 as given (AMSL, or NaN).
+fn takeoff_amsl(v: &mut Vehicle, param7: f32) -> MavResult {
+    v.handle_command(
+        MavCmd::MAV_CMD_NAV_TAKEOFF,
+        [0.0, 0.0, 0.0, f32::NAN, f32::NAN, f32::NAN, param7],
+    )
+}
+
+/// NAV_TAKEOFF to `height` metres above the spawn point, the way a client must send it.
+fn takeoff(v: &mut Vehicle, height: f64) -> MavResult {
+    takeoff_amsl(v, (GROUND + height) as f32)
+}
+
+fn set_mode(v: &mut Vehicle, main: u8, sub: u8) -> MavResult {
+    v.handle_command(
+        MavCmd::MAV_CMD_DO_SET_MODE,
+        [1.0, f32::from(main), f32::from(sub), 0.0, 0.0, 0.0, 0.0],
+    )
+}
+
+fn offboard(v: &mut Vehicle) -> MavResult {
+    set_mode(v, px4_mode::MAIN_OFFBOARD, 0)
+}
+
+fn loiter(v: &mut Vehicle) -> MavResult {
+    set_mode(v, px4_mode::MAIN_AUTO, px4_mode::AUTO_LOITER)
+}
+
+fn texts(v: &mut Vehicle) -> Vec<String> {
+    v.take_status_texts().into_iter().map(|t| t.text).collect()
+}
+
+/// Steps for `seconds`, checking the envelope on every step the vehicle is flying.
+fn run(v: &mut Vehicle, seconds: f64) {
+    let steps = (seconds / DT).round() as usize;
+    for _ in 0..steps {
+        step_checked(v);
+    }
+}
+
+fn step_checked(v: &mut Vehicle) {
+    let before = (v.velocity(), v.landed());
+    v.step(DT);
+    let limits = v.params().limits;
+    assert!(
+        v.velocity().norm() <= limits.max_speed + 1e-9,
+        "speed {}",
+        v.velocity().norm()
+    );
+    assert!(v.velocity().z >= -limits.max_climb_speed - 1e-9);
+    assert!(v.velocity().z <= limits.max_descent_speed + 1e-9);
+    if v.mode() == Px4Mode::Takeoff {
+        assert!(v.velocity().z >= -TAKEOFF_SPEED - 1e-9, "take-off climb");
+    }
+    // Touchdown is a contact, not a commanded acceleration.
+    if !before.1 && !v.landed() {
+        let accel = (v.velocity() - before.0).norm() / DT;
+        assert!(accel <= limits.max_accel + 1e-6, "accel {accel}");
+    }
+    assert!(v.position().z <= 0.0, "below the ground");
+}
+
+fn airborne(height: f64) -> Vehicle {
+    let mut v = Vehicle::new(params());
+    assert_eq!(arm(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+    assert_eq!(takeoff(&mut v, height), MavResult::MAV_RESULT_ACCEPTED);
+    run(&mut v, 15.0);
+    v.take_status_texts();
+    v
+}
+
+/// Airborne at `height` and switched to offboard, setpoints streaming at where it hovers
+/// (returned with it).
+fn offboard_at(height: f64) -> (Vehicle, Vec3) {
+    let mut v = airborne(height);
+    let here = v.position();
+    stream(&mut v, here, 1.2);
+    assert_eq!(offboard(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+    (v, here)
+}
+
+fn stream(v: &mut Vehicle, target: Vec3, seconds: f64) {
+    let steps = (seconds / DT).round() as usize;
+    for i in 0..steps {
+        if i % 5 == 0 {
+            v.handle_setpoint(Reference::hold(target));
+        }
+        step_checked(v);
+    }
+}
+
+#[test]
+fn boots_in_loiter_not_ready_then_ready() {
+    let mut v = Vehicle::new(VehicleParams {
+        readiness_delay: 2.0,
+        ..params()
+    });
+    assert!(!v.armed() && v.landed());
+    assert_eq!(v.mode(), Px4Mode::Hold, "AUTO.LOITER");
+    assert_eq!(v.landed_state(), LandedState::OnGround);
+    assert_eq!(v.system_status(), MavState::MAV_STATE_UNINIT);
+    assert!((v.amsl() - GROUND).abs() < 1e-9 && (v.home_amsl() - GROUND).abs() < 1e-9);
+    run(&mut v, 0.5);
+    assert_eq!(texts(&mut v), vec![text::HEADING_INVALID]);
+    assert_eq!(arm(&mut v), MavResult::MAV_RESULT_TEMPORARILY_REJECTED);
+    assert!(!v.armed());
+    assert_eq!(
+        texts(&mut v),
+        vec![text::HEADING_INVALID, text::ARMING_DENIED]
+    );
+    run(&mut v, 1.0);
+    assert_eq!(texts(&mut v), vec![text::HEADING_INVALID], "repeated");
+    assert_eq!(v.system_status(), MavState::MAV_STATE_UNINIT);
+    run(&mut v, 0.6);
+    assert_eq!(texts(&mut v), vec![text::READY]);
+    assert_eq!(v.system_status(), MavState::MAV_STATE_STANDBY);
+    run(&mut v, 3.0);
+    assert!(texts(&mut v).is_empty(), "said once");
+    assert_eq!(
+        arm(&mut v),
+        MavResult::MAV_RESULT_ACCEPTED,
+        "in AUTO.LOITER"
+    );
+    assert_eq!(texts(&mut v), vec![text::ARMED]);
+    assert_eq!(v.system_status(), MavState::MAV_STATE_ACTIVE);
+    assert_eq!(
+        arm(&mut v),
+        MavResult::MAV_RESULT_ACCEPTED,
+        "again: no change"
+    );
+}
+
+#[test]
+fn arm_takeoff_hold_reaches_the_amsl_altitude() {
+    let mut v = ready_vehicle();
+    assert_eq!(arm(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+    assert!(v.armed());
+    assert_eq!(takeoff(&mut v, 8.0), MavResult::MAV_RESULT_ACCEPTED);
+    assert_eq!(v.mode(), Px4Mode::Takeoff);
+    run(&mut v, 2.0);
+    assert_eq!(v.landed_state(), LandedState::Takeoff);
+    assert!(v.position().z < -0.5, "climbing: {}", v.position().z);
+    assert!(
+        (v.velocity().z + TAKEOFF_SPEED).abs() < 0.01,
+        "at MPC_TKO_SPEED: {}",
+        v.velocity().z
+    );
+    let mut switched_at = None;
+    for _ in 0..1300 {
+        step_checked(&mut v);
+        if switched_at.is_none() && v.mode() == Px4Mode::Hold {
+            switched_at = Some(v.position().z);
+        }
+    }
+    let switched_at = switched_at.expect("take-off ends in AUTO.LOITER");
+    assert!(
+        (switched_at + 8.0).abs() <= TAKEOFF_ACCEPTANCE + 1e-9 && (switched_at + 8.0) > 0.5,
+        "within NAV_MC_ALT_RAD: {switched_at}"
+    );
+    assert_eq!(v.landed_state(), LandedState::InAir);
+    assert!((v.position().z + 8.0).abs() < 0.15, "at {}", v.position().z);
+    assert!((v.amsl() - (GROUND + 8.0)).abs() < 0.15);
+    assert!(v.position().xy().norm() < 1e-6, "straight up");
+    run(&mut v, 5.0);
+    assert!(
+        (v.position().z + 8.0).abs() < 0.15 && v.armed(),
+        "and it stays there"
+    );
+    assert_eq!(texts(&mut v), vec![text::ARMED, text::TAKEOFF_DETECTED]);
+}
+
+#[test]
+fn takeoff_without_altitude_climbs_mis_takeoff_alt() {
+    let mut v = Vehicle::new(params());
+    arm(&mut v);
+    assert_eq!(
+        takeoff_amsl(&mut v, f32::NAN),
+        MavResult::MAV_RESULT_ACCEPTED
+    );
+    run(&mut v, 10.0);
+    assert!((v.position().z + MIS_TAKEOFF_ALT).abs() < 0.15);
+    assert!(texts(&mut v).contains(&"Using default takeoff altitude: 2.5 m".to_string()));
+}
+
+#[test]
+fn a_relative_takeoff_altitude_stays_on_the_ground_then_disarms() {
+    let mut v = ready_vehicle();
+    arm(&mut v);
+    v.take_status_texts();
+    // 5 m "above home" is 5 m above sea level: far below the vehicle.
+    assert_eq!(takeoff_amsl(&mut v, 5.0), MavResult::MAV_RESULT_ACCEPTED);
+    assert_eq!(texts(&mut v), vec![text::ALREADY_HIGHER]);
+    assert_eq!(v.mode(), Px4Mode::Takeoff);
+    run(&mut v, DISARM_PREFLIGHT - 0.1);
+    assert!(
+        v.armed() && v.landed() && v.position().z == 0.0,
+        "never left"
+    );
+    run(&mut v, 0.2);
+    assert!(!v.armed());
+    assert_eq!(texts(&mut v), vec![text::DISARMED_PREFLIGHT]);
+}
+
+#[test]
+fn takeoff_while_disarmed_is_accepted_and_flown_once_armed() {
+    let mut v = Vehicle::new(params());
+    assert_eq!(takeoff(&mut v, 3.0), MavResult::MAV_RESULT_ACCEPTED);
+    assert_eq!(v.mode(), Px4Mode::Takeoff);
+    run(&mut v, 2.0);
+    assert!(v.landed() && v.position().z == 0.0);
+    assert_eq!(v.system_status(), MavState::MAV_STATE_STANDBY, "armable");
+    assert_eq!(arm(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+    run(&mut v, 10.0);
+    assert_eq!(v.mode(), Px4Mode::Hold);
+    assert!((v.position().z + 3.0).abs() < 0.15, "{}", v.position().z);
+}
+
+#[test]
+fn a_takeoff_below_in_the_air_holds_where_it_is() {
+    let mut v = airborne(5.0);
+    assert_eq!(takeoff(&mut v, 2.0), MavResult::MAV_RESULT_ACCEPTED);
+    assert_eq!(texts(&mut v), vec![text::ALREADY_HIGHER]);
+    run(&mut v, 5.0);
+    assert_eq!(v.mode(), Px4Mode::Hold);
+    assert!((v.position().z + 5.0).abs() < 0.15);
+}
+
+#[test]
+fn disarm_in_the_air_needs_force() {
+    let mut v = airborne(5.0);
+    assert_eq!(
+        disarm(&mut v, 0.0),
+        MavResult::MAV_RESULT_TEMPORARILY_REJECTED
+    );
+    assert_eq!(texts(&mut v), vec![text::DISARMING_DENIED]);
+    assert!(v.armed());
+    assert_eq!(
+        disarm(&mut v, FORCE_DISARM_MAGIC),
+        MavResult::MAV_RESULT_ACCEPTED
+    );
+    assert!(!v.armed());
+    for _ in 0..500 {
+        v.step(DT);
+    }
+    assert!(v.landed() && v.position().z == 0.0, "it fell");
+}
+
+#[test]
+fn offboard_needs_a_second_of_setpoints_when_armed() {
+    let mut v = airborne(5.0);
+    assert_eq!(
+        offboard(&mut v),
+        MavResult::MAV_RESULT_TEMPORARILY_REJECTED,
+        "no stream at all"
+    );
+    assert_eq!(
+        texts(&mut v),
+        vec!["Switching to Offboard is currently not available"]
+    );
+    let here = v.position();
+    stream(&mut v, here, 0.5);
+    assert_eq!(
+        offboard(&mut v),
+        MavResult::MAV_RESULT_TEMPORARILY_REJECTED,
+        "only 0.5 s of stream"
+    );
+    stream(&mut v, here, 0.6);
+    assert_eq!(offboard(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+    assert_eq!(v.mode(), Px4Mode::Offboard);
+}
+
+#[test]
+fn a_slow_stream_does_not_count() {
+    let mut v = airborne(5.0);
+    let here = v.position();
+    // 1 Hz for 3 s: each setpoint restarts the stream.
+    for _ in 0..3 {
+        v.handle_setpoint(Reference::hold(here));
+        run(&mut v, 1.0);
+    }
+    v.handle_setpoint(Reference::hold(here));
+    assert_eq!(offboard(&mut v), MavResult::MAV_RESULT_TEMPORARILY_REJECTED);
+}
+
+/// Sets a PX4 parameter the way PARAM_SET does (the value's four bytes).
+fn set_param(v: &mut Vehicle, name: &str, value: ParamValue) {
+    let params = v.px4_params_mut();
+    let i = params.index_of(name).expect("a known parameter");
+    params.set_from_wire(i, value.to_wire().0);
+    assert_eq!(v.px4_params().value(name), Some(value));
+}
+
+#[test]
+fn offboard_flies_the_setpoints_then_fails_safe_to_hold() {
+    let (mut v, _) = offboard_at(5.0);
+    // What the writer sets (PX4's default is 0: return).
+    set_param(&mut v, COM_OBL_RC_ACT, ParamValue::Int(5));
+    let goal = Vec3::new(12.0, -6.0, -7.0);
+    stream(&mut v, goal, 15.0);
+    assert_eq!(v.mode(), Px4Mode::Offboard);
+    assert!((v.position() - goal).norm() < 0.1, "at {:?}", v.position());
+    assert_eq!(v.system_status(), MavState::MAV_STATE_ACTIVE);
+
+    // Setpoints stop (the last one 0.05 s before the stream ended): still offboard just
+    // before COM_OF_LOSS_T, hold just after.
+    run(&mut v, 0.9);
+    assert_eq!(v.mode(), Px4Mode::Offboard);
+    run(&mut v, 0.1);
+    assert_eq!(v.mode(), Px4Mode::Hold);
+    assert_eq!(
+        v.system_status(),
+        MavState::MAV_STATE_CRITICAL,
+        "a failsafe"
+    );
+    let held = v.position();
+    run(&mut v, 5.0);
+    assert!(
+        (v.position() - held).norm() < 0.05,
+        "holds where hold began"
+    );
+    // Asking for the mode it is in ends the failsafe.
+    assert_eq!(loiter(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+    assert_eq!(v.system_status(), MavState::MAV_STATE_ACTIVE);
+}
+
+/// Offboard at (12, -6, -7) (home is the spawn point), then the setpoints stop.
+fn offboard_lost_away_from_home(action: i32) -> (Vehicle, Vec3) {
+    let (mut v, _) = offboard_at(5.0);
+    set_param(&mut v, COM_OBL_RC_ACT, ParamValue::Int(action));
+    let goal = Vec3::new(12.0, -6.0, -7.0);
+    stream(&mut v, goal, 15.0);
+    assert!((v.position() - goal).norm() < 0.1);
+    run(&mut v, 1.0);
+    (v, goal)
+}
+
+#[test]
+fn offboard_loss_returns_by_default_then_lands_at_home() {
+    assert_eq!(
+        Vehicle::new(params()).px4_params().offboard_loss_action(),
+        crate::params::OffboardLossAction::Return,
+        "PX4's default COM_OBL_RC_ACT = 0"
+    );
+    for action in [0, 3] {
+        let (mut v, goal) = offboard_lost_away_from_home(action);
+        assert_eq!(v.mode(), RETURN, "COM_OBL_RC_ACT {action}");
+        assert_eq!(v.system_status(), MavState::MAV_STATE_CRITICAL);
+        // Back to above home at the altitude it had, then down.
+        let mut steps = 0;
+        while v.landed_state() == LandedState::InAir {
+            step_checked(&mut v);
+            steps += 1;
+            assert!(steps < 1000, "never over home: {:?}", v.position());
+            assert!((v.position().z - goal.z).abs() < 0.3, "{:?}", v.position());
+        }
+        assert_eq!(v.landed_state(), LandedState::Landing);
+        let p = v.position();
+        assert!(p.x.hypot(p.y) <= RETURN_ACCEPTANCE, "over home at {p:?}");
+        run(&mut v, 20.0);
+        assert!(v.landed() && !v.armed(), "landed and disarmed");
+        assert!(v.position().norm() < 0.3, "at home: {:?}", v.position());
+        assert!(!v.take_ground_strike());
+        assert_eq!(v.mode(), Px4Mode::Offboard, "back to the mode asked for");
+    }
+}
+
+#[test]
+fn offboard_loss_lands_where_it_is_or_stops_the_motors() {
+    let (mut v, goal) = offboard_lost_away_from_home(4);
+    assert_eq!(v.mode(), Px4Mode::Land);
+    assert_eq!(v.system_status(), MavState::MAV_STATE_CRITICAL);
+    run(&mut v, 20.0);
+    assert!(v.landed() && !v.armed());
+    let p = v.position();
+    assert!(
+        (p.x - goal.x).hypot(p.y - goal.y) < 0.3,
+        "landed below where it was: {p:?}"
+    );
+    assert!(!v.take_ground_strike());
+
+    // 7 (Disarm): it falls, which is the failsafe, not a strike.
+    let (mut v, _) = offboard_at(5.0);
+    set_param(&mut v, COM_OBL_RC_ACT, ParamValue::Int(7));
+    // A fall is not bounded by the controller's limits: plain steps.
+    for _ in 0..110 {
+        v.step(DT);
+    }
+    assert!(!v.armed() && !v.landed(), "disarmed in the air");
+    for _ in 0..300 {
+        v.step(DT);
+    }
+    assert!(v.landed());
+    assert!(!v.take_ground_strike());
+}
+
+#[test]
+fn com_of_loss_t_is_the_timeout() {
+    let (mut v, here) = offboard_at(5.0);
+    set_param(&mut v, COM_OBL_RC_ACT, ParamValue::Int(5));
+    set_param(&mut v, COM_OF_LOSS_T, ParamValue::Real(3.0));
+    stream(&mut v, here, 1.0);
+    run(&mut v, 2.9);
+    assert_eq!(v.mode(), Px4Mode::Offboard, "3 s are not over");
+    run(&mut v, 0.2);
+    assert_eq!(v.mode(), Px4Mode::Hold);
+}
+
+#[test]
+fn hold_while_moving_brakes_and_returns_within_limits() {
+    let (mut v, _) = offboard_at(5.0);
+    // Full speed, then a hold command mid-flight.
+    let far = Vec3::new(200.0, 0.0, -5.0);
+    stream(&mut v, far, 5.0);
+    assert!(v.velocity().norm() > 3.9, "at full speed");
+    assert_eq!(loiter(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+    let held = v.position();
+    stream(&mut v, far, 10.0);
+    assert_eq!(
+        v.mode(),
+        Px4Mode::Hold,
+        "setpoints do not move a holding vehicle"
+    );
+    assert!((v.position() - held).norm() < 0.1);
+}
+
+#[test]
+fn velocity_setpoints_are_honoured_and_vertical_speeds_are_px4s() {
+    let mut v = airborne(5.0);
+    let vel = Reference::velocity(Vec3::new(0.0, 2.0, 0.0));
+    for _ in 0..120 {
+        v.handle_setpoint(vel);
+        step_checked(&mut v);
+    }
+    assert_eq!(offboard(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+    for _ in 0..300 {
+        v.handle_setpoint(vel);
+        step_checked(&mut v);
+    }
+    assert!(
+        (v.velocity() - Vec3::new(0.0, 2.0, 0.0)).norm() < 0.01,
+        "{:?}",
+        v.velocity()
+    );
+    let up = Reference::velocity(Vec3::new(0.0, 0.0, -10.0));
+    for _ in 0..300 {
+        v.handle_setpoint(up);
+        step_checked(&mut v);
+    }
+    assert!((v.velocity().z + 3.0).abs() < 0.01, "{}", v.velocity().z);
+    let down = Reference::velocity(Vec3::new(0.0, 0.0, 10.0));
+    for _ in 0..300 {
+        v.handle_setpoint(down);
+        step_checked(&mut v);
+    }
+    assert!((v.velocity().z - 1.5).abs() < 0.01, "{}", v.velocity().z);
+}
+
+#[test]
+fn land_descends_touches_down_disarms_and_moves_home() {
+    let (mut v, _) = offboard_at(5.0);
+    let away = Vec3::new(6.0, 3.0, -5.0);
+    stream(&mut v, away, 10.0);
+    assert!(v.home().norm() < 1e-9, "home is where it armed");
+    assert_eq!(
+        v.handle_command(MavCmd::MAV_CMD_NAV_LAND, [0.0; 7]),
+        MavResult::MAV_RESULT_ACCEPTED
+    );
+    assert_eq!(v.mode(), Px4Mode::Land);
+    run(&mut v, 1.0);
+    assert_eq!(v.landed_state(), LandedState::Landing);
+    v.take_status_texts();
+    let mut touchdown = None;
+    for _ in 0..3000 {
+        step_checked(&mut v);
+        if touchdown.is_none() && v.landed() {
+            touchdown = Some(v.time());
+        }
+        if !v.armed() {
+            break;
+        }
+    }
+    let touchdown = touchdown.expect("it touched down");
+    assert!(!v.armed(), "auto-disarmed");
+    let waited = v.time() - touchdown;
+    assert!(
+        (DISARM_AFTER_LANDING - 0.02..DISARM_AFTER_LANDING + 0.05).contains(&waited),
+        "{waited}"
+    );
+    assert_eq!(
+        texts(&mut v),
+        vec![text::LANDING_DETECTED, text::DISARMED_LANDING]
+    );
+    assert_eq!(v.landed_state(), LandedState::OnGround);
+    assert_eq!(v.position().z, 0.0);
+    assert!(
+        (v.home() - Vec3::new(6.0, 3.0, 0.0)).norm() < 0.1,
+        "home moved to the touchdown: {:?}",
+        v.home()
+    );
+    assert!((v.home_amsl() - GROUND).abs() < 1e-9);
+}
+
+#[test]
+fn after_an_offboard_flight_it_is_back_in_offboard_and_refuses_to_arm() {
+    let (mut v, here) = offboard_at(5.0);
+    stream(&mut v, here, 1.0);
+    v.handle_command(MavCmd::MAV_CMD_NAV_LAND, [0.0; 7]);
+    run(&mut v, 20.0);
+    assert!(!v.armed() && v.landed());
+    assert_eq!(v.mode(), Px4Mode::Offboard, "back to the last armable mode");
+    assert_eq!(v.system_status(), MavState::MAV_STATE_UNINIT);
+    v.take_status_texts();
+    assert_eq!(arm(&mut v), MavResult::MAV_RESULT_TEMPORARILY_REJECTED);
+    assert_eq!(texts(&mut v), vec![text::ARMING_DENIED]);
+
+    // Setpoints streaming again make it armable in OFFBOARD ...
+    let mut w = v.clone();
+    stream(&mut w, Vec3::zeros(), 0.2);
+    assert_eq!(w.system_status(), MavState::MAV_STATE_STANDBY);
+    assert_eq!(arm(&mut w), MavResult::MAV_RESULT_ACCEPTED);
+    assert_eq!(w.mode(), Px4Mode::Offboard);
+
+    // ... and so does AUTO.LOITER, accepted while disarmed.
+    assert_eq!(loiter(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+    assert_eq!(v.system_status(), MavState::MAV_STATE_STANDBY);
+    assert_eq!(arm(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+    assert_eq!(v.mode(), Px4Mode::Hold);
+    assert_eq!(takeoff(&mut v, 2.0), MavResult::MAV_RESULT_ACCEPTED);
+    run(&mut v, 8.0);
+    assert!((v.position().z + 2.0).abs() < 0.15);
+}
+
+#[test]
+fn a_flight_without_offboard_disarms_into_loiter() {
+    let mut v = airborne(3.0);
+    v.handle_command(MavCmd::MAV_CMD_NAV_LAND, [0.0; 7]);
+    run(&mut v, 20.0);
+    assert!(!v.armed());
+    assert_eq!(v.mode(), Px4Mode::Hold);
+    assert_eq!(v.system_status(), MavState::MAV_STATE_STANDBY);
+}
+
+#[test]
+fn offboard_while_disarmed_is_accepted_but_arming_needs_setpoints() {
+    let mut v = Vehicle::new(params());
+    assert_eq!(offboard(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+    assert_eq!(v.mode(), Px4Mode::Offboard);
+    assert_eq!(v.system_status(), MavState::MAV_STATE_UNINIT);
+    assert_eq!(arm(&mut v), MavResult::MAV_RESULT_TEMPORARILY_REJECTED);
+    run(&mut v, 3.0);
+    assert_eq!(v.mode(), Px4Mode::Offboard, "no failsafe while disarmed");
+    let up = Vec3::new(0.0, 0.0, -2.0);
+    stream(&mut v, up, 0.1);
+    assert_eq!(arm(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+    stream(&mut v, up, 6.0);
+    assert!((v.position() - up).norm() < 0.1, "{:?}", v.position());
+}
+
+#[test]
+fn flying_into_the_ground_is_a_strike_and_a_landing_or_a_fall_is_not() {
+    // Offboard setpoints 20 m below the ground: the vehicle descends at full vertical speed
+    // and hits it.
+    let (mut v, here) = offboard_at(5.0);
+    let mut strikes = 0;
+    for i in 0..1000 {
+        if i % 5 == 0 {
+            v.handle_setpoint(Reference::hold(Vec3::new(here.x, here.y, 20.0)));
+        }
+        step_checked(&mut v);
+        strikes += usize::from(v.take_ground_strike());
+    }
+    assert!(v.landed());
+    assert_eq!(strikes, 1, "one strike, reported once");
+
+    // Setpoints that come down to the ground itself slow to a gentle touchdown.
+    let (mut v, here) = offboard_at(5.0);
+    stream(&mut v, Vec3::new(here.x, here.y, 0.0), 20.0);
+    assert!(v.landed() && !v.take_ground_strike());
+
+    let mut v = airborne(5.0);
+    v.handle_command(MavCmd::MAV_CMD_NAV_LAND, [0.0; 7]);
+    run(&mut v, 30.0);
+    assert!(v.landed() && !v.take_ground_strike(), "a landing");
+
+    let mut v = airborne(5.0);
+    v.kill();
+    for _ in 0..1000 {
+        v.step(DT);
+    }
+    assert!(
+        v.landed() && !v.take_ground_strike(),
+        "a fall without power"
+    );
+}
+
+#[test]
+fn armed_on_the_ground_disarms_after_the_preflight_timeout() {
+    let mut v = Vehicle::new(params());
+    arm(&mut v);
+    run(&mut v, DISARM_PREFLIGHT - 0.1);
+    assert!(v.armed());
+    run(&mut v, 0.2);
+    assert!(!v.armed());
+    assert_eq!(v.mode(), Px4Mode::Hold);
+}
+
+#[test]
+fn home_moves_at_every_arming() {
+    let (mut v, _) = offboard_at(4.0);
+    stream(&mut v, Vec3::new(5.0, -2.0, 0.0), 20.0);
+    assert!(v.landed() && !v.armed());
+    let spot = v.position();
+    assert!((v.home() - spot).norm() < 1e-9, "set at touchdown");
+    stream(&mut v, spot, 0.2);
+    assert_eq!(arm(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+    assert!((v.home() - spot).norm() < 1e-9);
+}
+
+#[test]
+fn unknown_commands_are_unsupported_and_manual_modes_unflyable() {
+    let mut v = Vehicle::new(params());
+    assert_eq!(
+        v.handle_command(MavCmd::MAV_CMD_DO_REPOSITION, [0.0; 7]),
+        MavResult::MAV_RESULT_UNSUPPORTED
+    );
+    // Disarmed, any mode is accepted, but a manual one cannot be armed without a remote.
+    assert_eq!(
+        set_mode(&mut v, px4_mode::MAIN_POSCTL, 0),
+        MavResult::MAV_RESULT_ACCEPTED
+    );
+    assert_eq!(v.mode(), Px4Mode::Position);
+    assert_eq!(v.system_status(), MavState::MAV_STATE_UNINIT);
+    assert_eq!(arm(&mut v), MavResult::MAV_RESULT_TEMPORARILY_REJECTED);
+    assert_eq!(loiter(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+    arm(&mut v);
+    assert_eq!(
+        set_mode(&mut v, px4_mode::MAIN_POSCTL, 0),
+        MavResult::MAV_RESULT_TEMPORARILY_REJECTED,
+        "armed"
+    );
+    let no_custom = [
+        0.0,
+        f32::from(px4_mode::MAIN_AUTO),
+        f32::from(px4_mode::AUTO_LAND),
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+    ];
+    assert_eq!(
+        v.handle_command(MavCmd::MAV_CMD_DO_SET_MODE, no_custom),
+        MavResult::MAV_RESULT_UNSUPPORTED
+    );
+    assert_eq!(
+        v.handle_command(
+            MavCmd::MAV_CMD_DO_SET_MODE,
+            [1.0, f32::NAN, 0.0, 0.0, 0.0, 0.0, 0.0]
+        ),
+        MavResult::MAV_RESULT_DENIED
+    );
+}
+
+#[test]
+fn a_dead_vehicle_falls_and_stays_down() {
+    let mut v = airborne(5.0);
+    v.kill();
+    for _ in 0..500 {
+        v.step(DT);
+    }
+    assert!(!v.alive() && !v.armed() && v.landed());
+    assert_eq!(arm(&mut v), MavResult::MAV_RESULT_FAILED);
+    assert!(!v.armed());
+}
