@@ -11,7 +11,7 @@ pub const MIN_STREAM_RATE_HZ: f64 = 20.0;
 pub const MAX_STREAM_RATE_HZ: f64 = 500.0;
 
 /// How the writer reaches the autopilot.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq)]
 pub enum MavlinkLink {
     /// Bind this address and answer whoever sends to it (the autopilot's address is learnt from
     /// its packets), as MAVSDK's `udp://:14540` does with PX4 SITL.
@@ -20,6 +20,8 @@ pub enum MavlinkLink {
     /// address that talked to it, so a writer that restarts must come back from the same port),
     /// else from an ephemeral port.
     UdpOut(SocketAddr),
+    /// A serial line (a flight controller's TELEM2 port): `serial:/dev/ttyACM0:921600`.
+    Serial { path: std::path::PathBuf, baud: u32 },
 }
 
 impl std::str::FromStr for MavlinkLink {
@@ -30,9 +32,29 @@ impl std::str::FromStr for MavlinkLink {
             raw: raw.to_owned(),
             reason: why.to_owned(),
         };
-        let (scheme, addr) = raw
-            .split_once(':')
-            .ok_or_else(|| bad("expected udpin:HOST:PORT or udpout:HOST:PORT"))?;
+        let (scheme, addr) = raw.split_once(':').ok_or_else(|| {
+            bad("expected udpin:HOST:PORT, udpout:HOST:PORT or serial:DEVICE:BAUD")
+        })?;
+        if scheme == "serial" {
+            let (path, baud) = addr.rsplit_once(':').ok_or_else(|| {
+                bad("expected serial:DEVICE:BAUD, e.g. serial:/dev/ttyACM0:921600")
+            })?;
+            let baud: u32 = baud
+                .parse()
+                .map_err(|_| bad(&format!("{baud:?} is not a baud rate")))?;
+            if crate::transport::baud_constant(baud).is_none() {
+                return Err(bad(&format!(
+                    "unsupported baud rate {baud} (57600, 115200, 230400, 460800, 500000, 921600, 1000000, 1500000, 2000000, 3000000)"
+                )));
+            }
+            if path.is_empty() {
+                return Err(bad("the serial device is missing"));
+            }
+            return Ok(MavlinkLink::Serial {
+                path: path.into(),
+                baud,
+            });
+        }
         let addr: SocketAddr = addr.parse().map_err(|e| {
             bad(&format!(
                 "{e} (expected an IP address and port, e.g. 127.0.0.1:14540)"
@@ -47,7 +69,7 @@ impl std::str::FromStr for MavlinkLink {
                 Ok(MavlinkLink::UdpOut(addr))
             }
             other => Err(bad(&format!(
-                "unknown scheme {other:?}; use udpin or udpout"
+                "unknown scheme {other:?}; use udpin, udpout or serial"
             ))),
         }
     }
@@ -58,6 +80,7 @@ impl std::fmt::Display for MavlinkLink {
         match self {
             MavlinkLink::UdpIn(a) => write!(f, "udpin:{a}"),
             MavlinkLink::UdpOut(a) => write!(f, "udpout:{a}"),
+            MavlinkLink::Serial { path, baud } => write!(f, "serial:{}:{baud}", path.display()),
         }
     }
 }
@@ -193,7 +216,7 @@ pub struct WriterConfig {
 }
 
 /// The writer's MAVLink identity and peer, as given on the command line.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct MavlinkIds {
     pub link: MavlinkLink,
     pub local: Option<SocketAddr>,
@@ -224,7 +247,7 @@ impl WriterConfig {
             Some(raw) => sysid(raw).ok_or(ConfigError::SysId(raw))?,
             None => autopilot_sysid,
         };
-        if ids.local.is_some() && matches!(ids.link, MavlinkLink::UdpIn(_)) {
+        if ids.local.is_some() && !matches!(ids.link, MavlinkLink::UdpOut(_)) {
             return Err(ConfigError::LocalWithUdpIn);
         }
         Ok(WriterConfig {
@@ -278,6 +301,9 @@ mod tests {
             "udpin:127.0.0.1",
             "udpout:0.0.0.0:14540",
             "udpout:127.0.0.1:0",
+            "serial:/dev/ttyS0",
+            "serial:/dev/ttyS0:12345",
+            "serial::921600",
         ] {
             assert!(bad.parse::<MavlinkLink>().is_err(), "{bad:?} was accepted");
         }
@@ -313,6 +339,23 @@ mod tests {
         ] {
             assert!(parse_param(bad).is_err(), "{bad:?} was accepted");
         }
+    }
+
+    #[test]
+    fn serial_links_parse() {
+        assert_eq!(
+            "serial:/dev/ttyACM0:921600".parse::<MavlinkLink>(),
+            Ok(MavlinkLink::Serial {
+                path: "/dev/ttyACM0".into(),
+                baud: 921_600
+            })
+        );
+        assert_eq!(
+            "serial:/dev/ttyACM0:921600"
+                .parse::<MavlinkLink>()
+                .map(|l| l.to_string()),
+            Ok("serial:/dev/ttyACM0:921600".to_owned())
+        );
     }
 
     #[test]

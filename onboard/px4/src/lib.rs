@@ -21,6 +21,7 @@ pub mod procedure;
 pub mod ratelimit;
 pub mod reference;
 pub mod setup;
+pub mod transport;
 pub mod vehicle;
 pub mod writer;
 
@@ -40,7 +41,12 @@ pub enum Px4Error {
         addr: SocketAddr,
         source: std::io::Error,
     },
-    #[error("UDP socket: {0}")]
+    #[error("serial line {path}: {source}")]
+    Serial {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("MAVLink link: {0}")]
     Socket(std::io::Error),
     #[error(transparent)]
     Ipc(#[from] tacos_ipc::IpcError),

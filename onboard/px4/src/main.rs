@@ -27,8 +27,9 @@ struct Args {
     /// The vehicle's home (its NED origin) in world ENU metres: X,Y,Z.
     #[arg(long, value_parser = parse_home, allow_hyphen_values = true)]
     home: Home,
-    /// udpin:ADDR (bind ADDR, answer the autopilot's address) or udpout:ADDR (send to ADDR;
-    /// for PX4 SITL instance i, udpout:127.0.0.1:14580+i with a fixed --mavlink-local).
+    /// udpin:ADDR (bind ADDR, answer the autopilot's address), udpout:ADDR (send to ADDR;
+    /// for PX4 SITL instance i, udpout:127.0.0.1:14580+i with a fixed --mavlink-local) or
+    /// serial:DEVICE:BAUD (a flight controller's port, e.g. serial:/dev/ttyACM0:921600).
     #[arg(long, default_value = "udpin:127.0.0.1:14540")]
     mavlink: MavlinkLink,
     /// The local address an udpout link sends from. PX4 answers only the first address that

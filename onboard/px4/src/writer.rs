@@ -1,4 +1,5 @@
-//! The shell: a UDP socket, the iceoryx2 ports and two threads around the pure parts.
+//! The shell: the MAVLink link (UDP or serial, `transport`), the iceoryx2 ports and two threads
+//! around the pure parts.
 //!
 //! - The stream thread (the caller's) waits on the iceoryx2 wake-up with a timeout equal to the
 //!   time to the next stream tick, drains setpoints and commands, runs the command machine and
@@ -16,11 +17,11 @@ use crate::procedure::{ProcedureEvent, Procedures};
 use crate::ratelimit::RateLimit;
 use crate::reference::{ReferenceKeeper, Source};
 use crate::setup::{AutopilotSetup, SetupMessage, SetupRequest, SetupState};
+use crate::transport::{FrameSplitter, Peer, Transport};
 use crate::vehicle::{HeartbeatVerdict, LinkChange, VehicleTracker};
 use mavlink::dialects::common::{MavAutopilot, MavMessage, MavMissionType, MavSeverity};
 
 const FENCE: MavMissionType = MavMissionType::MAV_MISSION_TYPE_FENCE;
-use std::io::ErrorKind;
 use std::net::{Ipv4Addr, Ipv6Addr, SocketAddr, UdpSocket};
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -61,7 +62,7 @@ pub struct RunSummary {
 struct Shared {
     vehicle: VehicleTracker,
     /// Where the autopilot is (udpin: learnt from its packets).
-    peer: Option<SocketAddr>,
+    peer: Option<Peer>,
     /// (MAV_CMD, MAV_RESULT) of COMMAND_ACKs not yet seen by the stream thread.
     acks: Vec<(u32, u8)>,
     /// Warning-or-worse STATUSTEXTs not yet seen by the stream thread.
@@ -74,7 +75,7 @@ struct Shared {
 
 struct Ctx<'a> {
     config: &'a WriterConfig,
-    socket: UdpSocket,
+    transport: Transport,
     ports: WriterPorts,
     shared: Mutex<Shared>,
     epoch: Instant,
@@ -101,40 +102,41 @@ impl Ctx<'_> {
     }
 }
 
-fn open_socket(
-    link: MavlinkLink,
+/// Opens the link; the peer is known at once for udpout and serial, learnt for udpin.
+fn open_link(
+    link: &MavlinkLink,
     local: Option<SocketAddr>,
-) -> Result<(UdpSocket, Option<SocketAddr>), Px4Error> {
+) -> Result<(Transport, Option<Peer>), Px4Error> {
     let (bind, peer) = match link {
-        MavlinkLink::UdpIn(addr) => (addr, None),
+        MavlinkLink::Serial { path, baud } => {
+            return Ok((Transport::serial(path, *baud)?, Some(Peer::Line)));
+        }
+        MavlinkLink::UdpIn(addr) => (*addr, None),
         MavlinkLink::UdpOut(addr) => {
             let any = if addr.is_ipv4() {
                 SocketAddr::from((Ipv4Addr::UNSPECIFIED, 0))
             } else {
                 SocketAddr::from((Ipv6Addr::UNSPECIFIED, 0))
             };
-            (local.unwrap_or(any), Some(addr))
+            (local.unwrap_or(any), Some(Peer::Udp(*addr)))
         }
     };
     let socket = UdpSocket::bind(bind).map_err(|source| Px4Error::Bind { addr: bind, source })?;
-    socket
-        .set_read_timeout(Some(RECV_TIMEOUT))
-        .map_err(Px4Error::Socket)?;
-    Ok((socket, peer))
+    Ok((Transport::udp(socket, RECV_TIMEOUT)?, peer))
 }
 
 /// Runs one writer until `shutdown` is set (or a fatal error). Binds the socket first, so a port
 /// in use fails at once.
 pub fn run(config: &WriterConfig, shutdown: &AtomicBool) -> Result<RunSummary, Px4Error> {
-    let (socket, peer) = open_socket(config.link, config.local)?;
-    let local = socket.local_addr().map_err(Px4Error::Socket)?;
+    let (transport, peer) = open_link(&config.link, config.local)?;
+    let local = transport.local();
     let node = IpcNode::new(&config.swarm, &config.drone)?;
     let ports = node.writer_ports()?;
     let epoch = Instant::now();
     info!(%local, link = %config.link, autopilot_sysid = config.autopilot_sysid, sysid = config.sysid, home = ?config.home.enu, rate_hz = config.stream_rate_hz, "MAVLink writer up");
     let ctx = Ctx {
         config,
-        socket,
+        transport,
         ports,
         shared: Mutex::new(Shared {
             vehicle: VehicleTracker::new(config.home, epoch, config.autopilot_sysid),
@@ -195,13 +197,13 @@ struct Stream<'a> {
 }
 
 impl Stream<'_> {
-    fn send(&mut self, peer: SocketAddr, msg: &MavMessage, now: Instant) -> bool {
+    fn send(&mut self, peer: Peer, msg: &MavMessage, now: Instant) -> bool {
         let bytes = self.encoder.encode(msg);
         if bytes.is_empty() {
             return false;
         }
-        match self.ctx.socket.send_to(&bytes, peer) {
-            Ok(_) => true,
+        match self.ctx.transport.send(&bytes, peer) {
+            Ok(()) => true,
             Err(e) => {
                 if let Some(skipped) = self.send_log.allow(now) {
                     warn!(%peer, error = %e, skipped, "MAVLink send failed");
@@ -293,7 +295,7 @@ impl Stream<'_> {
     fn stream_setpoint(
         &mut self,
         now: Instant,
-        peer: Option<SocketAddr>,
+        peer: Option<Peer>,
         target: Option<(u8, u8)>,
         view: Option<crate::reference::VehicleView>,
         held_heading: Option<f64>,
@@ -492,28 +494,24 @@ fn receive_loop(ctx: &Ctx<'_>) -> Result<(), Px4Error> {
         RateLimit::new(Duration::from_secs(60)),
         RateLimit::new(Duration::from_secs(60)),
     ];
+    // A serial line is a byte stream: frames are cut out of it before decoding.
+    let mut splitter = ctx.transport.is_stream().then(FrameSplitter::default);
     while !ctx.stopping() {
-        let received = match ctx.socket.recv_from(&mut buf) {
-            Ok((n, from)) => Some((n, from)),
-            Err(e)
-                if matches!(
-                    e.kind(),
-                    ErrorKind::WouldBlock
-                        | ErrorKind::TimedOut
-                        | ErrorKind::Interrupted
-                        | ErrorKind::ConnectionRefused
-                        | ErrorKind::ConnectionReset
-                ) =>
-            {
-                None
-            }
-            Err(e) => return Err(Px4Error::Socket(e)),
-        };
+        let received = ctx.transport.recv(&mut buf).map_err(Px4Error::Socket)?;
         let now = Instant::now();
         let mut publish = false;
-        if let Some((n, from)) = received {
+        let received = match (received, splitter.as_mut()) {
+            (Some((n, from)), Some(splitter)) => {
+                let frames = splitter.push(buf.get(..n).unwrap_or_default());
+                (!frames.is_empty()).then_some((frames, from))
+            }
+            (Some((n, from)), None) => Some((buf.get(..n).unwrap_or_default().to_vec(), from)),
+            (None, _) => None,
+        };
+        if let Some((bytes, from)) = received {
+            let n = bytes.len();
             ctx.datagrams.fetch_add(1, Ordering::Relaxed);
-            let datagram = mav::decode_datagram(buf.get(..n).unwrap_or_default());
+            let datagram = mav::decode_datagram(&bytes);
             if datagram.is_malformed() {
                 let total = ctx.malformed.fetch_add(1, Ordering::Relaxed) + 1;
                 if let Some(skipped) = malformed_log.allow(now) {
@@ -563,7 +561,7 @@ fn receive_loop(ctx: &Ctx<'_>) -> Result<(), Px4Error> {
 fn handle_datagram(
     ctx: &Ctx<'_>,
     datagram: Datagram,
-    from: SocketAddr,
+    from: Peer,
     now: Instant,
     foreign_log: &mut [RateLimit; 2],
 ) -> bool {
