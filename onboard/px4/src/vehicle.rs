@@ -142,21 +142,21 @@ impl VehicleTracker {
         HeartbeatVerdict::Ours
     }
 
-    /// GLOBAL_POSITION_INT: altitude AMSL (mm) and heading (cdeg, `u16::MAX` = unknown).
-    pub fn on_global_position(&mut self, alt_mm: i32, hdg_cdeg: u16, now: Instant) {
+    /// GLOBAL_POSITION_INT: latitude and longitude (degrees × 10⁷; both 0 before a fix),
+    /// altitude AMSL (mm) and heading (cdeg, `u16::MAX` = unknown). The geodetic fix is paired
+    /// with the world position known now (none before the first LOCAL_POSITION_NED).
+    pub fn on_global_position(
+        &mut self,
+        (lat_e7, lon_e7): (i32, i32),
+        alt_mm: i32,
+        hdg_cdeg: u16,
+        now: Instant,
+    ) {
         self.amsl = Some((f64::from(alt_mm) / 1000.0, now));
         if hdg_cdeg != u16::MAX {
             self.heading = Some(f64::from(hdg_cdeg).to_radians() / 100.0);
         }
-    }
-
-    /// GLOBAL_POSITION_INT's latitude and longitude (degrees × 10⁷), paired with the world
-    /// position known now (none before the first LOCAL_POSITION_NED).
-    pub fn on_geodetic(&mut self, lat_e7: i32, lon_e7: i32) {
-        if lat_e7 == 0 && lon_e7 == 0 {
-            return; // no fix yet
-        }
-        if let Some((here, _)) = self.position {
+        if let (Some((here, _)), false) = (self.position, lat_e7 == 0 && lon_e7 == 0) {
             self.geo = Some(GeoFix {
                 here,
                 lat_e7,
@@ -348,7 +348,7 @@ mod tests {
         assert_eq!(v.sample(t0).position_age_ms, NEVER, "no position yet");
         v.on_heartbeat(at(t0, 1000), 1, 1, 0, hold, mav_state::STANDBY);
         assert!(v.ready());
-        v.on_global_position(489_370, 9_000, at(t0, 1000));
+        v.on_global_position((0, 0), 489_370, 9_000, at(t0, 1000));
         assert_eq!(v.facts(at(t0, 1000)).amsl_m, Some(489.37));
         assert_eq!(
             v.facts(at(t0, 1000) + ALTITUDE_FRESH + Duration::from_millis(1))
@@ -369,7 +369,12 @@ mod tests {
             Px4Mode::Offboard.custom_mode(),
             mav_state::ACTIVE,
         );
-        v.on_global_position(489_370, 18_000, at(t0, 2100));
+        v.on_global_position((473_977_420, 85_455_940), 489_370, 18_000, at(t0, 2100));
+        assert_eq!(
+            v.geo_fix().map(|g| (g.lat_e7, g.lon_e7)),
+            Some((473_977_420, 85_455_940)),
+            "a fix once a position is known"
+        );
         assert!(
             (v.held_heading().unwrap_or(0.0) - east).abs() < 1e-9,
             "held"

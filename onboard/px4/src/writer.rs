@@ -20,8 +20,6 @@ use crate::setup::{AutopilotSetup, SetupMessage, SetupRequest, SetupState};
 use crate::transport::{FrameSplitter, Peer, Transport};
 use crate::vehicle::{HeartbeatVerdict, LinkChange, VehicleTracker};
 use mavlink::dialects::common::{MavAutopilot, MavMessage, MavMissionType, MavSeverity};
-
-const FENCE: MavMissionType = MavMissionType::MAV_MISSION_TYPE_FENCE;
 use std::net::{Ipv4Addr, Ipv6Addr, SocketAddr, UdpSocket};
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -37,6 +35,7 @@ const RECV_TIMEOUT: Duration = Duration::from_millis(50);
 const STATE_PERIOD: Duration = Duration::from_millis(200);
 const HEARTBEAT_PERIOD: Duration = Duration::from_secs(1);
 const LOG_INTERVAL: Duration = Duration::from_secs(5);
+const FENCE: MavMissionType = MavMissionType::MAV_MISSION_TYPE_FENCE;
 /// What the writer asks the autopilot to stream when the link comes up, and how often (µs):
 /// links in PX4's "normal" mode send LOCAL_POSITION_NED at 1 Hz unless asked, and the planner
 /// needs far more. (message id, interval)
@@ -67,10 +66,43 @@ struct Shared {
     acks: Vec<(u32, u8)>,
     /// Warning-or-worse STATUSTEXTs not yet seen by the stream thread.
     texts: Vec<String>,
-    /// The link came up and the stream thread has not asked for the streams yet.
-    request_streams: bool,
+    /// The link came up and the stream thread has not yet asked for the streams and started
+    /// the autopilot's setup.
+    link_came_up: bool,
     /// Parameter and fence messages for the stream thread's setup.
     setup: Vec<SetupMessage>,
+}
+
+/// What the stream thread takes from the receive thread in one pass under the lock.
+struct Inbox {
+    acks: Vec<(u32, u8)>,
+    texts: Vec<String>,
+    setup_messages: Vec<SetupMessage>,
+    geo_fix: Option<crate::setup::GeoFix>,
+    link_came_up: bool,
+    facts: crate::procedure::AutopilotFacts,
+    /// The autopilot's (system, component), once known.
+    target: Option<(u8, u8)>,
+    view: Option<crate::reference::VehicleView>,
+    peer: Option<Peer>,
+    heading: Option<f64>,
+}
+
+impl Shared {
+    fn take_inbox(&mut self, now: Instant) -> Inbox {
+        Inbox {
+            acks: std::mem::take(&mut self.acks),
+            texts: std::mem::take(&mut self.texts),
+            setup_messages: std::mem::take(&mut self.setup),
+            geo_fix: self.vehicle.geo_fix(),
+            link_came_up: std::mem::take(&mut self.link_came_up),
+            facts: self.vehicle.facts(now),
+            target: self.vehicle.autopilot().map(|a| (a.sysid, a.compid)),
+            view: self.vehicle.view(),
+            peer: self.peer,
+            heading: self.vehicle.held_heading(),
+        }
+    }
 }
 
 struct Ctx<'a> {
@@ -143,7 +175,7 @@ pub fn run(config: &WriterConfig, shutdown: &AtomicBool) -> Result<RunSummary, P
             peer,
             acks: Vec::new(),
             texts: Vec::new(),
-            request_streams: false,
+            link_came_up: false,
             setup: Vec::new(),
         }),
         epoch,
@@ -354,48 +386,39 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
         let now = Instant::now();
         let fresh = s.drain_ipc(now);
 
-        let mut setup_out: Vec<SetupRequest> = Vec::new();
-        let (acks, texts, request_streams, mut facts, target, view, peer, heading) = {
-            let mut shared = ctx.shared();
-            let acks = std::mem::take(&mut shared.acks);
-            let texts = std::mem::take(&mut shared.texts);
-            let request_streams = std::mem::take(&mut shared.request_streams);
-            let messages = std::mem::take(&mut shared.setup);
-            if request_streams {
-                // A new link (first contact, or an autopilot that rebooted): set it up anew.
-                s.setup = if ctx.config.autopilot_setup {
-                    AutopilotSetup::new(
-                        ctx.config.params.clone(),
-                        ctx.config.geofence,
-                        ctx.config.home.enu.z,
-                    )
-                } else {
-                    AutopilotSetup::skipped()
-                };
-            }
-            for message in messages {
-                let out = s.setup.on_message(message, now);
-                setup_out.extend(out);
-            }
-            setup_out.extend(s.setup.poll(now, shared.vehicle.geo_fix()));
-            let ap = shared.vehicle.autopilot();
-            (
-                acks,
-                texts,
-                request_streams,
-                shared.vehicle.facts(now),
-                ap.map(|a| (a.sysid, a.compid)),
-                shared.vehicle.view(),
-                shared.peer,
-                shared.vehicle.held_heading(),
-            )
-        };
+        let Inbox {
+            acks,
+            texts,
+            setup_messages,
+            geo_fix,
+            link_came_up,
+            mut facts,
+            target,
+            view,
+            peer,
+            heading,
+        } = ctx.shared().take_inbox(now);
         facts.link_ok = facts.link_ok && peer.is_some() && target.is_some();
-        if request_streams {
+        if link_came_up {
             for (message, interval_us) in STREAMS {
                 s.procedures.request_stream(message, interval_us);
             }
+            // A new link (first contact, or an autopilot that rebooted): set it up anew.
+            s.setup = if ctx.config.autopilot_setup {
+                AutopilotSetup::new(
+                    ctx.config.params.clone(),
+                    ctx.config.geofence,
+                    ctx.config.home.enu.z,
+                )
+            } else {
+                AutopilotSetup::skipped()
+            };
         }
+        let mut setup_out: Vec<SetupRequest> = Vec::new();
+        for message in setup_messages {
+            setup_out.extend(s.setup.on_message(message, now));
+        }
+        setup_out.extend(s.setup.poll(now, geo_fix));
         for text in texts {
             s.procedures.on_status_text(&text, now);
         }
@@ -500,18 +523,20 @@ fn receive_loop(ctx: &Ctx<'_>) -> Result<(), Px4Error> {
         let received = ctx.transport.recv(&mut buf).map_err(Px4Error::Socket)?;
         let now = Instant::now();
         let mut publish = false;
-        let received = match (received, splitter.as_mut()) {
+        // A datagram is decoded where it lies; a stream's frames once they are whole.
+        let frames;
+        let received: Option<(&[u8], Peer)> = match (received, splitter.as_mut()) {
             (Some((n, from)), Some(splitter)) => {
-                let frames = splitter.push(buf.get(..n).unwrap_or_default());
-                (!frames.is_empty()).then_some((frames, from))
+                frames = splitter.push(buf.get(..n).unwrap_or_default());
+                (!frames.is_empty()).then_some((frames.as_slice(), from))
             }
-            (Some((n, from)), None) => Some((buf.get(..n).unwrap_or_default().to_vec(), from)),
+            (Some((n, from)), None) => Some((buf.get(..n).unwrap_or_default(), from)),
             (None, _) => None,
         };
         if let Some((bytes, from)) = received {
             let n = bytes.len();
             ctx.datagrams.fetch_add(1, Ordering::Relaxed);
-            let datagram = mav::decode_datagram(&bytes);
+            let datagram = mav::decode_datagram(bytes);
             if datagram.is_malformed() {
                 let total = ctx.malformed.fetch_add(1, Ordering::Relaxed) + 1;
                 if let Some(skipped) = malformed_log.allow(now) {
@@ -525,7 +550,7 @@ fn receive_loop(ctx: &Ctx<'_>) -> Result<(), Px4Error> {
             match shared.vehicle.update_link(now) {
                 Some(LinkChange::Up) => {
                     info!(autopilot = ?shared.vehicle.autopilot(), peer = ?shared.peer, "autopilot link up");
-                    shared.request_streams = true;
+                    shared.link_came_up = true;
                     publish = true;
                 }
                 Some(LinkChange::Lost) => {
@@ -620,8 +645,9 @@ fn handle_datagram(
                 }
             }
             MavMessage::GLOBAL_POSITION_INT(g) => {
-                shared.vehicle.on_global_position(g.alt, g.hdg, now);
-                shared.vehicle.on_geodetic(g.lat, g.lon);
+                shared
+                    .vehicle
+                    .on_global_position((g.lat, g.lon), g.alt, g.hdg, now);
             }
             MavMessage::PARAM_VALUE(p) => {
                 let value = crate::params::ParamValue::from_wire(p.param_value, p.param_type as u8);

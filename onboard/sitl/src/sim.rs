@@ -289,23 +289,6 @@ impl Simulation {
         }
     }
 
-    /// Every vehicle of the world, simulated or observed: (id, world position, alive, landed).
-    fn fleet(&self) -> Vec<(&DroneId, Vec3, bool, bool)> {
-        let simulated = self.vehicles.iter().map(|v| {
-            (
-                &v.id,
-                v.position_enu(),
-                v.vehicle.alive(),
-                v.vehicle.landed(),
-            )
-        });
-        let observed = self
-            .observed
-            .iter()
-            .map(|v| (&v.id, v.position_enu(), v.alive(self.time), v.landed()));
-        simulated.chain(observed).collect()
-    }
-
     fn step(&mut self, dt: f64, events: &mut Vec<WorldEvent>) {
         self.time += dt;
         for fault in self.schedule.due(self.time) {
@@ -325,7 +308,7 @@ impl Simulation {
             }
         }
 
-        let fleet = self.fleet();
+        let fleet = fleet(&self.vehicles, &self.observed, self.time);
         let airborne: Vec<Vec3> = fleet
             .iter()
             .filter(|(_, _, _, landed)| !landed)
@@ -336,21 +319,17 @@ impl Simulation {
             .filter(|(_, _, alive, landed)| *alive && !landed)
             .map(|(_, p, _, _)| *p)
             .collect();
-        let observers: Vec<(DroneId, Vec3, bool)> = fleet
-            .iter()
-            .map(|(id, p, alive, landed)| ((*id).clone(), *p, *alive && !landed))
-            .collect();
         for t in &mut self.targets {
             t.step(dt, &self.bounds, &alive_airborne);
         }
         self.stats.update(&airborne, struck_ground, &self.rules);
 
-        let observers: Vec<Observer<'_>> = observers
+        let observers: Vec<Observer<'_>> = fleet
             .iter()
-            .map(|(drone, position, can_see)| Observer {
+            .map(|(drone, position, alive, landed)| Observer {
                 drone,
                 position: *position,
-                can_see: *can_see,
+                can_see: *alive && !landed,
             })
             .collect();
         let hidden = self
@@ -390,6 +369,28 @@ impl Simulation {
                 .collect(),
         }
     }
+}
+
+/// Every vehicle of the world, simulated or observed: (id, world position, alive, landed). A
+/// function of the two lists, not of the whole simulation, so the targets and statistics can be
+/// stepped while it is borrowed.
+fn fleet<'a>(
+    vehicles: &'a [SimVehicle],
+    observed: &'a [ObservedVehicle],
+    now: f64,
+) -> Vec<(&'a DroneId, Vec3, bool, bool)> {
+    let simulated = vehicles.iter().map(|v| {
+        (
+            &v.id,
+            v.position_enu(),
+            v.vehicle.alive(),
+            v.vehicle.landed(),
+        )
+    });
+    let observed = observed
+        .iter()
+        .map(|v| (&v.id, v.position_enu(), v.alive(now), v.landed()));
+    simulated.chain(observed).collect()
 }
 
 #[cfg(test)]
