@@ -5,7 +5,7 @@ use super::directives::{self, Directive};
 use super::grounding;
 use super::input::MissionInputs;
 use super::log::{MissionLog, Record};
-use super::resolve::{claimed_points, resolve};
+use super::resolve::{claimed_points, position_of, resolve};
 use crate::link::GroundLink;
 use crate::safety::{CheckedAction, SafetyGate};
 use crate::swarm::SwarmChange;
@@ -796,7 +796,13 @@ impl Mission {
                     ..task.call.clone()
                 };
                 let claimed = claimed_points(&view, &drone, now);
-                let Ok(action) = resolve(&call, self.gate.scenario(), &visible, &claimed) else {
+                let Ok(action) = resolve(
+                    &call,
+                    self.gate.scenario(),
+                    &visible,
+                    &claimed,
+                    position_of(&view, &drone),
+                ) else {
                     continue;
                 };
                 if self.gate.check(&view, &drone, &action, now).is_ok() {
@@ -856,7 +862,13 @@ impl Mission {
                 && entry.status.as_ref().is_some_and(|status| {
                     let claimed = claimed_points(&view, &task.call.drone, now);
                     matches!(
-                        resolve(&task.call, self.gate.scenario(), &visible, &claimed),
+                        resolve(
+                            &task.call,
+                            self.gate.scenario(),
+                            &visible,
+                            &claimed,
+                            position_of(&view, &task.call.drone),
+                        ),
                         Ok(Action::Goto { target }) if (status.position - target).norm() <= arrive
                     )
                 });
@@ -2152,7 +2164,7 @@ fn check_static(
     if !scenario.drones.iter().any(|d| d.id.as_str() == call.drone) {
         return Err(format!("there is no drone {:?}", call.drone));
     }
-    let action = resolve(call, scenario, visible, &[])?;
+    let action = resolve(call, scenario, visible, &[], None)?;
     if let Action::Goto { target } = action {
         scenario
             .world
@@ -2216,7 +2228,13 @@ fn check_live(
             Action::Goto { target } => Some(*target),
             _ => None,
         }));
-        let action = match resolve(call, gate.scenario(), visible, &claimed) {
+        let action = match resolve(
+            call,
+            gate.scenario(),
+            visible,
+            &claimed,
+            position_of(&view, &call.drone),
+        ) {
             Ok(a) => a,
             Err(why) => {
                 rejections.push(format!("{call}: {why}"));

@@ -42,6 +42,14 @@ pub fn claimed_points(view: &SwarmView, drone: &str, now: Instant) -> Vec<Vec3> 
         .collect()
 }
 
+/// Where `drone` is, as its latest status says: the `from` of [`resolve`].
+pub fn position_of(view: &SwarmView, drone: &str) -> Option<Vec3> {
+    view.drones()
+        .find(|e| e.id.as_str() == drone)
+        .and_then(|e| e.status.as_ref())
+        .map(|s| s.position)
+}
+
 /// How far apart two goal points must be, in the downwash-scaled metric (vertical offsets
 /// count half): the safety distance, the planner's margin of 0.5 m on each side, and 1 m of
 /// slack. Without the slack the goals sit on the planner's boundary, where a neighbour's stale
@@ -56,41 +64,51 @@ fn scaled_distance(a: &Vec3, b: &Vec3) -> f64 {
     (d.x * d.x + d.y * d.y + (d.z / DOWNWASH_FACTOR).powi(2)).sqrt()
 }
 
-/// The point itself when no claim is near it; otherwise the first free point on rings round it
-/// (one and two spacings out, every 45°) that is inside the bounds and outside every obstacle;
-/// the point itself when none is free (the planner then keeps the drones apart).
-fn free_spot(base: Vec3, scenario: &Scenario, claimed: &[Vec3]) -> Vec3 {
+/// The point itself when no claim is near it; otherwise a free point on rings round it (one
+/// spacing out, then two, every 45°) that is inside the bounds and outside every obstacle: on
+/// the nearer ring, the one nearest to `from` (where the drone is). The nearest keeps a drone
+/// on its own side of the drones already there: the first free point in a fixed order sent the
+/// third drone to one car behind the other two, 5 m apart, and the planner (rightly) would not
+/// let it squeeze between them, so its goto timed out. The point itself when none is free (the
+/// planner then keeps the drones apart).
+fn free_spot(base: Vec3, scenario: &Scenario, claimed: &[Vec3], from: Option<Vec3>) -> Vec3 {
     let spacing = goal_spacing(scenario);
     let free = |p: &Vec3| claimed.iter().all(|c| scaled_distance(p, c) >= spacing);
     if free(&base) {
         return base;
     }
+    let far = |p: &Vec3| from.map_or(0.0, |f| (p - f).norm());
     (1..=2)
-        .flat_map(|ring| {
-            (0..8).map(move |k| {
-                let angle = f64::from(k) * std::f64::consts::FRAC_PI_4;
-                let r = f64::from(ring) * spacing;
-                base + Vec3::new(r * angle.cos(), r * angle.sin(), 0.0)
-            })
+        .filter_map(|ring| {
+            (0..8)
+                .map(|k| {
+                    let angle = f64::from(k) * std::f64::consts::FRAC_PI_4;
+                    let r = f64::from(ring) * spacing;
+                    base + Vec3::new(r * angle.cos(), r * angle.sin(), 0.0)
+                })
+                .filter(|p| {
+                    free(p)
+                        && scenario
+                            .world
+                            .check_point(p, scenario.limits.drone_radius)
+                            .is_ok()
+                })
+                .min_by(|a, b| far(a).total_cmp(&far(b)))
         })
-        .find(|p| {
-            free(p)
-                && scenario
-                    .world
-                    .check_point(p, scenario.limits.drone_radius)
-                    .is_ok()
-        })
+        .next()
         .unwrap_or(base)
 }
 
 /// The action a call asks for, or why it names nothing that can be flown to. A goto to a named
 /// place keeps clear of the `claimed` points; a goto to an explicit point is flown as given, or
-/// refused when it is closer than `goal_spacing` to a claimed point.
+/// refused when it is closer than `goal_spacing` to a claimed point. `from` is where the drone
+/// is, when known: of the free points round a claimed place, it gets the nearest.
 pub fn resolve(
     call: &Call,
     scenario: &Scenario,
     visible: &[TargetObservation],
     claimed: &[Vec3],
+    from: Option<Vec3>,
 ) -> Result<Action, String> {
     let altitude = inspect_altitude(scenario);
     match call.action {
@@ -124,11 +142,11 @@ pub fn resolve(
                 let above = |p: &Vec3| Vec3::new(p.x, p.y, p.z + altitude);
                 if let Some(l) = scenario.world.landmark(name) {
                     Ok(Action::Goto {
-                        target: free_spot(above(&l.position), scenario, claimed),
+                        target: free_spot(above(&l.position), scenario, claimed, from),
                     })
                 } else if let Some(t) = visible.iter().find(|t| t.name == name) {
                     Ok(Action::Goto {
-                        target: free_spot(above(&t.position), scenario, claimed),
+                        target: free_spot(above(&t.position), scenario, claimed, from),
                     })
                 } else {
                     Err(format!(
@@ -173,7 +191,13 @@ mod tests {
         let city = Scenario::builtin("city").expect("city");
         let car = city.world.landmark("car_7").expect("car_7").position;
         assert_eq!(
-            resolve(&call(ActionName::Goto, "car_7", None), &city, &[], &[]),
+            resolve(
+                &call(ActionName::Goto, "car_7", None),
+                &city,
+                &[],
+                &[],
+                None
+            ),
             Ok(Action::Goto {
                 target: Vec3::new(car.x, car.y, 10.0)
             })
@@ -183,7 +207,8 @@ mod tests {
                 &call(ActionName::Goto, "none", Some([1.0, 2.0, 3.0])),
                 &city,
                 &[],
-                &[]
+                &[],
+                None
             ),
             Ok(Action::Goto {
                 target: Vec3::new(1.0, 2.0, 3.0)
@@ -194,21 +219,32 @@ mod tests {
                 &call(ActionName::Goto, "car_7", Some([1.0, 2.0, 3.0])),
                 &city,
                 &[],
-                &[]
+                &[],
+                None
             ),
             Ok(Action::Goto {
                 target: Vec3::new(car.x, car.y, 10.0)
             }),
             "the name wins, as the call is shown"
         );
-        assert!(resolve(&call(ActionName::Goto, "none", None), &city, &[], &[]).is_err());
-        assert!(resolve(&call(ActionName::Goto, "atlantis", None), &city, &[], &[]).is_err());
+        assert!(resolve(&call(ActionName::Goto, "none", None), &city, &[], &[], None).is_err());
+        assert!(
+            resolve(
+                &call(ActionName::Goto, "atlantis", None),
+                &city,
+                &[],
+                &[],
+                None
+            )
+            .is_err()
+        );
         assert!(
             resolve(
                 &call(ActionName::StartTracking, "car_7", None),
                 &city,
                 &[],
-                &[]
+                &[],
+                None
             )
             .is_err()
         );
@@ -217,7 +253,8 @@ mod tests {
                 &call(ActionName::StartTracking, "van", None),
                 &city,
                 &[],
-                &[]
+                &[],
+                None
             )
             .is_ok()
         );
@@ -234,6 +271,7 @@ mod tests {
             &city,
             &[],
             claimed,
+            None,
         ) {
             Ok(Action::Goto { target }) => target,
             other => panic!("not a goto: {other:?}"),
@@ -267,6 +305,7 @@ mod tests {
                 &city,
                 &[],
                 claimed,
+                None,
             )
         };
         let clear = Vec3::new(1.0, 2.0 + spacing, 10.0);
@@ -281,5 +320,72 @@ mod tests {
             Err(why) => assert!(why.contains("(1.0, 3.0, 10.0), 1.0 m from it"), "{why}"),
             other => panic!("a held point was accepted: {other:?}"),
         }
+    }
+
+    /// Three drones to one car, the third coming from the far side of the first two: it gets
+    /// the free point on its own side, not one it could only reach between them.
+    #[test]
+    fn of_the_free_points_a_drone_gets_the_one_nearest_to_it() {
+        let city = Scenario::builtin("city").expect("city");
+        let car = city.world.landmark("car_1").expect("car_1").position;
+        let above = Vec3::new(car.x, car.y, 10.0);
+        let spacing = goal_spacing(&city);
+        let goto = |claimed: &[Vec3], from: Vec3| match resolve(
+            &call(ActionName::Goto, "car_1", None),
+            &city,
+            &[],
+            claimed,
+            Some(from),
+        ) {
+            Ok(Action::Goto { target }) => target,
+            other => panic!("not a goto: {other:?}"),
+        };
+        for from in [
+            above + Vec3::new(-60.0, -40.0, -10.0),
+            above + Vec3::new(50.0, 5.0, -10.0),
+            above + Vec3::new(0.0, 70.0, -10.0),
+        ] {
+            let first = goto(&[above], from);
+            let ring: Vec<Vec3> = (0..8)
+                .map(|k| {
+                    let a = f64::from(k) * std::f64::consts::FRAC_PI_4;
+                    above + Vec3::new(spacing * a.cos(), spacing * a.sin(), 0.0)
+                })
+                .filter(|p| city.world.check_point(p, city.limits.drone_radius).is_ok())
+                .collect();
+            assert!(ring.iter().any(|p| (p - first).norm() < 1e-9), "{first:?}");
+            for p in &ring {
+                assert!(
+                    (first - from).norm() <= (p - from).norm() + 1e-9,
+                    "{p:?} is nearer"
+                );
+            }
+            let second = goto(&[above, first], from);
+            assert!(scaled_distance(&second, &above) >= spacing);
+            assert!(scaled_distance(&second, &first) >= spacing);
+            // Each flies a straight line that passes the others with the room the planner keeps
+            // between two drones (half the safety distance and a sixth of it, each).
+            let room = city.limits.safety_distance * 4.0 / 3.0;
+            assert!(
+                clearance(from, first, above) >= room,
+                "{first:?} from {from:?}"
+            );
+            for other in [above, first] {
+                let gap = clearance(from, second, other);
+                assert!(
+                    gap >= room,
+                    "{second:?} from {from:?} passes {other:?} at {gap:.2} m"
+                );
+            }
+        }
+    }
+
+    /// The least horizontal distance from `p` to the segment from `a` to `b`.
+    fn clearance(a: Vec3, b: Vec3, p: Vec3) -> f64 {
+        let flat = |v: Vec3| Vec3::new(v.x, v.y, 0.0);
+        let (a, b, p) = (flat(a), flat(b), flat(p));
+        let ab = b - a;
+        let t = ((p - a).dot(&ab) / ab.norm_squared()).clamp(0.0, 1.0);
+        (a + t * ab - p).norm()
     }
 }
