@@ -7,6 +7,7 @@
 pub mod demo;
 pub mod direct;
 pub mod eval;
+pub mod jsonl;
 pub mod launch;
 pub mod link;
 pub mod mission;

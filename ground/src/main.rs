@@ -313,7 +313,8 @@ fn run() -> anyhow::Result<()> {
             }
             Cmd::Replay { log } => {
                 let lines = tacos_ground::mission::log::read(&log)?;
-                print!("{}", tacos_ground::mission::log::timeline(&lines));
+                let mission = tacos_ground::mission::log::last_mission(&lines);
+                print!("{}", tacos_ground::mission::log::timeline(mission));
                 Ok(())
             }
         }
@@ -381,8 +382,9 @@ async fn send(
 }
 
 fn plot(log: &std::path::Path, output: &std::path::Path, map: Option<&str>) -> anyhow::Result<()> {
-    use tacos_ground::mission::log::{Record, read};
-    let lines = read(log)?;
+    use tacos_ground::mission::log::{Record, last_mission, read};
+    let all = read(log)?;
+    let lines = last_mission(&all);
     let named = lines.iter().find_map(|l| match &l.record {
         Record::MissionStart { scenario, .. } => Some(scenario.clone()),
         _ => None,
@@ -392,7 +394,7 @@ fn plot(log: &std::path::Path, output: &std::path::Path, map: Option<&str>) -> a
         .or(named)
         .context("the log names no map: give --map")?;
     let scenario = tacos_bus::load_scenario(&map)?;
-    let svg = tacos_ground::plot::svg(&lines, &scenario);
+    let svg = tacos_ground::plot::svg(lines, &scenario);
     let bytes = match output.extension().and_then(|e| e.to_str()) {
         Some("svg") => svg.into_bytes(),
         Some("png") => tacos_ground::plot::png(&svg, 2.0)?,

@@ -274,6 +274,9 @@ async fn broken_replies_are_repaired_and_the_plan_runs_over_several_cycles() -> 
         // The goto refused before take-off was sent later, once alfa flew: never before.
         let first_t4 = lines.iter().position(|l| matches!(&l.record, Record::ActionSent { task: Some(t), .. } if t == "T4"));
         let alfa_up = lines.iter().position(|l| matches!(&l.record, Record::ActionOutcome { drone, outcome, task: Some(t), .. } if drone == "alfa" && t == "T1" && outcome == "done"));
+        let (Some(first_t4), Some(alfa_up)) = (first_t4, alfa_up) else {
+            anyhow::bail!("the log lacks T4's send ({first_t4:?}) or alfa's take-off done ({alfa_up:?})");
+        };
         assert!(first_t4 > alfa_up, "T4 was sent before alfa's take-off finished");
         let outcomes: Vec<&String> = lines.iter().filter_map(|l| match &l.record { Record::ActionOutcome { outcome, .. } => Some(outcome), _ => None }).collect();
         assert!(outcomes.iter().all(|o| *o == "done"), "every sent action succeeded: {outcomes:?}");

@@ -2,11 +2,11 @@
 //! interrupted evaluation resumes where it stopped), their statistics per (mode, swarm size),
 //! and the table as Markdown and CSV.
 
+use crate::jsonl;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashSet};
 use std::fmt::Write as _;
-use std::fs::{File, OpenOptions};
-use std::io::{BufRead, BufReader, Write};
+use std::fs::File;
 use std::path::{Path, PathBuf};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -83,12 +83,6 @@ pub struct RunKey {
 pub enum ResultsError {
     #[error("{path}: {reason}")]
     Io { path: String, reason: String },
-    #[error("{path}, line {line}: {reason}")]
-    Parse {
-        path: String,
-        line: usize,
-        reason: String,
-    },
     #[error(
         "{path} holds runs of task {task:?} with {backend:?}; this evaluation is {want_task:?} with {want_backend:?}: use another --out"
     )]
@@ -115,78 +109,37 @@ pub struct RunsFile {
 }
 
 impl RunsFile {
-    /// Opens (or creates) the file; a last line cut short by an interruption is cut off, so
+    /// Opens (or creates) the file; a last line cut short by an interruption is repaired, so
     /// the next record starts on a line of its own.
     pub fn open(path: &Path) -> Result<RunsFile, ResultsError> {
-        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).map_err(|e| io(dir, e))?;
+        let (file, repair) = jsonl::open_append(path).map_err(|e| io(path, e))?;
+        if let Some(repair) = repair {
+            tracing::warn!(path = %path.display(), ?repair, "runs file had a torn last line");
         }
-        match std::fs::read(path) {
-            Ok(bytes) if bytes.last().is_some_and(|b| *b != b'\n') => {
-                let keep = bytes.iter().rposition(|b| *b == b'\n').map_or(0, |i| i + 1);
-                OpenOptions::new()
-                    .write(true)
-                    .open(path)
-                    .and_then(|f| f.set_len(keep as u64))
-                    .map_err(|e| io(path, e))?;
-            }
-            Ok(_) => {}
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
-            Err(e) => return Err(io(path, e)),
-        }
-        let file = OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(path)
-            .map_err(|e| io(path, e))?;
         Ok(RunsFile {
             path: path.to_owned(),
             file,
         })
     }
 
-    /// Appends one record and flushes it to the disk.
+    /// Appends one record and syncs it to the disk.
     pub fn append(&mut self, record: &RunRecord) -> Result<(), ResultsError> {
-        let mut text = serde_json::to_string(record).map_err(|e| io(&self.path, e))?;
-        text.push('\n');
-        self.file
-            .write_all(text.as_bytes())
-            .and_then(|()| self.file.sync_data())
-            .map_err(|e| io(&self.path, e))
+        jsonl::append(&mut self.file, record, true).map_err(|e| io(&self.path, e))
     }
 }
 
-/// Reads the records so far (none when the file does not exist). A last line cut short by an
-/// interruption is ignored; any other bad line is an error.
+/// Reads the records so far (none when the file does not exist). A line that is not a record
+/// (cut short by an interruption) is skipped with a warning: its run is carried out again.
 pub fn read_runs(path: &Path) -> Result<Vec<RunRecord>, ResultsError> {
-    let file = match File::open(path) {
-        Ok(f) => f,
+    let contents = match jsonl::read::<RunRecord>(path) {
+        Ok(c) => c,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
         Err(e) => return Err(io(path, e)),
     };
-    let lines: Vec<String> = BufReader::new(file)
-        .lines()
-        .collect::<Result<_, _>>()
-        .map_err(|e| io(path, e))?;
-    let last = lines.len();
-    let mut out = Vec::new();
-    for (i, text) in lines.iter().enumerate() {
-        if text.trim().is_empty() {
-            continue;
-        }
-        match serde_json::from_str::<RunRecord>(text) {
-            Ok(r) => out.push(r),
-            Err(_) if i + 1 == last => break,
-            Err(e) => {
-                return Err(ResultsError::Parse {
-                    path: path.display().to_string(),
-                    line: i + 1,
-                    reason: e.to_string(),
-                });
-            }
-        }
+    for s in &contents.skipped {
+        tracing::warn!(path = %path.display(), line = s.line, reason = %s.reason, "runs file line skipped");
     }
-    Ok(out)
+    Ok(contents.records)
 }
 
 /// The runs already carried out (success or failure; errors are run again). Records of another
@@ -515,8 +468,11 @@ mod tests {
             .expect("append");
         drop(file);
         // An interruption in the middle of the next record.
-        let mut f = OpenOptions::new().append(true).open(&path).expect("open");
-        f.write_all(b"{\"task\":\"find-su").expect("append");
+        let mut f = std::fs::OpenOptions::new()
+            .append(true)
+            .open(&path)
+            .expect("open");
+        std::io::Write::write_all(&mut f, b"{\"task\":\"find-su").expect("append");
         drop(f);
         let records = read_runs(&path).expect("read");
         assert_eq!(records.len(), 2);

@@ -1,10 +1,13 @@
 //! The mission log: every model request and reply (with latency and tokens), every action sent
-//! and its outcome, every event and replan, as append-only JSON lines. Each record is written
-//! and flushed on its own, so a crash loses nothing that was logged.
+//! and its outcome, every event and replan, as append-only JSON lines (see [`crate::jsonl`]).
+//! Each record reaches the kernel when it is written; the records a mission is rebuilt from
+//! (plans, actions sent, direct commands, its start and end) are synced to the disk as well, so
+//! a power cut loses at most some positions and model traffic. A reused path gets the new
+//! mission after the old one, from its own `mission_start` line.
 
+use crate::jsonl;
 use serde::{Deserialize, Serialize};
-use std::fs::{File, OpenOptions};
-use std::io::{BufRead, BufReader, Write};
+use std::fs::File;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use tacos_bus::clock::Clock;
@@ -100,15 +103,30 @@ pub struct Line {
     pub record: Record,
 }
 
+impl Record {
+    /// The records a mission is rebuilt from: worth a wait for the disk.
+    fn must_persist(&self) -> bool {
+        matches!(
+            self,
+            Record::MissionStart { .. }
+                | Record::Pilot { .. }
+                | Record::Direct { .. }
+                | Record::Plan { .. }
+                | Record::ActionSent { .. }
+                | Record::PlanComplete { .. }
+                | Record::Replan { .. }
+                | Record::MissionEnd { .. }
+        )
+    }
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum LogError {
-    #[error("mission log {path}: {reason}")]
-    Io { path: String, reason: String },
-    #[error("mission log {path}, line {line}: {reason}")]
-    Parse {
+    #[error("mission log {path}: {source}")]
+    Io {
         path: String,
-        line: usize,
-        reason: String,
+        #[source]
+        source: std::io::Error,
     },
 }
 
@@ -122,22 +140,15 @@ pub struct MissionLog {
 }
 
 impl MissionLog {
-    /// Creates (or appends to) the log at `path`.
+    /// Creates the log at `path`, or appends to it after repairing a torn last line.
     pub fn create(path: &Path) -> Result<MissionLog, LogError> {
-        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).map_err(|e| LogError::Io {
-                path: dir.display().to_string(),
-                reason: e.to_string(),
-            })?;
+        let (file, repair) = jsonl::open_append(path).map_err(|source| LogError::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        if let Some(repair) = repair {
+            tracing::warn!(path = %path.display(), ?repair, "mission log had a torn last line");
         }
-        let file = OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(path)
-            .map_err(|e| LogError::Io {
-                path: path.display().to_string(),
-                reason: e.to_string(),
-            })?;
         let clock = Clock::wall();
         Ok(MissionLog {
             file: Mutex::new(file),
@@ -162,24 +173,19 @@ impl MissionLog {
         self.clock.now() - self.start_s
     }
 
-    /// Appends one record and flushes it. A failing disk is reported, never a panic.
+    /// Appends one record (synced to the disk when it is one a mission is rebuilt from). A
+    /// failing disk is reported, never a panic.
     pub fn write(&self, record: Record) -> Result<(), LogError> {
+        let sync = record.must_persist();
         let line = Line {
             t: self.elapsed(),
             record,
         };
-        let mut text = serde_json::to_string(&line).map_err(|e| LogError::Io {
-            path: self.path.display().to_string(),
-            reason: e.to_string(),
-        })?;
-        text.push('\n');
         let mut file = self.file.lock().unwrap_or_else(|p| p.into_inner());
-        file.write_all(text.as_bytes())
-            .and_then(|_| file.flush())
-            .map_err(|e| LogError::Io {
-                path: self.path.display().to_string(),
-                reason: e.to_string(),
-            })
+        jsonl::append(&mut file, &line, sync).map_err(|source| LogError::Io {
+            path: self.path.display().to_string(),
+            source,
+        })
     }
 
     /// Like [`write`](Self::write), but a failure is only reported through tracing: the mission
@@ -191,38 +197,32 @@ impl MissionLog {
     }
 }
 
-/// Reads a whole log. A last line cut short by a crash is skipped; any other bad line is an error.
+/// Reads a whole log. Lines that are not records (a tail cut short by a crash, a partial write
+/// on a full disk) are skipped, each with a warning; [`read_checked`] returns them.
 pub fn read(path: &Path) -> Result<Vec<Line>, LogError> {
-    let file = File::open(path).map_err(|e| LogError::Io {
-        path: path.display().to_string(),
-        reason: e.to_string(),
-    })?;
-    let lines: Vec<String> = BufReader::new(file)
-        .lines()
-        .collect::<Result<_, _>>()
-        .map_err(|e| LogError::Io {
-            path: path.display().to_string(),
-            reason: e.to_string(),
-        })?;
-    let last = lines.len();
-    let mut out = Vec::new();
-    for (i, text) in lines.iter().enumerate() {
-        if text.trim().is_empty() {
-            continue;
-        }
-        match serde_json::from_str::<Line>(text) {
-            Ok(line) => out.push(line),
-            Err(_) if i + 1 == last => break,
-            Err(e) => {
-                return Err(LogError::Parse {
-                    path: path.display().to_string(),
-                    line: i + 1,
-                    reason: e.to_string(),
-                });
-            }
-        }
+    let contents = read_checked(path)?;
+    for s in &contents.skipped {
+        tracing::warn!(path = %path.display(), line = s.line, reason = %s.reason, "mission log line skipped");
     }
-    Ok(out)
+    Ok(contents.records)
+}
+
+/// The records of a log and the lines that were not records.
+pub fn read_checked(path: &Path) -> Result<jsonl::Contents<Line>, LogError> {
+    jsonl::read(path).map_err(|source| LogError::Io {
+        path: path.display().to_string(),
+        source,
+    })
+}
+
+/// The lines of the last mission in a log that holds several (a reused `--log` path): from its
+/// last `mission_start` on; all of them when there is none.
+pub fn last_mission(lines: &[Line]) -> &[Line] {
+    let start = lines
+        .iter()
+        .rposition(|l| matches!(l.record, Record::MissionStart { .. }))
+        .unwrap_or(0);
+    &lines[start..]
 }
 
 /// The mission's timeline as text, one line per record (positions left out).
@@ -303,6 +303,45 @@ mod tests {
     use super::*;
 
     #[test]
+    fn a_reused_path_after_a_crash_reads_as_two_missions() {
+        let dir = std::env::temp_dir().join(format!("tacos-log-reuse-{}", std::process::id()));
+        let path = dir.join("mission.jsonl");
+        let _ = std::fs::remove_dir_all(&dir);
+        let start = |backend: &str| Record::MissionStart {
+            mode: "tacos".into(),
+            backend: backend.into(),
+            scenario: "city".into(),
+            drones: vec!["alfa".into()],
+        };
+        let first = MissionLog::create(&path).expect("create");
+        first.write(start("first")).expect("write");
+        drop(first);
+        let mut f = std::fs::OpenOptions::new()
+            .append(true)
+            .open(&path)
+            .expect("open");
+        std::io::Write::write_all(&mut f, b"{\"t\":3.0,\"kind\":\"pil").expect("append");
+        let second = MissionLog::create(&path).expect("reopen");
+        second.write(start("second")).expect("write");
+        second
+            .write(Record::Pilot {
+                text: "alfa, take off".into(),
+            })
+            .expect("write");
+        let all = read_checked(&path).expect("read");
+        assert!(
+            all.skipped.is_empty(),
+            "the torn line was repaired: {:?}",
+            all.skipped
+        );
+        assert_eq!(all.records.len(), 3);
+        let last = last_mission(&all.records);
+        assert_eq!(last.len(), 2);
+        assert_eq!(last[0].record, start("second"));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
     fn records_survive_a_crash_mid_line() {
         let dir = std::env::temp_dir().join(format!("tacos-log-{}", std::process::id()));
         let path = dir.join("mission.jsonl");
@@ -321,8 +360,11 @@ mod tests {
         .expect("write");
         drop(log);
         // A crash in the middle of the next record.
-        let mut f = OpenOptions::new().append(true).open(&path).expect("open");
-        f.write_all(b"{\"t\":3.0,\"kind\":\"pil").expect("append");
+        let mut f = std::fs::OpenOptions::new()
+            .append(true)
+            .open(&path)
+            .expect("open");
+        std::io::Write::write_all(&mut f, b"{\"t\":3.0,\"kind\":\"pil").expect("append");
         let lines = read(&path).expect("read");
         assert_eq!(lines.len(), 2);
         assert_eq!(
