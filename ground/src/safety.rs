@@ -2,6 +2,7 @@
 //! it (the pilot's direct commands, the demo, a model). The drone checks again on board.
 
 use crate::swarm::SwarmView;
+use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::time::Instant;
 use tacos_shared::action::{Action, mode_forbids};
@@ -64,12 +65,23 @@ impl fmt::Display for Rejection {
     }
 }
 
+/// What the gate knew of a drone when it judged an action: all it reads of the live swarm.
+/// Logged with each send (`Record::ActionSent`), so an audit can run the gate again on what
+/// was sent ([`SafetyGate::recheck`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DroneSeen {
+    /// The mode as the gate saw it (`Unavailable` when the status was stale).
+    pub mode: DroneMode,
+    pub autopilot_link: bool,
+}
+
 /// An action that passed the gate. Only [`SafetyGate::check`] makes one, and only a checked
 /// action can be sent (`GroundLink::send`), so nothing reaches a drone around the gate.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CheckedAction {
     drone: DroneId,
     action: Action,
+    seen: DroneSeen,
 }
 
 impl CheckedAction {
@@ -78,6 +90,10 @@ impl CheckedAction {
     }
     pub fn action(&self) -> &Action {
         &self.action
+    }
+    /// The drone's state the action was checked against.
+    pub fn seen(&self) -> DroneSeen {
+        self.seen
     }
 }
 
@@ -106,37 +122,55 @@ impl SafetyGate {
         action: &Action,
         now: Instant,
     ) -> Result<CheckedAction, Rejection> {
-        let id = self.check_inner(view, drone, action, now)?;
+        let known = || view.drones().map(|d| d.id.to_string()).collect::<Vec<_>>();
+        let unknown = || Rejection::UnknownDrone {
+            drone: drone.to_owned(),
+            known: known(),
+        };
+        let id = DroneId::new(drone).map_err(|_| unknown())?;
+        let entry = view.get(&id).ok_or_else(unknown)?;
+        let seen = DroneSeen {
+            mode: entry.effective_mode(now),
+            autopilot_link: entry.status.as_ref().is_some_and(|s| s.autopilot_link),
+        };
+        self.judge(&id, seen, action)?;
         Ok(CheckedAction {
             drone: id,
             action: action.clone(),
+            seen,
         })
     }
 
-    fn check_inner(
-        &self,
-        view: &SwarmView,
-        drone: &str,
-        action: &Action,
-        now: Instant,
-    ) -> Result<DroneId, Rejection> {
-        let known = || view.drones().map(|d| d.id.to_string()).collect::<Vec<_>>();
-        let id = DroneId::new(drone).map_err(|_| Rejection::UnknownDrone {
-            drone: drone.to_owned(),
-            known: known(),
-        })?;
-        let entry = view.get(&id).ok_or_else(|| Rejection::UnknownDrone {
-            drone: drone.to_owned(),
-            known: known(),
-        })?;
-        let mode = entry.effective_mode(now);
-        let autopilot_ok = entry.status.as_ref().is_some_and(|s| s.autopilot_link);
-        if mode == DroneMode::Unavailable || !autopilot_ok {
-            return Err(Rejection::Unavailable(id));
+    /// The gate run again, away from the swarm, on what it saw of a drone: the audit of a
+    /// mission log. The same rules as [`check`](Self::check); the drone must be one of the
+    /// scenario's.
+    pub fn recheck(&self, drone: &str, seen: DroneSeen, action: &Action) -> Result<(), Rejection> {
+        let known = || {
+            self.scenario
+                .drones
+                .iter()
+                .map(|d| d.id.to_string())
+                .collect::<Vec<_>>()
+        };
+        let id = DroneId::new(drone)
+            .ok()
+            .filter(|id| self.scenario.drones.iter().any(|d| d.id == *id))
+            .ok_or_else(|| Rejection::UnknownDrone {
+                drone: drone.to_owned(),
+                known: known(),
+            })?;
+        self.judge(&id, seen, action)
+    }
+
+    /// The rules, on the drone's state as seen.
+    fn judge(&self, id: &DroneId, seen: DroneSeen, action: &Action) -> Result<(), Rejection> {
+        let mode = seen.mode;
+        if mode == DroneMode::Unavailable || !seen.autopilot_link {
+            return Err(Rejection::Unavailable(id.clone()));
         }
         if let Some(why) = mode_forbids(action, mode) {
             return Err(Rejection::ModeForbids {
-                drone: id,
+                drone: id.clone(),
                 mode,
                 action: action.name(),
                 why,
@@ -154,7 +188,7 @@ impl SafetyGate {
                     })?;
                 if target.z < limits.drone_radius * 2.0 {
                     return Err(Rejection::BadPoint {
-                        drone: id,
+                        drone: id.clone(),
                         why: format!("altitude {:.1} m is too low for a goto: use land", target.z),
                     });
                 }
@@ -167,7 +201,7 @@ impl SafetyGate {
             }
             _ => {}
         }
-        Ok(id)
+        Ok(())
     }
 }
 
@@ -258,10 +292,75 @@ mod tests {
             )
             .is_ok()
         );
+        // Just above the ground (inside the box, clear of every obstacle) is too low for a
+        // goto; a point that is not a number is no point.
+        let low = gate.scenario().limits.drone_radius * 1.5;
+        assert!(
+            matches!(
+                gate.check(&flying, "alfa", &goto(-40.0, -100.0, low), now),
+                Err(Rejection::BadPoint { why, .. }) if why.contains("too low")
+            ),
+            "{:?}",
+            gate.check(&flying, "alfa", &goto(-40.0, -100.0, low), now)
+        );
+        assert!(matches!(
+            gate.check(&flying, "alfa", &goto(f64::NAN, -100.0, 10.0), now),
+            Err(Rejection::BadPoint { .. })
+        ));
         // A drone whose status is stale is unavailable.
         let later = now + std::time::Duration::from_secs(3);
         assert!(matches!(
             gate.check(&flying, "alfa", &Action::Land, later),
+            Err(Rejection::Unavailable(_))
+        ));
+    }
+
+    /// The audit's gate: the same verdicts from what the live gate saw, away from the swarm.
+    #[test]
+    fn the_gate_run_again_on_what_it_saw_gives_the_same_verdict() {
+        let gate = SafetyGate::new(Scenario::builtin("city").expect("city"));
+        let now = Instant::now();
+        let goto = |x, y, z| Action::Goto {
+            target: Vec3::new(x, y, z),
+        };
+        let actions = [
+            goto(-40.0, -100.0, 10.0),
+            goto(18.0, 18.0, 20.0),
+            Action::Land,
+            Action::ArmTakeoff,
+            Action::StartTracking {
+                target: "ghost".into(),
+            },
+        ];
+        for mode in [DroneMode::Idle, DroneMode::Flying] {
+            let view = view_with("alfa", mode, now);
+            for action in &actions {
+                let live = gate.check(&view, "alfa", action, now);
+                let seen = DroneSeen {
+                    mode,
+                    autopilot_link: true,
+                };
+                let again = gate.recheck("alfa", seen, action);
+                assert_eq!(live.as_ref().err(), again.as_ref().err(), "{mode} {action}");
+                if let Ok(c) = live {
+                    assert_eq!(c.seen(), seen);
+                }
+            }
+        }
+        let flying = DroneSeen {
+            mode: DroneMode::Flying,
+            autopilot_link: true,
+        };
+        assert!(matches!(
+            gate.recheck("zulu", flying, &Action::Land),
+            Err(Rejection::UnknownDrone { .. })
+        ));
+        let unlinked = DroneSeen {
+            autopilot_link: false,
+            ..flying
+        };
+        assert!(matches!(
+            gate.recheck("alfa", unlinked, &Action::Land),
             Err(Rejection::Unavailable(_))
         ));
     }

@@ -2,8 +2,8 @@
 //! simulator's truth and events (gathered by `run`) and the mission log.
 
 use super::task::SuccessSpec;
-use crate::mission::log::{Line, Record};
-use std::collections::HashSet;
+use crate::mission::log::{Line, Record, SentCheck};
+use crate::safety::SafetyGate;
 
 /// What a run saw, as the criteria need it.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -14,8 +14,9 @@ pub struct Observed {
     pub all_airborne: bool,
     pub separation_breaches: u64,
     pub obstacle_breaches: u64,
-    /// Calls the safety gate rejected that were sent anyway (see [`rejected_calls_sent`]).
-    pub rejected_sent: Vec<String>,
+    /// Actions sent that the safety gate, run again on what it saw, refuses (see
+    /// [`unchecked_sends`]).
+    pub unchecked_sent: Vec<String>,
     /// Seconds from the first pilot line to the moment the goal was reached, if it was.
     pub goal_at_s: Option<f64>,
 }
@@ -44,7 +45,7 @@ pub fn failed_for_good(seen: &Observed) -> bool {
 }
 
 /// The verdict on a finished run: the goal reached within the time limit, no separation or
-/// obstacle breach, and no call the safety gate rejected ever sent.
+/// obstacle breach, and nothing sent that the safety gate refuses.
 pub fn judge(spec: &SuccessSpec, seen: &Observed, time_limit_s: f64) -> Verdict {
     let mut why = Vec::new();
     if seen.separation_breaches > 0 || seen.obstacle_breaches > 0 {
@@ -53,10 +54,10 @@ pub fn judge(spec: &SuccessSpec, seen: &Observed, time_limit_s: f64) -> Verdict 
             seen.separation_breaches, seen.obstacle_breaches
         ));
     }
-    if !seen.rejected_sent.is_empty() {
+    if !seen.unchecked_sent.is_empty() {
         why.push(format!(
-            "calls the safety gate rejected were sent: {}",
-            seen.rejected_sent.join("; ")
+            "sent past the safety gate: {}",
+            seen.unchecked_sent.join("; ")
         ));
     }
     match seen.goal_at_s {
@@ -90,10 +91,9 @@ pub struct LogFigures {
     pub completion_tokens: u64,
     pub gate_rejections: u32,
     pub actions_sent: u32,
-    pub rejected_sent: Vec<String>,
 }
 
-/// Counts cycles, calls, latency and tokens, and audits the log (see [`rejected_calls_sent`]).
+/// Counts cycles, calls, latency and tokens.
 pub fn log_figures(lines: &[Line]) -> LogFigures {
     let mut f = LogFigures::default();
     for line in lines {
@@ -116,33 +116,41 @@ pub fn log_figures(lines: &[Line]) -> LogFigures {
             _ => {}
         }
     }
-    f.rejected_sent = rejected_calls_sent(lines);
     f
 }
 
-/// The calls that the checks rejected in a model's last reply and that the cycle answering that
-/// reply sent all the same: an audit of the invariant that nothing the safety gate refused
-/// reaches a drone, read from the log rather than trusted. A rejection only for asking two
-/// actions of one drone in one cycle is not a refusal of the call itself (its twin may pass).
-pub fn rejected_calls_sent(lines: &[Line]) -> Vec<String> {
-    let mut rejected: HashSet<String> = HashSet::new();
-    let mut sent_anyway = Vec::new();
-    for line in lines {
-        match &line.record {
-            // A new reply: the previous attempt's rejections were answered by it.
-            Record::LlmReply { .. } => rejected.clear(),
-            Record::GateRejected { call, .. } => {
-                let call = call.split_once(": ").map_or(call.as_str(), |(c, _)| c);
-                rejected.insert(call.to_owned());
+/// Every action in the log that the safety gate does not pass when run again on what it saw of
+/// the drone (the state logged with the send), or that was sent without that record: the audit
+/// of the invariant that nothing reaches a drone around the gate, read from the log rather
+/// than trusted. Each entry names the send and the gate's reason.
+pub fn unchecked_sends(lines: &[Line], gate: &SafetyGate) -> Vec<String> {
+    lines
+        .iter()
+        .filter_map(|line| match &line.record {
+            Record::ActionSent {
+                drone,
+                seq,
+                action,
+                checked,
+                ..
+            } => {
+                let why = match checked {
+                    None => "no record of the gate's check".to_owned(),
+                    Some(SentCheck { action: typed, .. }) if typed.to_string() != *action => {
+                        format!("logged as {action} but checked as {typed}")
+                    }
+                    Some(SentCheck { action, seen }) => {
+                        gate.recheck(drone, *seen, action).err()?.to_string()
+                    }
+                };
+                Some(format!(
+                    "#{seq} {action} to {drone} at {:.1} s: {why}",
+                    line.t
+                ))
             }
-            Record::SupervisorCycle { actions, .. } => {
-                sent_anyway.extend(actions.iter().filter(|a| rejected.contains(*a)).cloned());
-                rejected.clear();
-            }
-            _ => {}
-        }
-    }
-    sent_anyway
+            _ => None,
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -226,7 +234,7 @@ mod tests {
         };
         assert!(!judge(&spec, &obstacle, 600.0).is_success());
         let leaked = Observed {
-            rejected_sent: vec!["T4 alfa goto(car_7)".into()],
+            unchecked_sent: vec!["T4 alfa goto(car_7)".into()],
             ..found_at(80.0)
         };
         assert!(
@@ -284,6 +292,7 @@ mod tests {
                     task: Some("T1".into()),
                     seq: 1,
                     action: "goto(1, 2, 3)".into(),
+                    checked: None,
                 },
             ),
             line(2.2, cycle(&["T1 alfa goto(car_1)"])),
@@ -302,45 +311,98 @@ mod tests {
             ),
             (2, 2, 2, 4000, 200, 20, 1)
         );
-        assert!(f.rejected_sent.is_empty());
     }
 
     #[test]
-    fn the_audit_catches_a_rejected_call_that_was_sent() {
-        // Rejected in the last reply, then sent by the cycle: a breach of the invariant.
+    fn the_audit_catches_what_the_gate_would_not_have_let_through() {
+        use crate::safety::DroneSeen;
+        use tacos_shared::action::Action;
+        use tacos_shared::{DroneMode, Vec3};
+        let gate =
+            SafetyGate::new(tacos_shared::scenario::Scenario::builtin("city").expect("city"));
+        let flying = DroneSeen {
+            mode: DroneMode::Flying,
+            autopilot_link: true,
+        };
+        let sent = |t: f64, drone: &str, action: Action, seen: DroneSeen| {
+            line(
+                t,
+                Record::ActionSent {
+                    drone: drone.into(),
+                    task: Some("T1".into()),
+                    seq: 7,
+                    action: action.to_string(),
+                    checked: Some(SentCheck { action, seen }),
+                },
+            )
+        };
+        let goto = |x, y, z| Action::Goto {
+            target: Vec3::new(x, y, z),
+        };
+        let clean = vec![
+            sent(
+                1.0,
+                "alfa",
+                Action::ArmTakeoff,
+                DroneSeen {
+                    mode: DroneMode::Idle,
+                    ..flying
+                },
+            ),
+            sent(9.0, "alfa", goto(-40.0, -100.0, 10.0), flying),
+        ];
+        assert!(unchecked_sends(&clean, &gate).is_empty());
+        // Into a skyscraper, to a drone on the ground, to one without its autopilot, to a
+        // drone that does not exist, and with no record of the check: each is caught.
         let leaked = vec![
-            line(1.0, reply(10)),
-            line(
-                1.1,
-                rejected("T4 alfa goto(car_11): alfa is idle: take off first"),
+            sent(1.0, "alfa", goto(18.0, 18.0, 20.0), flying),
+            sent(
+                2.0,
+                "bravo",
+                goto(-40.0, -100.0, 10.0),
+                DroneSeen {
+                    mode: DroneMode::Idle,
+                    ..flying
+                },
             ),
-            line(1.2, cycle(&["T4 alfa goto(car_11)"])),
+            sent(
+                3.0,
+                "charlie",
+                Action::Land,
+                DroneSeen {
+                    autopilot_link: false,
+                    ..flying
+                },
+            ),
+            sent(4.0, "zulu", Action::Land, flying),
+            line(
+                5.0,
+                Record::ActionSent {
+                    drone: "alfa".into(),
+                    task: None,
+                    seq: 8,
+                    action: "land()".into(),
+                    checked: None,
+                },
+            ),
         ];
-        assert_eq!(
-            rejected_calls_sent(&leaked),
-            vec!["T4 alfa goto(car_11)".to_owned()]
+        let found = unchecked_sends(&leaked, &gate);
+        assert_eq!(found.len(), 5, "{found:#?}");
+        assert!(
+            found[0].contains("goto(18.0, 18.0, 20.0) to alfa"),
+            "{}",
+            found[0]
         );
-        // Rejected, repaired by the next attempt, then sent: fine.
-        let repaired = vec![
-            line(1.0, reply(10)),
-            line(
-                1.1,
-                rejected("T4 alfa goto(car_11): alfa is idle: take off first"),
-            ),
-            line(2.0, reply(10)),
-            line(2.2, cycle(&["T4 alfa goto(car_11)"])),
-        ];
-        assert!(rejected_calls_sent(&repaired).is_empty());
-        // A rejection from an earlier cycle does not taint a later, checked send.
-        let later = vec![
-            line(1.0, reply(10)),
-            line(
-                1.1,
-                rejected("T4 alfa goto(car_11): alfa is idle: take off first"),
-            ),
-            line(1.2, cycle(&[])),
-            line(5.0, cycle(&["T4 alfa goto(car_11)"])),
-        ];
-        assert!(rejected_calls_sent(&later).is_empty());
+        assert!(
+            found[4].contains("no record of the gate's check"),
+            "{}",
+            found[4]
+        );
+        // A record whose text and typed action disagree is caught too.
+        let mut forged = sent(6.0, "alfa", goto(-40.0, -100.0, 10.0), flying);
+        if let Record::ActionSent { action, .. } = &mut forged.record {
+            *action = "land()".into();
+        }
+        assert_eq!(unchecked_sends(&[forged], &gate).len(), 1);
     }
 }

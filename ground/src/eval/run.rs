@@ -172,7 +172,8 @@ async fn carry_out(
     record.completion_tokens = figures.completion_tokens;
     record.gate_rejections = figures.gate_rejections;
     record.actions_sent = figures.actions_sent;
-    Ok(verdict.with_audit(figures.rejected_sent, plan))
+    let unchecked = criteria::unchecked_sends(&lines, &SafetyGate::new(plan.scenario.clone()));
+    Ok(verdict.with_audit(unchecked, plan))
 }
 
 /// What `fly` saw, before the log audit is added.
@@ -181,8 +182,8 @@ struct Seen {
 }
 
 impl Seen {
-    fn with_audit(mut self, rejected_sent: Vec<String>, plan: &RunPlan) -> Verdict {
-        self.observed.rejected_sent = rejected_sent;
+    fn with_audit(mut self, unchecked_sent: Vec<String>, plan: &RunPlan) -> Verdict {
+        self.observed.unchecked_sent = unchecked_sent;
         criteria::judge(
             &plan.task.success,
             &self.observed,

@@ -1625,12 +1625,7 @@ impl Mission {
                 reason: e.to_string(),
             })?;
         self.stats.actions_sent += 1;
-        self.log.note(Record::ActionSent {
-            drone: checked.drone().to_string(),
-            task,
-            seq,
-            action: checked.action().to_string(),
-        });
+        self.log.note(Record::action_sent(checked, task, seq));
         self.tell(MissionUpdate::Sent {
             drone: checked.drone().to_string(),
             action: checked.action().to_string(),

@@ -144,12 +144,7 @@ impl PilotInput {
             match self.link.send(&checked, None).await {
                 Ok(seq) => {
                     self.follow_outcome(checked.drone().clone(), action.to_string(), seq);
-                    self.log.note(Record::ActionSent {
-                        drone: drone.clone(),
-                        task: None,
-                        seq,
-                        action: action.to_string(),
-                    });
+                    self.log.note(Record::action_sent(&checked, None, seq));
                     sent.push(drone);
                 }
                 Err(e) => outcomes.push(format!("{drone}: {e}")),

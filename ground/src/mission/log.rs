@@ -6,11 +6,13 @@
 //! mission after the old one, from its own `mission_start` line.
 
 use crate::jsonl;
+use crate::safety::{CheckedAction, DroneSeen};
 use serde::{Deserialize, Serialize};
 use std::fs::File;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use tacos_bus::clock::Clock;
+use tacos_shared::action::Action;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
@@ -60,7 +62,13 @@ pub enum Record {
         drone: String,
         task: Option<String>,
         seq: u64,
+        /// As the pilot reads it.
         action: String,
+        /// The action as sent and what the gate saw of the drone when it let it through: the
+        /// audit runs the gate again on these (`eval::criteria::unchecked_sends`). Missing in
+        /// logs from before it was recorded.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        checked: Option<SentCheck>,
     },
     ActionOutcome {
         drone: String,
@@ -93,6 +101,29 @@ pub enum Record {
     MissionEnd {
         outcome: String,
     },
+}
+
+/// The typed half of [`Record::ActionSent`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SentCheck {
+    pub action: Action,
+    pub seen: DroneSeen,
+}
+
+impl Record {
+    /// The record of an action that passed the gate and was sent as `seq`.
+    pub fn action_sent(checked: &CheckedAction, task: Option<String>, seq: u64) -> Record {
+        Record::ActionSent {
+            drone: checked.drone().to_string(),
+            task,
+            seq,
+            action: checked.action().to_string(),
+            checked: Some(SentCheck {
+                action: checked.action().clone(),
+                seen: checked.seen(),
+            }),
+        }
+    }
 }
 
 /// One line of the log: seconds since the mission started, and the record.
@@ -356,6 +387,7 @@ mod tests {
             task: Some("T1".into()),
             seq: 9,
             action: "arm_takeoff()".into(),
+            checked: None,
         })
         .expect("write");
         drop(log);
