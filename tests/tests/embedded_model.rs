@@ -142,6 +142,7 @@ async fn take_off(sim: &SimSwarm) -> anyhow::Result<()> {
                     action,
                     task,
                     seq,
+                    ..
                 } if d == drone && action.starts_with("arm_takeoff") => Some((task.clone(), *seq)),
                 _ => None,
             })

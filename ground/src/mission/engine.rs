@@ -6,6 +6,7 @@ use super::grounding;
 use super::input::MissionInputs;
 use super::log::{MissionLog, Record};
 use super::resolve::{claimed_points, position_of, resolve};
+use super::untrusted;
 use crate::link::GroundLink;
 use crate::safety::{CheckedAction, SafetyGate};
 use crate::swarm::SwarmChange;
@@ -426,8 +427,9 @@ impl Mission {
                     Err(tokio::sync::broadcast::error::RecvError::Closed) => break,
                 },
                 event = events.recv() => if let Some(event) = event {
-                    self.world_event(&event);
-                    cycle_due = self.busy();
+                    if self.world_event(event) {
+                        cycle_due = self.busy();
+                    }
                 },
                 _ = tick.tick() => {
                     cycle_due = self.poll_outcomes() || (self.busy() && self.link.clock().instant().duration_since(last_cycle) >= self.cfg.cycle_timeout);
@@ -589,7 +591,19 @@ impl Mission {
         }
     }
 
-    fn world_event(&mut self, event: &WorldEvent) {
+    /// Takes in a world event whose names are the scenario's; one that is not is logged and
+    /// left out of every prompt. True when it was taken in.
+    fn world_event(&mut self, event: WorldEvent) -> bool {
+        let event = match untrusted::checked_event(event, self.gate.scenario()) {
+            Ok(event) => event,
+            Err(why) => {
+                tracing::warn!(%why, "world event ignored");
+                self.log.note(Record::Event {
+                    text: format!("world event ignored: {why}"),
+                });
+                return false;
+            }
+        };
         let text = event.to_string();
         self.events.push(text.clone());
         self.log.note(Record::Event { text: text.clone() });
@@ -598,6 +612,21 @@ impl Mission {
             Mode::Mnl => self.mnl.executed.push(format!("event: {text}")),
             _ => self.history.push(HistoryEntry::Event(text)),
         }
+        true
+    }
+
+    /// The targets seen now that the scenario has: a name from the network reaches a prompt
+    /// only when it is one of the map's (`untrusted`).
+    fn visible_targets(&self) -> Vec<TargetObservation> {
+        let seen = self.targets.borrow();
+        let unknown = untrusted::unknown_target_count(&seen, self.gate.scenario());
+        if unknown > 0 {
+            tracing::debug!(
+                unknown,
+                "observations of targets the map does not have left out"
+            );
+        }
+        untrusted::known_targets(&seen, self.gate.scenario())
     }
 
     /// Fails `drone`'s running tasks, and its done start_tracking while it still followed the
@@ -774,7 +803,7 @@ impl Mission {
         let pending = self.drones_with_pending_actions();
         let view = self.link.view();
         let now = self.link.clock().instant();
-        let visible = self.targets.borrow().clone();
+        let visible = self.visible_targets();
         let ready = |drone: &str| {
             DroneId::new(drone)
                 .ok()
@@ -831,12 +860,12 @@ impl Mission {
     /// goto for a drone hovering at its point.
     /// Plans from models repeat such calls; sending them would only be refused by the drone.
     fn mark_satisfied_tasks(&mut self, finished: &mut Vec<(String, String, String)>) {
+        let visible = self.visible_targets();
         let Some(plan) = self.plan.as_mut() else {
             return;
         };
         let view = self.link.view();
         let now = self.link.clock().instant();
-        let visible = self.targets.borrow().clone();
         // As close as the drone itself calls a goto done.
         let arrive = (2.0 * self.gate.scenario().limits.drone_radius).max(0.2);
         // Only a task whose earlier tasks for the same drone are all done: "take off, then land"
@@ -954,7 +983,7 @@ impl Mission {
     fn world_text(&self) -> String {
         render::world(
             &self.gate.scenario().world,
-            &self.targets.borrow(),
+            &self.visible_targets(),
             &self.events,
         )
     }
@@ -1091,7 +1120,7 @@ impl Mission {
         });
         self.stats.coordinator_calls += 1;
         let scenario = self.gate.scenario().clone();
-        let visible = self.targets.borrow().clone();
+        let visible = self.visible_targets();
         let checked = self
             .caller
             .ask(
@@ -1481,7 +1510,7 @@ impl Mission {
             .max(schema::token_budget(ask.output, self.swarm_ids().len()));
         let (reasoning, claim, all_passed, accepted, later) = {
             let (gate, link) = (&self.gate, &self.link);
-            let visible = self.targets.borrow().clone();
+            let visible = self.visible_targets();
             let (only, tasks) = (&ask.only, &ask.tasks);
             self.caller
                 .ask(

@@ -13,6 +13,7 @@ pub mod grounding;
 pub mod input;
 pub mod log;
 pub mod resolve;
+pub mod untrusted;
 
 pub use engine::{
     Mission, MissionConfig, MissionError, MissionStats, MissionUpdate, Mode, coordinator_messages,
