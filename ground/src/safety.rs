@@ -70,9 +70,19 @@ impl fmt::Display for Rejection {
 /// was sent ([`SafetyGate::recheck`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct DroneSeen {
-    /// The mode as the gate saw it (`Unavailable` when the status was stale).
+    /// The mode of the drone's latest status (`Unavailable` when none came).
     pub mode: DroneMode,
+    /// The status was recent and the drone's liveliness token present.
+    pub fresh: bool,
     pub autopilot_link: bool,
+}
+
+/// Actions the gate never refuses for an old status: what a pilot sends a drone in trouble.
+/// A stale status is what trouble looks like from the ground (a drone out of radio range, a
+/// frozen onboard), and asking such a drone to land or hold cannot make anything worse; the
+/// drone judges them again on board.
+pub fn is_emergency(action: &Action) -> bool {
+    matches!(action, Action::Land | Action::Hold)
 }
 
 /// An action that passed the gate. Only [`SafetyGate::check`] makes one, and only a checked
@@ -130,7 +140,11 @@ impl SafetyGate {
         let id = DroneId::new(drone).map_err(|_| unknown())?;
         let entry = view.get(&id).ok_or_else(unknown)?;
         let seen = DroneSeen {
-            mode: entry.effective_mode(now),
+            mode: entry
+                .status
+                .as_ref()
+                .map_or(DroneMode::Unavailable, |s| s.mode),
+            fresh: entry.effective_mode(now) != DroneMode::Unavailable,
             autopilot_link: entry.status.as_ref().is_some_and(|s| s.autopilot_link),
         };
         self.judge(&id, seen, action)?;
@@ -165,7 +179,8 @@ impl SafetyGate {
     /// The rules, on the drone's state as seen.
     fn judge(&self, id: &DroneId, seen: DroneSeen, action: &Action) -> Result<(), Rejection> {
         let mode = seen.mode;
-        if mode == DroneMode::Unavailable || !seen.autopilot_link {
+        let stale = !seen.fresh && !is_emergency(action);
+        if mode == DroneMode::Unavailable || !seen.autopilot_link || stale {
             return Err(Rejection::Unavailable(id.clone()));
         }
         if let Some(why) = mode_forbids(action, mode) {
@@ -307,12 +322,24 @@ mod tests {
             gate.check(&flying, "alfa", &goto(f64::NAN, -100.0, 10.0), now),
             Err(Rejection::BadPoint { .. })
         ));
-        // A drone whose status is stale is unavailable.
+        // A drone whose status is stale is unavailable, but may always be told to land or
+        // hold (judged by its last reported mode).
         let later = now + std::time::Duration::from_secs(3);
         assert!(matches!(
-            gate.check(&flying, "alfa", &Action::Land, later),
+            gate.check(&flying, "alfa", &goto(-40.0, -100.0, 10.0), later),
             Err(Rejection::Unavailable(_))
         ));
+        assert!(matches!(
+            gate.check(&flying, "alfa", &Action::ArmTakeoff, later),
+            Err(Rejection::Unavailable(_))
+        ));
+        for emergency in [Action::Land, Action::Hold] {
+            let checked = gate.check(&flying, "alfa", &emergency, later);
+            assert!(
+                checked.as_ref().is_ok_and(|c| !c.seen().fresh),
+                "{emergency}: {checked:?}"
+            );
+        }
     }
 
     /// The audit's gate: the same verdicts from what the live gate saw, away from the swarm.
@@ -338,6 +365,7 @@ mod tests {
                 let live = gate.check(&view, "alfa", action, now);
                 let seen = DroneSeen {
                     mode,
+                    fresh: true,
                     autopilot_link: true,
                 };
                 let again = gate.recheck("alfa", seen, action);
@@ -349,6 +377,7 @@ mod tests {
         }
         let flying = DroneSeen {
             mode: DroneMode::Flying,
+            fresh: true,
             autopilot_link: true,
         };
         assert!(matches!(

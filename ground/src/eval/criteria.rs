@@ -322,6 +322,7 @@ mod tests {
             SafetyGate::new(tacos_shared::scenario::Scenario::builtin("city").expect("city"));
         let flying = DroneSeen {
             mode: DroneMode::Flying,
+            fresh: true,
             autopilot_link: true,
         };
         let sent = |t: f64, drone: &str, action: Action, seen: DroneSeen| {
@@ -350,10 +351,21 @@ mod tests {
                 },
             ),
             sent(9.0, "alfa", goto(-40.0, -100.0, 10.0), flying),
+            // A landing for a drone whose status had gone stale is what the gate allows.
+            sent(
+                12.0,
+                "alfa",
+                Action::Land,
+                DroneSeen {
+                    fresh: false,
+                    ..flying
+                },
+            ),
         ];
         assert!(unchecked_sends(&clean, &gate).is_empty());
         // Into a skyscraper, to a drone on the ground, to one without its autopilot, to a
-        // drone that does not exist, and with no record of the check: each is caught.
+        // drone that does not exist, a goto on a stale status, and with no record of the
+        // check: each is caught.
         let leaked = vec![
             sent(1.0, "alfa", goto(18.0, 18.0, 20.0), flying),
             sent(
@@ -375,6 +387,15 @@ mod tests {
                 },
             ),
             sent(4.0, "zulu", Action::Land, flying),
+            sent(
+                4.5,
+                "alfa",
+                goto(-40.0, -100.0, 10.0),
+                DroneSeen {
+                    fresh: false,
+                    ..flying
+                },
+            ),
             line(
                 5.0,
                 Record::ActionSent {
@@ -387,16 +408,16 @@ mod tests {
             ),
         ];
         let found = unchecked_sends(&leaked, &gate);
-        assert_eq!(found.len(), 5, "{found:#?}");
+        assert_eq!(found.len(), 6, "{found:#?}");
         assert!(
             found[0].contains("goto(18.0, 18.0, 20.0) to alfa"),
             "{}",
             found[0]
         );
         assert!(
-            found[4].contains("no record of the gate's check"),
+            found[5].contains("no record of the gate's check"),
             "{}",
-            found[4]
+            found[5]
         );
         // A record whose text and typed action disagree is caught too.
         let mut forged = sent(6.0, "alfa", goto(-40.0, -100.0, 10.0), flying);

@@ -108,43 +108,48 @@ impl PilotInput {
 
     /// Checks and sends the command's actions, logs them, and raises the override. The
     /// override goes up first, so an action a model proposed cannot slip in after the command.
+    /// `land all` and `hold all` go to every drone the ground knows of (a drone that fell
+    /// silent is the one most likely in trouble), all at once: each drone's put runs
+    /// concurrently, so one slow drone does not hold back the others.
     async fn execute(&self, text: &str, directive: Directive) {
         self.overrides.send_modify(|n| *n += 1);
-        let alive = || {
+        let known = || {
             self.link
                 .view()
-                .alive_ids()
-                .iter()
-                .map(|d| d.to_string())
+                .drones()
+                .map(|d| d.id.to_string())
                 .collect::<Vec<_>>()
         };
         let (targets, action) = match directive {
-            Directive::LandAll => (alive(), Action::Land),
-            Directive::HoldAll => (alive(), Action::Hold),
+            Directive::LandAll => (known(), Action::Land),
+            Directive::HoldAll => (known(), Action::Hold),
             Directive::Land(d) => (vec![d], Action::Land),
             Directive::Hold(d) => (vec![d], Action::Hold),
         };
         // One line for the whole command: with twenty drones, a line per drone would flood
         // the pilot's event log (the mission log keeps each action).
         let mut outcomes = Vec::new();
-        let mut sent = Vec::new();
-        for drone in targets {
-            let checked = {
-                let view = self.link.view();
-                self.gate
-                    .check(&view, &drone, &action, self.link.clock().instant())
-            };
-            let checked = match checked {
-                Ok(c) => c,
-                Err(r) => {
-                    outcomes.push(format!("{drone}: refused: {r}"));
-                    continue;
+        let mut checked_all = Vec::new();
+        {
+            let view = self.link.view();
+            let now = self.link.clock().instant();
+            for drone in &targets {
+                match self.gate.check(&view, drone, &action, now) {
+                    Ok(c) => checked_all.push(c),
+                    Err(r) => outcomes.push(format!("{drone}: refused: {r}")),
                 }
-            };
-            match self.link.send(&checked, None).await {
+            }
+        }
+        let sends = checked_all
+            .iter()
+            .map(|checked| async move { (checked, self.link.send(checked, None).await) });
+        let mut sent = Vec::new();
+        for (checked, result) in futures_util::future::join_all(sends).await {
+            let drone = checked.drone().to_string();
+            match result {
                 Ok(seq) => {
                     self.follow_outcome(checked.drone().clone(), action.to_string(), seq);
-                    self.log.note(Record::action_sent(&checked, None, seq));
+                    self.log.note(Record::action_sent(checked, None, seq));
                     sent.push(drone);
                 }
                 Err(e) => outcomes.push(format!("{drone}: {e}")),
