@@ -173,14 +173,6 @@ mod tests {
         }
     }
 
-    fn rejected(call: &str) -> Record {
-        Record::GateRejected {
-            layer: "supervisor".into(),
-            call: call.into(),
-            reason: String::new(),
-        }
-    }
-
     fn cycle(actions: &[&str]) -> Record {
         Record::SupervisorCycle {
             plan_cycle: 1,

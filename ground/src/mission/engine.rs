@@ -426,10 +426,8 @@ impl Mission {
                     Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => {}
                     Err(tokio::sync::broadcast::error::RecvError::Closed) => break,
                 },
-                event = events.recv() => if let Some(event) = event {
-                    if self.world_event(event) {
-                        cycle_due = self.busy();
-                    }
+                event = events.recv() => if let Some(event) = event && self.world_event(event) {
+                    cycle_due = self.busy();
                 },
                 _ = tick.tick() => {
                     cycle_due = self.poll_outcomes() || (self.busy() && self.link.clock().instant().duration_since(last_cycle) >= self.cfg.cycle_timeout);
