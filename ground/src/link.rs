@@ -109,9 +109,23 @@ impl Drop for GroundLink {
     }
 }
 
+/// Whether a ground station supervises the swarm. Only one in control beats the heartbeat
+/// the drones' ground-silence failsafe listens for: a passive monitor that kept it going
+/// would keep every drone "supervised" with nobody at the controls.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum GroundRole {
+    InControl,
+    Monitor,
+}
+
 impl GroundLink {
-    /// Joins the swarm's network and starts following it.
+    /// Joins the swarm's network as the ground station in control and starts following it.
     pub async fn connect(bus: &BusArgs) -> Result<GroundLink, LinkError> {
+        Self::connect_as(bus, GroundRole::InControl).await
+    }
+
+    /// Joins the swarm's network in `role` and starts following it.
+    pub async fn connect_as(bus: &BusArgs, role: GroundRole) -> Result<GroundLink, LinkError> {
         let session = bus.open().await?;
         let keys = bus.keys();
         let clock = bus.clock(&session).await?;
@@ -124,7 +138,7 @@ impl GroundLink {
             changes,
             membership,
             malformed_status: AtomicU64::new(0),
-            heartbeat_on: std::sync::atomic::AtomicBool::new(true),
+            heartbeat_on: std::sync::atomic::AtomicBool::new(role == GroundRole::InControl),
         });
         let mut tasks = Vec::new();
 

@@ -8,7 +8,7 @@ use std::time::Duration;
 use tacos_bus::BusArgs;
 use tacos_embedded::{EmbeddedBackend, EmbeddedOptions};
 use tacos_ground::demo::{DemoOptions, DemoPlan, DemoReport, run_demo};
-use tacos_ground::link::GroundLink;
+use tacos_ground::link::{GroundLink, GroundRole};
 use tacos_ground::mission::{MissionConfig, Mode};
 use tacos_ground::pilot::SessionOptions;
 use tacos_ground::safety::SafetyGate;
@@ -36,6 +36,12 @@ enum Cmd {
         /// Print this many tables then exit (0 = until Ctrl-C).
         #[arg(long, default_value_t = 0)]
         count: u64,
+        /// Act as the ground station in control: beat the heartbeat that keeps the drones out
+        /// of their ground-silence failsafe (for flying by hand with `send`). Without it the
+        /// table only watches, and drones with no ground in control hold after 3 s and land
+        /// after 30 s.
+        #[arg(long)]
+        in_control: bool,
     },
     /// Send one action to one drone and wait for its outcome.
     ///
@@ -224,7 +230,8 @@ fn run() -> anyhow::Result<()> {
                 bus,
                 period_ms,
                 count,
-            } => swarm(bus, period_ms, count).await,
+                in_control,
+            } => swarm(bus, period_ms, count, in_control).await,
             Cmd::Send {
                 bus,
                 scenario,
@@ -321,8 +328,13 @@ fn run() -> anyhow::Result<()> {
     })
 }
 
-async fn swarm(bus: BusArgs, period_ms: u64, count: u64) -> anyhow::Result<()> {
-    let link = GroundLink::connect(&bus).await?;
+async fn swarm(bus: BusArgs, period_ms: u64, count: u64, in_control: bool) -> anyhow::Result<()> {
+    let role = if in_control {
+        GroundRole::InControl
+    } else {
+        GroundRole::Monitor
+    };
+    let link = GroundLink::connect_as(&bus, role).await?;
     let mut tick = tokio::time::interval(Duration::from_millis(period_ms.max(50)));
     let mut printed = 0;
     let interactive = count == 0;

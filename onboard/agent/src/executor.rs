@@ -342,6 +342,16 @@ impl Executor {
             )));
             return true;
         }
+        // A ground that sends without beating is not in control: while the failsafe is on,
+        // only what makes the drone safer is taken.
+        if self.failsafe.is_some() && !matches!(command.action, Action::Land | Action::Hold) {
+            self.finish(ActionState::Failed(FailureReason::Failsafe(
+                "ground silent: only land and hold are taken until a ground station in \
+                 control is heard"
+                    .into(),
+            )));
+            return true;
+        }
         let Some(vehicle) = self.vehicle else {
             self.finish(ActionState::Failed(FailureReason::AutopilotLinkLost));
             return true;
@@ -527,27 +537,30 @@ impl Executor {
         }
     }
 
-    /// Engages, escalates or clears the failsafe (`None` = the ground is heard again).
+    /// Sets the failsafe's stage (`None` = the ground is heard again) and makes the task what
+    /// the stage asks for, whatever happened before: called every tick, it acts on the state,
+    /// not on changes of stage, so a drone that is airborne while the ground has been silent
+    /// past a bound (it took off after the stage was set, or a task replaced the hold) holds or
+    /// lands all the same. Holding allows a landing; landing allows nothing else.
     pub fn set_failsafe(&mut self, stage: Option<FailsafeStage>, now: f64) {
-        if stage == self.failsafe {
-            return;
-        }
         self.failsafe = stage;
         let Some(stage) = stage else { return };
         if !self.airborne() {
             return;
         }
+        let landing = matches!(self.task, Task::Land { .. });
         match stage {
-            FailsafeStage::Holding => {
+            FailsafeStage::Holding if !landing && !matches!(self.task, Task::Hold) => {
                 self.fail(FailureReason::Failsafe("ground silent: holding".into()));
                 self.hold_point = self.vehicle.map(|v| v.position);
                 self.task = Task::Hold;
                 self.ensure_offboard();
             }
-            FailsafeStage::Landing => {
+            FailsafeStage::Landing if !landing => {
                 self.fail(FailureReason::Failsafe("ground silent: landing".into()));
                 self.start_landing(now);
             }
+            _ => {}
         }
     }
 

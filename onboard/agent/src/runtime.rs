@@ -196,7 +196,16 @@ async fn run_inner(
             sample = heartbeats.recv_async() => {
                 let sample = sample.map_err(|_| OnboardError::SubscriberClosed(keys.ground_heartbeat()))?;
                 match tacos_bus::decode::<GroundHeartbeat>(&sample) {
-                    Ok(_) => failsafe.heard(now()),
+                    Ok(_) => {
+                        // At once, not at the next tick: an action that follows the beat must
+                        // not meet a failsafe the beat has just ended.
+                        let t = now();
+                        failsafe.heard(t);
+                        if executor.failsafe().is_some() {
+                            executor.set_failsafe(failsafe.stage(t), t);
+                            info!("ground heard again: failsafe cleared");
+                        }
+                    }
                     Err(e) => malformed_heartbeats.note(&e),
                 }
             }
