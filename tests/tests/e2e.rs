@@ -135,7 +135,8 @@ async fn act_all(
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn crashed_processes_are_seen_and_the_vehicles_fail_safe() -> anyhow::Result<()> {
+async fn crashed_processes_are_seen_the_vehicles_fail_safe_and_restarts_take_over()
+-> anyhow::Result<()> {
     let mut sim = SimSwarm::start("e2ecrash", "city", 3).await?;
     let result = crash_onboard_and_writer(&mut sim).await;
     sim.stop().await;
@@ -251,5 +252,52 @@ async fn crash_onboard_and_writer(sim: &mut SimSwarm) -> anyhow::Result<()> {
             !s.autopilot_link && s.mode == DroneMode::Unavailable
         })
         .await?;
+
+    // Both restarted in flight, as systemd's Restart= would: each drone is seen flying and
+    // available again, alfa is held where it stopped (through the planner, in OFFBOARD), and
+    // both take work again.
+    sim.stack.restart(Role::Onboard, Some(&alfa))?;
+    sim.stack.restart(Role::Writer, Some(&bravo))?;
+    sim.link
+        .wait_for_drones(
+            &[alfa.clone(), bravo.clone()],
+            Duration::from_secs(30),
+            |s| s.autopilot_link && s.mode == DroneMode::Flying,
+        )
+        .await?;
+    let held = truth_until(&mut truth, Duration::from_secs(5), "a truth update", |_| {
+        true
+    })
+    .await?;
+    let alfa_now = vehicle(&held, &alfa).ok_or_else(|| anyhow::anyhow!("alfa missing"))?;
+    let drift = (alfa_now.position - last.position).norm();
+    anyhow::ensure!(
+        Px4Mode::from_custom_mode(alfa_now.custom_mode) == Px4Mode::Offboard && drift < 1.0,
+        "alfa after its onboard restarted: {:?}, {drift:.2} m from where it stopped",
+        Px4Mode::from_custom_mode(alfa_now.custom_mode)
+    );
+    let back = |d: &DroneId| {
+        let home = sim.scenario.drone(d).map(|s| s.home).unwrap_or_default();
+        home + Vec3::new(0.0, 10.0, sim.scenario.limits.takeoff_altitude)
+    };
+    act_all(
+        &sim.link,
+        &gate,
+        vec![
+            (
+                alfa.clone(),
+                Action::Goto {
+                    target: back(&alfa),
+                },
+            ),
+            (
+                bravo.clone(),
+                Action::Goto {
+                    target: back(&bravo),
+                },
+            ),
+        ],
+    )
+    .await?;
     Ok(())
 }

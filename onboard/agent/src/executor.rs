@@ -429,6 +429,20 @@ impl Executor {
     /// New vehicle state from the writer.
     pub fn on_vehicle(&mut self, state: &VehicleStateSample) {
         self.vehicle = Some(VehicleView::from(state));
+        self.take_over_if_flying();
+    }
+
+    /// An onboard with nothing to do beside a vehicle flying under offboard control (it was
+    /// restarted mid-flight, or the autopilot link came back) holds where the vehicle is,
+    /// through the planner: it goes on giving way and correcting drift, and reports itself
+    /// flying, so the ground can give it work. Streaming "stay where you are now" instead
+    /// never corrected drift and gave way to nobody. A vehicle in another PX4 mode (PX4's own
+    /// failsafe, a pilot's switch) is left to PX4.
+    fn take_over_if_flying(&mut self) {
+        if self.task == Task::Idle && self.airborne() && self.in_offboard() {
+            self.hold_point = self.vehicle.map(|v| v.position);
+            self.task = Task::Hold;
+        }
     }
 
     /// The writer has gone quiet: treat the autopilot link as lost until state arrives again.

@@ -638,3 +638,40 @@ fn the_failsafe_acts_on_the_state_not_on_changes_of_stage() {
     ex.on_command(&cmd(4, goto), 6.1);
     assert!(matches!(state_of(&ex), ActionState::Running { .. }));
 }
+
+/// An onboard restarted beside a vehicle flying in OFFBOARD takes it over: it holds where the
+/// vehicle is through the planner, reports itself flying, and takes work. Beside a vehicle in
+/// another PX4 mode it leaves the vehicle to PX4.
+#[test]
+fn a_restarted_onboard_takes_over_a_vehicle_flying_in_offboard() {
+    let p = Vec3::new(-40.0, -100.0, 10.0);
+    let mut ex = lab();
+    ex.on_vehicle(&state(p, true, Px4Mode::Offboard));
+    assert_eq!(ex.mode(), DroneMode::Flying);
+    let out = ex.tick(0.0);
+    assert_eq!(out.steering, Some(Steering::Toward(Goal::fixed(p))));
+    assert!(
+        out.commands.is_empty(),
+        "already in offboard: {:?}",
+        out.commands
+    );
+    // Drift is corrected: the goal stays where it took over.
+    ex.on_vehicle(&state(
+        p + Vec3::new(0.6, 0.0, 0.0),
+        true,
+        Px4Mode::Offboard,
+    ));
+    assert_eq!(
+        ex.tick(0.1).steering,
+        Some(Steering::Toward(Goal::fixed(p)))
+    );
+    let goto = Action::Goto {
+        target: Vec3::new(-40.0, -60.0, 10.0),
+    };
+    ex.on_command(&cmd(1, goto), 0.2);
+    assert!(matches!(state_of(&ex), ActionState::Running { .. }));
+
+    let mut ex = lab();
+    ex.on_vehicle(&state(p, true, Px4Mode::Hold));
+    assert_eq!(ex.tick(0.0).steering, Some(Steering::Still(p)));
+}
