@@ -7,7 +7,7 @@ use serde::Serialize;
 use serde::de::DeserializeOwned;
 
 /// The current wire version. Bump when any message changes shape.
-pub const WIRE_VERSION: u8 = 1;
+pub const WIRE_VERSION: u8 = 2;
 
 /// Upper bound on what one message may allocate while decoding, so garbage cannot exhaust memory.
 pub const MAX_MESSAGE_BYTES: usize = 1 << 20;

@@ -182,6 +182,10 @@ pub struct PathMessage {
     /// separation. False while the autopilot flies it (take-off, landing) or it stands on the
     /// ground: it cannot give way, and neighbours keep the whole distance from it.
     pub avoids: bool,
+    /// The vehicle is armed and off the ground. A neighbour whose paths stop (its onboard
+    /// crashed, the network lost it) stays an obstacle for as long as its last path said this;
+    /// one last seen on the ground is forgotten after a while.
+    pub airborne: bool,
 }
 
 /// A run-time fault injection request to the simulator (`sim/faults`).

@@ -267,7 +267,8 @@ impl Executor {
         }
     }
 
-    fn airborne(&self) -> bool {
+    /// Armed and off the ground, with the autopilot link up.
+    pub fn airborne(&self) -> bool {
         self.vehicle
             .is_some_and(|v| v.link_ok && v.armed && !v.landed)
     }

@@ -20,8 +20,10 @@ use tacos_shared::{DroneId, Vec3};
 pub struct MotionConfig {
     /// Seconds between solves (the planner's rate is its inverse: 20 Hz or more).
     pub plan_period: f64,
-    /// A neighbour path older than this is forgotten: its drone has been silent that long.
-    /// Until then it is kept with a margin that grows with its age (see the planner).
+    /// The path of a neighbour last seen on the ground is forgotten when it is older than
+    /// this. One last seen airborne never is: a drone whose onboard died goes on hovering (its
+    /// writer holds it), so it stays an obstacle at its path's end, with a margin that grows
+    /// with the path's age up to a bound (see the planner), until a newer path says it landed.
     pub forget_path_after: f64,
     pub tracker: TrackerConfig,
     /// Trackers of one target stand on a circle of at least this radius around it.
@@ -139,6 +141,9 @@ pub struct Motion {
     last_solve: Option<f64>,
     last_path: Option<f64>,
     stats: SolveStats,
+    /// Whether this drone's vehicle is airborne, as the executor says (`set_airborne`): told
+    /// to neighbours in every path.
+    airborne: bool,
 }
 
 impl Motion {
@@ -159,7 +164,13 @@ impl Motion {
             last_solve: None,
             last_path: None,
             stats: SolveStats::default(),
+            airborne: false,
         })
+    }
+
+    /// Whether the vehicle is armed and off the ground (the executor's view), for the paths.
+    pub fn set_airborne(&mut self, airborne: bool) {
+        self.airborne = airborne;
     }
 
     /// True while a plan is being sampled (the planner flies and has solved at least once).
@@ -211,7 +222,7 @@ impl Motion {
     fn neighbours(&self, now: f64) -> impl Iterator<Item = NeighbourPath> + '_ {
         self.paths
             .values()
-            .filter(move |p| now - p.stamp <= self.cfg.forget_path_after)
+            .filter(move |p| p.airborne || now - p.stamp <= self.cfg.forget_path_after)
             .map(move |p| NeighbourPath::from_message(p, now))
     }
 
@@ -402,6 +413,7 @@ impl Motion {
             positions,
             tracking,
             avoids,
+            airborne: self.airborne,
         }
     }
 }

@@ -271,6 +271,7 @@ async fn run_inner(
                         executor.on_station(station, t);
                     }
                     let out = executor.tick(t);
+                    motion.set_airborne(executor.airborne());
                     for command in out.commands {
                         ports.send_command(command)?;
                     }

@@ -29,6 +29,7 @@ fn path(drone: &str, stamp: f64, at: Vec3, tracking: Option<&str>) -> PathMessag
         positions: vec![at; 21],
         tracking: tracking.map(str::to_owned),
         avoids: true,
+        airborne: true,
     }
 }
 
@@ -59,7 +60,36 @@ fn keeps_the_newest_path_per_neighbour_ignores_its_own_and_forgets_the_silent() 
         "the older path did not replace the newer"
     );
     assert!((seen[0].age_s - 0.5).abs() < 1e-9);
-    assert_eq!(m.neighbours(111.0).count(), 0, "silent for 11 s: forgotten");
+    // Silent for 11 s: one last seen on the ground is forgotten, one last seen airborne (its
+    // onboard died, its writer holds it in the air) is not, until a path says it landed.
+    assert_eq!(m.neighbours(111.0).count(), 1, "bravo was airborne");
+    let mut landed = path("bravo", 101.0, Vec3::new(10.0, 0.0, 0.0), None);
+    landed.airborne = false;
+    landed.avoids = false;
+    m.on_path(landed);
+    assert_eq!(
+        m.neighbours(105.0).count(),
+        1,
+        "a landed drone is still there a while"
+    );
+    assert_eq!(
+        m.neighbours(112.0).count(),
+        0,
+        "landed and silent for 11 s: forgotten"
+    );
+    let mut dead = motion("alfa");
+    dead.on_path(path("delta", 100.0, p, None));
+    let kept: Vec<NeighbourPath> = dead.neighbours(1000.0).collect();
+    assert_eq!(
+        kept.len(),
+        1,
+        "an airborne neighbour silent for 15 min is kept"
+    );
+    assert_eq!(
+        kept[0].position_at(0.0),
+        Some(p),
+        "at the end of its last path"
+    );
 }
 
 #[test]
@@ -125,6 +155,10 @@ fn standing_drones_publish_that_they_cannot_give_way_flying_ones_their_plan() {
     assert_eq!(out.reference, ReferenceState::still(p));
     let path = out.path.expect("a path on the first tick");
     assert!(!path.avoids);
+    assert!(
+        !path.airborne,
+        "on the ground until the executor says otherwise"
+    );
     assert!((path.positions[20] - (p + climbing * 2.0)).norm() < 1e-9);
     // Not due again within the period.
     assert!(
@@ -133,6 +167,7 @@ fn standing_drones_publish_that_they_cannot_give_way_flying_ones_their_plan() {
             .is_none()
     );
 
+    m.set_airborne(true);
     let air = Vec3::new(-50.0, -100.0, 10.0);
     let goal = Goal::fixed(Vec3::new(-50.0, -80.0, 10.0));
     let out = m.step(
@@ -143,7 +178,7 @@ fn standing_drones_publish_that_they_cannot_give_way_flying_ones_their_plan() {
         Some("van"),
     );
     let path = out.path.expect("a fresh plan is published");
-    assert!(path.avoids);
+    assert!(path.avoids && path.airborne);
     assert_eq!(path.tracking.as_deref(), Some("van"));
     assert_eq!(path.positions.len(), 21);
     assert!(path.positions[20].y > air.y, "heads for the goal");

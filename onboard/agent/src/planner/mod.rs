@@ -50,6 +50,9 @@ use tacos_shared::scenario::FlightLimits;
 use tacos_shared::world::{Bounds, Ellipsoid, World};
 use tacos_shared::{DroneId, Vec3};
 
+/// A neighbour's path older than this no longer shows it giving way (see `PathMessage::avoids`).
+const STILL_AVOIDS_S: f64 = 1.0;
+
 #[derive(Debug, Clone, PartialEq)]
 pub struct PlannerConfig {
     pub horizon_steps: usize,
@@ -73,8 +76,12 @@ pub struct PlannerConfig {
     pub downwash_factor: f64,
     /// Neighbours closer than this are planned against (see [`neighbours_in_range`]).
     pub neighbour_range: f64,
-    /// Extra margin per second of a neighbour path's age, metres per second.
+    /// Extra margin per second of a neighbour path's age, metres per second...
     pub stale_margin_rate: f64,
+    /// ...up to this many metres: a neighbour silent for good (its onboard died while its
+    /// writer holds it in the air) stays an obstacle of bounded size instead of growing over
+    /// the whole map.
+    pub max_stale_margin: f64,
     /// L1 penalty per metre of violated obstacle or neighbour constraint, per segment. The
     /// workspace's walls and ceiling share one slack over the whole horizon, so they cost
     /// `horizon_steps` times this; the floor costs `floor_weight_factor` times that again.
@@ -121,6 +128,7 @@ impl PlannerConfig {
             // plus room for stale paths.
             neighbour_range: 2.0 * limits.max_speed * horizon + 2.0 * limits.safety_distance,
             stale_margin_rate: 1.0,
+            max_stale_margin: limits.safety_distance,
             slack_weight: 2e4,
             floor_weight_factor: 10.0,
             // The ground is kept a safety distance away, like another drone.
@@ -161,6 +169,7 @@ impl PlannerConfig {
             ("separation_margin", self.separation_margin),
             ("neighbour_range", self.neighbour_range),
             ("stale_margin_rate", self.stale_margin_rate),
+            ("max_stale_margin", self.max_stale_margin),
             ("detour_margin", self.detour_margin),
             ("floor_clearance", self.floor_clearance),
             ("weights.position", self.weights.position),
@@ -511,11 +520,15 @@ impl Planner {
                 continue;
             }
             // A neighbour that gives way keeps half the distance; from one that cannot, I keep
-            // all of it, measured from its own path rather than from the midpoint.
-            let share = if n.avoids { 0.5 } else { 1.0 };
-            let keep = cfg.safety_distance * share
-                + cfg.separation_margin
-                + cfg.stale_margin_rate * n.age_s.max(0.0);
+            // all of it, measured from its own path rather than from the midpoint. One whose
+            // path is older than a second is not giving way any more, whatever it said.
+            let share = if n.avoids && n.age_s <= STILL_AVOIDS_S {
+                0.5
+            } else {
+                1.0
+            };
+            let stale = (cfg.stale_margin_rate * n.age_s.max(0.0)).min(cfg.max_stale_margin);
+            let keep = cfg.safety_distance * share + cfg.separation_margin + stale;
             let fallback = n.position_at(0.0).unwrap_or(position) - position;
             for seg in 0..k {
                 let t = (seg as f64 + 0.5) * dt;

@@ -582,3 +582,51 @@ fn a_crowd_overhead_does_not_press_a_drone_into_the_ground() {
     let lowest = lowest_flown(&cfg, here, low, &[], 8.0);
     assert!((lowest - low.z).abs() < 0.2, "went down to {lowest:.2} m");
 }
+
+/// A neighbour silent for minutes (its onboard died; its writer holds it in the air) is an
+/// obstacle of bounded size: a drone passing it keeps the whole safety distance plus margins
+/// and the capped stale margin, no more, and is not told that the silent one gives way.
+#[test]
+fn a_long_silent_neighbour_is_kept_with_a_bounded_margin_and_without_giving_way() {
+    let cfg = city_config();
+    let hover = Vec3::new(60.0, 60.0, 15.0);
+    let silent = NeighbourPath {
+        id: id("silent"),
+        positions: vec![hover; 21],
+        dt: 0.1,
+        age_s: 600.0,
+        avoids: true,
+    };
+    // The room this drone must keep: all of the safety distance (the silent one cannot give
+    // way), the margin, and the stale margin at its cap.
+    let keep = cfg.safety_distance + cfg.separation_margin + cfg.max_stale_margin;
+    let mut p = planner(&cfg);
+    // The straight line passes 2 m from it: the drone must go round.
+    let mut pos = Vec3::new(58.0, 45.0, 15.0);
+    let mut vel = Vec3::zeros();
+    let goal = Goal::fixed(Vec3::new(58.0, 75.0, 15.0));
+    let mut closest = f64::INFINITY;
+    let mut now = 0.0;
+    for _ in 0..400 {
+        let r = solve(&mut p, now, pos, vel, &goal, std::slice::from_ref(&silent));
+        let next = r.plan.sample(now + REPLAN);
+        pos = next.position;
+        vel = next.velocity;
+        now += REPLAN;
+        let d = pos - hover;
+        closest = closest.min((d.x * d.x + d.y * d.y).sqrt());
+    }
+    assert!(
+        (pos - goal.position).norm() < 1.0,
+        "passed by to its goal: {pos:?}"
+    );
+    assert!(
+        closest > keep - 0.3,
+        "kept {closest:.2} m from the silent neighbour, less than {keep:.2}"
+    );
+    assert!(
+        closest < keep + 1.5,
+        "kept {closest:.2} m: the stale margin is not bounded at {}",
+        cfg.max_stale_margin
+    );
+}
