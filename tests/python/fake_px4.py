@@ -29,7 +29,9 @@ It checks the SET_POSITION_TARGET_LOCAL_NED stream: frame MAV_FRAME_LOCAL_NED, a
 autopilot, position/velocity/acceleration used, rate at least --min-rate, and every position (and
 velocity, when given) equal to --setpoint-enu converted to NED relative to --home.
 
-It runs for --duration seconds after the first setpoint (or gives up after --timeout), prints one
+Before the first of those, a hold at the vehicle's own position (its origin) is accepted: the
+writer streams one once it knows where the vehicle is and no planner setpoint has come yet.
+It runs for --duration seconds after the first expected setpoint (or gives up after --timeout), prints one
 JSON summary line on stdout, and exits 0 when no problem was found, 1 otherwise (2 on bad usage).
 """
 
@@ -420,7 +422,7 @@ def main():
             break
         if now - start >= args.timeout:
             if first_setpoint is None:
-                problem("no SET_POSITION_TARGET_LOCAL_NED within %.1f s" % args.timeout)
+                problem("no SET_POSITION_TARGET_LOCAL_NED at the expected point within %.1f s" % args.timeout)
             break
         since = now - start
         for name, period in periods.items():
@@ -475,11 +477,16 @@ def main():
                     problem("writer heartbeat type %d autopilot %d" % (m.type, m.autopilot))
                 heartbeat_checked = True
             elif name == "SET_POSITION_TARGET_LOCAL_NED":
-                if first_setpoint is None:
-                    first_setpoint = at
                 setpoint_times.append(at)
                 pos = (m.x, m.y, m.z)
                 vel = (m.vx, m.vy, m.vz)
+                # Before the planner's first setpoint the writer holds the vehicle where it is
+                # (here, at its origin), once it knows where that is: the watch starts with
+                # the planner's stream, and only a hold at the vehicle may come before it.
+                planner_setpoint = close(pos, expected_ned)
+                if first_setpoint is None and planner_setpoint:
+                    first_setpoint = at
+                hold_before = first_setpoint is None and close(pos, (0.0, 0.0, 0.0)) and close(vel, (0.0, 0.0, 0.0))
                 frames.add(m.coordinate_frame)
                 last_setpoint = {"ned": pos, "velocity_ned": vel, "type_mask": m.type_mask, "yaw": m.yaw}
                 if m.coordinate_frame != mavlink.MAV_FRAME_LOCAL_NED:
@@ -488,9 +495,9 @@ def main():
                     problem("setpoint addressed to %d/%d" % (m.target_system, m.target_component))
                 if m.type_mask & PVA_IGNORE_BITS:
                     problem("setpoint type_mask %#x ignores position/velocity/acceleration" % m.type_mask)
-                if not close(pos, expected_ned):
+                if not planner_setpoint and not hold_before:
                     problem("setpoint NED %s, expected %s" % (pos, expected_ned))
-                if expected_vel is not None and not close(vel, expected_vel) and not close(vel, (0.0, 0.0, 0.0)):
+                if not hold_before and expected_vel is not None and not close(vel, expected_vel) and not close(vel, (0.0, 0.0, 0.0)):
                     problem("setpoint velocity NED %s, expected %s (or zero in a hold)" % (vel, expected_vel))
             elif name.startswith("PARAM_") or name.startswith("MISSION_"):
                 params_and_fence(m, name)
