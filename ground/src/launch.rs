@@ -145,6 +145,8 @@ pub struct StackConfig {
     pub sitl_args: Vec<String>,
     /// Extra arguments for every tacos-onboard.
     pub onboard_args: Vec<String>,
+    /// Extra arguments for every tacos-px4.
+    pub writer_args: Vec<String>,
     pub autopilot: AutopilotKind,
 }
 
@@ -175,6 +177,7 @@ impl StackConfig {
             sim_speed: 1.0,
             sitl_args: Vec::new(),
             onboard_args: Vec::new(),
+            writer_args: Vec::new(),
             autopilot: AutopilotKind::Sitl,
         })
     }
@@ -389,6 +392,7 @@ impl Stack {
                     ]);
                 }
             }
+            writer.extend(c.writer_args.iter().cloned());
             stack.spawn(Role::Writer, Some(slot.id.clone()), writer)?;
             let mut onboard = vec![
                 "--drone".into(),

@@ -301,3 +301,58 @@ async fn crash_onboard_and_writer(sim: &mut SimSwarm) -> anyhow::Result<()> {
     .await?;
     Ok(())
 }
+
+/// An onboard that crashes and does not come back: the writer holds the vehicle, then lands it
+/// once the planner has been silent for its bound (4 s here, 15 s by default).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_vehicle_whose_onboard_does_not_come_back_is_landed_by_its_writer() -> anyhow::Result<()>
+{
+    const LAND_AFTER_S: f64 = 4.0;
+    let mut sim = SimSwarm::start_with("orphan", "city", 1, |c| {
+        c.writer_args = vec!["--onboard-land-after-s".into(), LAND_AFTER_S.to_string()];
+    })
+    .await?;
+    let result = orphaned(&mut sim, LAND_AFTER_S).await;
+    sim.stop().await;
+    result
+}
+
+async fn orphaned(sim: &mut SimSwarm, land_after_s: f64) -> anyhow::Result<()> {
+    let alfa = id("alfa");
+    let gate = SafetyGate::new(sim.scenario.clone());
+    let mut truth = sim.link.watch_truth().await?;
+    all_ready(sim, std::slice::from_ref(&alfa)).await?;
+    act_all(&sim.link, &gate, vec![(alfa.clone(), Action::ArmTakeoff)]).await?;
+    let exit = sim.stack.crash(Role::Onboard, Some(&alfa)).await;
+    anyhow::ensure!(exit.is_some(), "alfa's onboard was not running");
+    let killed = Instant::now();
+    // Within the bound it holds in the air...
+    while killed.elapsed().as_secs_f64() < land_after_s - 1.0 {
+        within("a truth update", Duration::from_secs(2), truth.changed()).await??;
+        let v = truth
+            .borrow()
+            .as_ref()
+            .and_then(|t| vehicle(t, &alfa).cloned())
+            .ok_or_else(|| anyhow::anyhow!("alfa missing from truth"))?;
+        anyhow::ensure!(
+            v.armed && v.position.z > 5.0,
+            "alfa came down {:.1} s after its onboard died, within the bound: {v:?}",
+            killed.elapsed().as_secs_f64()
+        );
+    }
+    // ...after it, it is landed and disarmed.
+    truth_until(
+        &mut truth,
+        Duration::from_secs(60),
+        "alfa landed by its writer",
+        |t| vehicle(t, &alfa).is_some_and(|v| v.landed && !v.armed),
+    )
+    .await?;
+    let landed_after = killed.elapsed().as_secs_f64();
+    anyhow::ensure!(
+        landed_after >= land_after_s,
+        "landed after {landed_after:.1} s"
+    );
+    println!("onboard dead: alfa held, then was landed by its writer {landed_after:.1} s later");
+    Ok(())
+}

@@ -202,6 +202,8 @@ pub struct WriterConfig {
     pub stream_rate_hz: f64,
     /// No setpoint from the planner for this long → stream a hold.
     pub onboard_timeout: Duration,
+    /// No setpoint for this long while the vehicle flies → land it (see `orphan`).
+    pub onboard_land_after: Duration,
     /// The scenario's box, uploaded as PX4's geofence; `None`: no fence.
     pub geofence: Option<crate::setup::Geofence>,
     /// The autopilot parameters read and set at connect.
@@ -214,6 +216,11 @@ pub struct WriterConfig {
     /// 191 (MAV_COMP_ID_ONBOARD_COMPUTER).
     pub sysid: u8,
 }
+
+/// How long a vehicle is held for a silent planner before the writer lands it: room for an
+/// onboard restarted by its service manager (a few seconds), short of the ground-silence
+/// failsafe's 30 s landing.
+pub const DEFAULT_ONBOARD_LAND_AFTER: Duration = Duration::from_secs(15);
 
 /// The writer's MAVLink identity and peer, as given on the command line.
 #[derive(Debug, Clone)]
@@ -259,6 +266,7 @@ impl WriterConfig {
             autopilot_sysid,
             stream_rate_hz,
             onboard_timeout: Duration::from_millis(onboard_timeout_ms),
+            onboard_land_after: DEFAULT_ONBOARD_LAND_AFTER,
             geofence: None,
             params: crate::params::failsafe_defaults(),
             autopilot_setup: true,

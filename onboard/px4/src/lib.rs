@@ -8,7 +8,8 @@
 //!
 //! Pure parts, each unit-tested: [`convert`] (ENU → NED), [`reference`] (what to stream, holds),
 //! [`commands`] (the MAVLink command protocol), [`procedure`] (PX4's sequences around it:
-//! readiness and mode before arming, AMSL take-off, mode switches confirmed), [`vehicle`] (link loss, state), [`mav`] (framing).
+//! readiness and mode before arming, AMSL take-off, mode switches confirmed), [`vehicle`] (link loss, state), [`mav`] (framing),
+//! [`orphan`] (when a vehicle whose planner stays silent is landed).
 //! The shell in [`writer`] wires them to a UDP socket and the iceoryx2 ports.
 
 pub mod commands;
@@ -16,6 +17,7 @@ pub mod config;
 pub mod convert;
 pub mod fence;
 pub mod mav;
+pub mod orphan;
 pub mod params;
 pub mod procedure;
 pub mod ratelimit;

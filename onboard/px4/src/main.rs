@@ -46,6 +46,10 @@ struct Args {
     /// No setpoint from the planner for this long → stream a hold at the last one.
     #[arg(long, default_value_t = 500)]
     onboard_timeout_ms: u64,
+    /// No setpoint from the planner for this many seconds while the vehicle flies → land it
+    /// (an onboard that crashed and did not come back).
+    #[arg(long, default_value_t = tacos_px4::config::DEFAULT_ONBOARD_LAND_AFTER.as_secs_f64())]
+    onboard_land_after_s: f64,
     /// The world box to upload as PX4's geofence, MINX,MINY,MINZ,MAXX,MAXY,MAXZ (world ENU
     /// metres; the launcher passes the scenario's bounds). Breach action: hold.
     #[arg(long, value_parser = parse_geofence, allow_hyphen_values = true)]
@@ -89,6 +93,12 @@ fn main() -> anyhow::Result<()> {
     )?;
 
     let mut config = config;
+    anyhow::ensure!(
+        args.onboard_land_after_s.is_finite() && args.onboard_land_after_s >= 1.0,
+        "--onboard-land-after-s must be at least 1 (got {})",
+        args.onboard_land_after_s
+    );
+    config.onboard_land_after = std::time::Duration::from_secs_f64(args.onboard_land_after_s);
     config.geofence = args.geofence;
     config.autopilot_setup = !args.no_autopilot_setup;
     for want in args.px4_params {

@@ -194,6 +194,14 @@ impl Procedures {
             .submit(id, CommandLong::message_interval(message_id, interval_us));
     }
 
+    /// Lands the vehicle on the writer's own account (its planner is gone: see `orphan`); the
+    /// result is only logged.
+    pub fn land_on_own(&mut self) {
+        let id = self.id();
+        self.internal.push((id, mav_cmd::NAV_LAND));
+        self.runner.submit(id, CommandLong::land());
+    }
+
     /// A STATUSTEXT of warning severity or worse.
     pub fn on_status_text(&mut self, text: &str, now: Instant) {
         self.last_text = Some((text.to_owned(), now));

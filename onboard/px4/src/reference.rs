@@ -84,6 +84,11 @@ impl ReferenceKeeper {
         Ok(())
     }
 
+    /// When the newest accepted setpoint arrived, if one ever did.
+    pub fn last_setpoint_at(&self) -> Option<Instant> {
+        self.last.map(|(_, at)| at)
+    }
+
     /// How many setpoints were rejected so far.
     pub fn rejected(&self) -> u64 {
         self.rejected

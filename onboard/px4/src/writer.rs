@@ -13,6 +13,7 @@ use crate::Px4Error;
 use crate::config::{MavlinkLink, WriterConfig};
 use crate::convert::to_ned;
 use crate::mav::{self, Datagram, Encoder};
+use crate::orphan::OrphanLanding;
 use crate::procedure::{ProcedureEvent, Procedures};
 use crate::ratelimit::RateLimit;
 use crate::reference::{ReferenceKeeper, Source};
@@ -218,6 +219,7 @@ struct Stream<'a> {
     ctx: &'a Ctx<'a>,
     encoder: Encoder,
     keeper: ReferenceKeeper,
+    orphan: OrphanLanding,
     procedures: Procedures,
     setup: AutopilotSetup,
     setup_reported: SetupState,
@@ -369,6 +371,7 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
         ctx,
         encoder: Encoder::new(ctx.config.sysid),
         keeper: ReferenceKeeper::new(ctx.config.onboard_timeout),
+        orphan: OrphanLanding::new(ctx.config.onboard_land_after),
         procedures: Procedures::new(),
         setup: AutopilotSetup::skipped(),
         // Reported once the link is up: a skipped setup is warned about too.
@@ -437,6 +440,15 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
                 continue;
             };
             events.extend(s.procedures.on_ack(command, result, now, &facts));
+        }
+        let flying =
+            facts.link_ok && facts.armed && facts.mode != tacos_shared::px4_mode::Px4Mode::Land;
+        if s.orphan.poll(s.keeper.last_setpoint_at(), flying, now) {
+            warn!(
+                after_s = s.orphan.land_after().as_secs_f64(),
+                "planner silent while flying: landing the vehicle"
+            );
+            s.procedures.land_on_own();
         }
         events.extend(s.procedures.poll(now, &facts));
         for event in events {
