@@ -44,12 +44,11 @@ pub fn open_append(path: &Path) -> io::Result<(File, Option<Repair>)> {
     if let Some(dir) = dir {
         std::fs::create_dir_all(dir)?;
     }
-    let repair = match std::fs::read(path) {
-        Ok(bytes) => repair_tail(path, &bytes)?,
-        Err(e) if e.kind() == io::ErrorKind::NotFound => None,
+    let (existed, repair) = match std::fs::read(path) {
+        Ok(bytes) => (true, repair_tail(path, &bytes)?),
+        Err(e) if e.kind() == io::ErrorKind::NotFound => (false, None),
         Err(e) => return Err(e),
     };
-    let existed = path.exists();
     let file = OpenOptions::new().create(true).append(true).open(path)?;
     if !existed {
         // Best effort: some file systems cannot open a folder for syncing.

@@ -126,6 +126,19 @@ async fn fly_pattern(sim: &SimSwarm) -> anyhow::Result<()> {
 }
 
 /// Sends one action per drone at once (through the gate), then waits until every one is done.
+/// The vehicle in the simulator's next truth update.
+async fn next_state_of(
+    truth: &mut tokio::sync::watch::Receiver<Option<tacos_shared::messages::SimTruth>>,
+    drone: &DroneId,
+) -> anyhow::Result<tacos_shared::messages::VehicleTruth> {
+    within("a truth update", Duration::from_secs(2), truth.changed()).await??;
+    truth
+        .borrow()
+        .as_ref()
+        .and_then(|t| vehicle(t, drone).cloned())
+        .ok_or_else(|| anyhow::anyhow!("{drone} missing from truth"))
+}
+
 async fn act_all(
     link: &GroundLink,
     gate: &SafetyGate,
@@ -208,12 +221,7 @@ async fn crash_onboard_and_writer(sim: &mut SimSwarm) -> anyhow::Result<()> {
     let after = Instant::now();
     let mut last = None;
     while after.elapsed() < Duration::from_secs(3) {
-        within("a truth update", Duration::from_secs(2), truth.changed()).await??;
-        let v = truth
-            .borrow()
-            .as_ref()
-            .and_then(|t| vehicle(t, &alfa).cloned())
-            .ok_or_else(|| anyhow::anyhow!("alfa missing from truth"))?;
+        let v = next_state_of(&mut truth, &alfa).await?;
         anyhow::ensure!(
             Px4Mode::from_custom_mode(v.custom_mode) == Px4Mode::Offboard,
             "alfa left offboard after its onboard process died: {:?}",
@@ -328,12 +336,7 @@ async fn orphaned(sim: &mut SimSwarm, land_after_s: f64) -> anyhow::Result<()> {
     let killed = Instant::now();
     // Within the bound it holds in the air...
     while killed.elapsed().as_secs_f64() < land_after_s - 1.0 {
-        within("a truth update", Duration::from_secs(2), truth.changed()).await??;
-        let v = truth
-            .borrow()
-            .as_ref()
-            .and_then(|t| vehicle(t, &alfa).cloned())
-            .ok_or_else(|| anyhow::anyhow!("alfa missing from truth"))?;
+        let v = next_state_of(&mut truth, &alfa).await?;
         anyhow::ensure!(
             v.armed && v.position.z > 5.0,
             "alfa came down {:.1} s after its onboard died, within the bound: {v:?}",

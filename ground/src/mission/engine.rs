@@ -617,14 +617,15 @@ impl Mission {
     /// only when it is one of the map's (`untrusted`).
     fn visible_targets(&self) -> Vec<TargetObservation> {
         let seen = self.targets.borrow();
-        let unknown = untrusted::unknown_target_count(&seen, self.gate.scenario());
+        let known = untrusted::known_targets(&seen, self.gate.scenario());
+        let unknown = seen.len() - known.len();
         if unknown > 0 {
             tracing::debug!(
                 unknown,
                 "observations of targets the map does not have left out"
             );
         }
-        untrusted::known_targets(&seen, self.gate.scenario())
+        known
     }
 
     /// Fails `drone`'s running tasks, and its done start_tracking while it still followed the
