@@ -130,6 +130,21 @@ pub struct FlightLimits {
     pub detection_radius: f64,
     /// Highest altitude at which detection works.
     pub detection_altitude: f64,
+    /// Fastest climb the autopilot flies, m/s: PX4's MPC_Z_VEL_MAX_UP (default 3 m/s), which
+    /// PX4 enforces whatever the setpoint asks, so the planner must not plan beyond it.
+    #[serde(default = "px4_max_climb_rate")]
+    pub max_climb_rate: f64,
+    /// Fastest descent, m/s: PX4's MPC_Z_VEL_MAX_DN (default 1.5 m/s).
+    #[serde(default = "px4_max_descent_rate")]
+    pub max_descent_rate: f64,
+}
+
+fn px4_max_climb_rate() -> f64 {
+    3.0
+}
+
+fn px4_max_descent_rate() -> f64 {
+    1.5
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -248,6 +263,8 @@ impl Scenario {
             (l.safety_distance, "limits.safety_distance"),
             (l.detection_radius, "limits.detection_radius"),
             (l.detection_altitude, "limits.detection_altitude"),
+            (l.max_climb_rate, "limits.max_climb_rate"),
+            (l.max_descent_rate, "limits.max_descent_rate"),
         ] {
             if !positive(value) {
                 return Err(ScenarioError::NotPositive(what));

@@ -7,7 +7,8 @@
 //!   step, penalise acceleration and jerk (change of acceleration between steps, including from
 //!   the previous plan's acceleration now).
 //! - Limits: speed and acceleration as exact second-order cones (`‖v_k‖ ≤ v̄`, `‖a_k‖ ≤ ā`;
-//!   no polyhedral approximation is needed, clarabel takes the cones natively), the workspace
+//!   no polyhedral approximation is needed, clarabel takes the cones natively), the vertical
+//!   speed within the autopilot's climb and descent rates (`−v̄_dn ≤ v_z ≤ v̄_up`), the workspace
 //!   box shrunk by the drone radius on every control point, its floor raised by
 //!   `floor_clearance` (unless the goal or the drone is lower) and priced far above any other
 //!   constraint, so that a crowd cannot press a drone into the ground.
@@ -59,6 +60,10 @@ pub struct PlannerConfig {
     /// Seconds per step.
     pub dt: f64,
     pub max_speed: f64,
+    /// Vertical speed limits (m/s, both positive): the autopilot's, which are tighter than
+    /// `max_speed` in most maps (PX4 climbs at 3 m/s and descends at 1.5 m/s at most).
+    pub max_climb_rate: f64,
+    pub max_descent_rate: f64,
     pub max_accel: f64,
     pub workspace: Bounds,
     /// The obstacles as they are (not inflated).
@@ -111,6 +116,8 @@ impl PlannerConfig {
             horizon_steps,
             dt,
             max_speed: limits.max_speed,
+            max_climb_rate: limits.max_climb_rate,
+            max_descent_rate: limits.max_descent_rate,
             max_accel: limits.max_accel,
             workspace: world.bounds,
             obstacles: world.obstacles.clone(),
@@ -150,6 +157,8 @@ impl PlannerConfig {
         let positive = [
             ("dt", self.dt),
             ("max_speed", self.max_speed),
+            ("max_climb_rate", self.max_climb_rate),
+            ("max_descent_rate", self.max_descent_rate),
             ("max_accel", self.max_accel),
             ("slack_weight", self.slack_weight),
             ("floor_weight_factor", self.floor_weight_factor),
@@ -572,6 +581,10 @@ impl Planner {
             reference: &self.reference,
             velocity_reference,
             speed_bounds: &speed_bounds,
+            // A drone already climbing or descending faster than allowed (a take-over in
+            // flight) is let keep that rate rather than made infeasible; the cost slows it.
+            climb_bound: cfg.max_climb_rate.max(velocity.z),
+            descent_bound: cfg.max_descent_rate.max(-velocity.z),
             max_accel: cfg.max_accel,
             box_lo: shrunk.min,
             box_hi: shrunk.max,

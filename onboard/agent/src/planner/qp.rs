@@ -64,6 +64,9 @@ pub(crate) struct QpInput<'a> {
     pub velocity_reference: Vec3,
     /// Speed bounds for v_1..v_K.
     pub speed_bounds: &'a [f64],
+    /// `v_z ≤ climb_bound` and `−v_z ≤ descent_bound` for v_1..v_K.
+    pub climb_bound: f64,
+    pub descent_bound: f64,
     pub max_accel: f64,
     /// Workspace box for every non-constant control point.
     pub box_lo: Vec3,
@@ -389,6 +392,15 @@ impl QpWorkspace {
                     }
                 }
             }
+        }
+        for step in 1..=k {
+            let vz = layout.v(step) + 2;
+            self.entry(row, vz, 1.0);
+            self.b.push(input.climb_bound);
+            row += 1;
+            self.entry(row, vz, -1.0);
+            self.b.push(input.descent_bound);
+            row += 1;
         }
         let nonneg_rows = row - zero_rows;
 

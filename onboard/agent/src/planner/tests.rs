@@ -76,6 +76,14 @@ fn assert_within_limits(cfg: &PlannerConfig, plan: &Plan) {
             v.norm()
         );
     }
+    for v in &plan.velocities[1..] {
+        assert!(v.z <= cfg.max_climb_rate * (1.0 + tol), "climb {}", v.z);
+        assert!(
+            -v.z <= cfg.max_descent_rate * (1.0 + tol),
+            "descent {}",
+            -v.z
+        );
+    }
     for a in &plan.accelerations {
         assert!(
             a.norm() <= cfg.max_accel * (1.0 + tol),
@@ -189,6 +197,52 @@ fn plans_stop_at_the_workspace_walls() {
     // It ended up in the corner nearest the goal, stopped.
     assert!((pos - Vec3::new(159.5, 0.0, 99.5)).norm() < 1.0, "{pos:?}");
     assert!(vel.norm() < 0.1);
+}
+
+#[test]
+fn climbs_and_descents_keep_to_the_autopilots_vertical_rates() {
+    // The city allows 8 m/s; PX4 climbs at 3 and descends at 1.5 m/s at most, whatever its
+    // setpoints ask, so a plan faster than that is one the vehicle falls behind.
+    let cfg = city_config();
+    assert!(cfg.max_speed > cfg.max_climb_rate && cfg.max_climb_rate > cfg.max_descent_rate);
+    for (start, goal) in [
+        (Vec3::new(100.0, 100.0, 60.0), Vec3::new(100.0, 100.0, 5.0)),
+        (Vec3::new(100.0, 100.0, 5.0), Vec3::new(100.0, 100.0, 60.0)),
+    ] {
+        let mut p = planner(&cfg);
+        let (mut pos, mut vel) = (start, Vec3::zeros());
+        let (mut fastest_up, mut fastest_down) = (0.0_f64, 0.0_f64);
+        let mut now = 0.0;
+        while now < 60.0 && (pos - goal).norm() > 0.5 {
+            let r = solve(&mut p, now, pos, vel, &Goal::fixed(goal), &[]);
+            assert_within_limits(&cfg, &r.plan);
+            for i in 0..=DENSE {
+                let v = r
+                    .plan
+                    .sample(now + REPLAN * i as f64 / DENSE as f64)
+                    .velocity;
+                fastest_up = fastest_up.max(v.z);
+                fastest_down = fastest_down.max(-v.z);
+            }
+            now += REPLAN;
+            let s = r.plan.sample(now);
+            (pos, vel) = (s.position, s.velocity);
+        }
+        assert!(
+            (pos - goal).norm() <= 0.5,
+            "from {start:?}: stopped at {pos:?}"
+        );
+        assert!(
+            fastest_up <= cfg.max_climb_rate + 1e-3,
+            "climbed at {fastest_up}"
+        );
+        assert!(
+            fastest_down <= cfg.max_descent_rate + 1e-3,
+            "descended at {fastest_down}"
+        );
+        // And the rates are used, not a slower crawl.
+        assert!(fastest_up.max(fastest_down) >= 0.9 * cfg.max_descent_rate);
+    }
 }
 
 struct Flight {
