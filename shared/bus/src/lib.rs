@@ -2,6 +2,7 @@
 //! messages through the one wire codec. Kept apart from `tacos-shared`, which does no I/O.
 
 pub mod clock;
+pub mod router;
 
 use serde::Serialize;
 use serde::de::DeserializeOwned;
@@ -51,7 +52,8 @@ pub struct BusArgs {
     /// Discover peers by UDP multicast on the LAN (off by default: set endpoints instead).
     #[arg(long = "zenoh-multicast")]
     pub multicast: bool,
-    /// A zenoh JSON5 configuration file (TLS, access control; see deploy/); flags override it.
+    /// A zenoh JSON5 configuration file (mode, endpoints, TLS, access control; see
+    /// deploy/zenoh/). It replaces the other --zenoh-* flags, which are refused beside it.
     #[arg(long = "zenoh-config", value_name = "FILE")]
     pub config_file: Option<PathBuf>,
     /// Follow the simulator's clock (`sim/clock`) instead of the wall clock. Only for the
@@ -88,15 +90,38 @@ impl BusArgs {
         Keys::new(&self.swarm)
     }
 
-    /// The zenoh configuration these settings describe.
+    /// The zenoh configuration these settings describe. With `--zenoh-config`, the file says
+    /// everything about the network (mode, endpoints, scouting, TLS, access control): a
+    /// `--zenoh-*` flag beside it is refused, not quietly laid over what the file sets (a
+    /// client file turned back into a listening peer would bypass the router).
     pub fn zenoh_config(&self) -> Result<zenoh::Config, BusError> {
-        let mut config = match &self.config_file {
-            Some(path) => zenoh::Config::from_file(path).map_err(|e| BusError::Config {
+        if let Some(path) = &self.config_file {
+            let flags = [
+                ("--zenoh-connect", !self.connect.is_empty()),
+                ("--zenoh-listen", !self.listen.is_empty()),
+                ("--zenoh-client", self.client),
+                ("--zenoh-multicast", self.multicast),
+            ];
+            let given: Vec<&str> = flags
+                .iter()
+                .filter(|(_, on)| *on)
+                .map(|(f, _)| *f)
+                .collect();
+            if !given.is_empty() {
+                return Err(BusError::Config {
+                    key: path.display().to_string(),
+                    reason: format!(
+                        "{} given with --zenoh-config: set it in the file instead",
+                        given.join(", ")
+                    ),
+                });
+            }
+            return zenoh::Config::from_file(path).map_err(|e| BusError::Config {
                 key: path.display().to_string(),
                 reason: e.to_string(),
-            })?,
-            None => zenoh::Config::default(),
-        };
+            });
+        }
+        let mut config = zenoh::Config::default();
         let mut set = |key: &str, value: String| {
             config
                 .insert_json5(key, &value)
@@ -123,15 +148,13 @@ impl BusArgs {
                 "\"peer\"".into()
             },
         )?;
-        if self.config_file.is_none() || self.multicast {
-            set("scouting/multicast/enabled", self.multicast.to_string())?;
-        }
+        set("scouting/multicast/enabled", self.multicast.to_string())?;
         if !self.connect.is_empty() {
             set("connect/endpoints", json_list(&self.connect))?;
         }
         if !self.listen.is_empty() {
             set("listen/endpoints", json_list(&self.listen))?;
-        } else if self.config_file.is_none() && !self.client {
+        } else if !self.client {
             // Peers must be reachable by the others that gossip discovers; an ephemeral port on
             // loopback keeps a default run off the network.
             set("listen/endpoints", "[\"tcp/127.0.0.1:0\"]".into())?;
