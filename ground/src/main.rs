@@ -55,6 +55,10 @@ enum Cmd {
         /// Seconds to wait for the outcome.
         #[arg(long, default_value_t = 120.0)]
         timeout: f64,
+        /// Seconds to wait for the drone to be heard before giving up on it: a drone rejoining
+        /// a ground that has just (re)started takes a few seconds to reconnect.
+        #[arg(long, default_value_t = 20.0)]
+        wait_for_drone: f64,
         drone: String,
         #[arg(num_args = 1.., allow_hyphen_values = true)]
         action: Vec<String>,
@@ -236,9 +240,16 @@ fn run() -> anyhow::Result<()> {
                 bus,
                 scenario,
                 timeout,
+                wait_for_drone,
                 drone,
                 action,
-            } => send(bus, &scenario, timeout, &drone, &action).await,
+            } => {
+                let waits = SendWaits {
+                    drone: Duration::from_secs_f64(wait_for_drone.max(0.0)),
+                    outcome: Duration::from_secs_f64(timeout.max(0.0)),
+                };
+                send(bus, &scenario, waits, &drone, &action).await
+            }
             Cmd::Demo {
                 drones,
                 map,
@@ -356,22 +367,50 @@ async fn swarm(bus: BusArgs, period_ms: u64, count: u64, in_control: bool) -> an
     }
 }
 
+/// How long `send` waits for the drone to be heard, and then for the action's outcome.
+struct SendWaits {
+    drone: Duration,
+    outcome: Duration,
+}
+
 async fn send(
     bus: BusArgs,
     scenario: &str,
-    timeout: f64,
+    waits: SendWaits,
     drone: &str,
     words: &[String],
 ) -> anyhow::Result<()> {
     let words: Vec<&str> = words.iter().map(String::as_str).collect();
     let action = Action::parse_words(&words).map_err(anyhow::Error::msg)?;
+    let id = tacos_shared::DroneId::new(drone).map_err(|e| anyhow::anyhow!("{drone:?}: {e}"))?;
     let gate = SafetyGate::new(tacos_bus::load_scenario(scenario)?);
     let link = GroundLink::connect(&bus).await?;
-    // Give the swarm view a moment to hear from the drone before judging it unknown.
-    if let Ok(id) = tacos_shared::DroneId::new(drone) {
-        let _ = link
-            .wait_for_drones(std::slice::from_ref(&id), Duration::from_secs(3), |_| true)
-            .await;
+    if link
+        .wait_for_drones(std::slice::from_ref(&id), Duration::from_secs(1), |_| true)
+        .await
+        .is_err()
+    {
+        eprintln!(
+            "waiting up to {:.0} s for {drone} to be heard…",
+            waits.drone.as_secs_f64()
+        );
+        if link
+            .wait_for_drones(std::slice::from_ref(&id), waits.drone, |_| true)
+            .await
+            .is_err()
+        {
+            let heard: Vec<String> = link.view().drones().map(|e| e.id.to_string()).collect();
+            bail!(
+                "{drone} was not heard within {:.0} s (heard: {}); is its onboard running and on this swarm ({})?",
+                waits.drone.as_secs_f64() + 1.0,
+                if heard.is_empty() {
+                    "none".to_owned()
+                } else {
+                    heard.join(", ")
+                },
+                bus.swarm
+            );
+        }
     }
     let checked = {
         let view = link.view();
@@ -381,7 +420,7 @@ async fn send(
     let seq = link.send(&checked, None).await?;
     println!("sent #{seq} {action} to {drone}");
     match link
-        .wait_outcome(checked.drone(), seq, Duration::from_secs_f64(timeout))
+        .wait_outcome(checked.drone(), seq, waits.outcome)
         .await?
     {
         ActionState::Done => {
