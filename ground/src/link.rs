@@ -48,6 +48,10 @@ pub enum LinkError {
     },
     #[error("timed out after {0:?} waiting for drones: {1}")]
     WaitDrones(Duration, String),
+    #[error(
+        "{drone} follows another ground station ({followed}), which is still beating: a drone takes actions from one ground station at a time"
+    )]
+    NotFollowed { drone: DroneId, followed: u64 },
 }
 
 struct Shared {
@@ -98,6 +102,9 @@ pub struct GroundLink {
     calls_in_flight: Arc<watch::Sender<u32>>,
     shared: Arc<Shared>,
     next_seq: AtomicU64,
+    /// This ground station's epoch: named in its heartbeats and actions (a drone follows one
+    /// ground station at a time).
+    epoch: u64,
     tasks: Vec<JoinHandle<()>>,
 }
 
@@ -178,6 +185,11 @@ impl GroundLink {
             }
         }));
 
+        // Sequence numbers grow across ground restarts: start from the wall clock. The start
+        // is this station's epoch too (two started in the same microsecond are not told apart).
+        let epoch = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(1, |d| d.as_micros() as u64);
         let hb_session = session.clone();
         let hb_key = keys.ground_heartbeat();
         let hb_shared = shared.clone();
@@ -190,8 +202,16 @@ impl GroundLink {
                     continue;
                 }
                 counter += 1;
-                if let Err(e) =
-                    tacos_bus::put(&hb_session, &hb_key, &GroundHeartbeat { counter }, false).await
+                if let Err(e) = tacos_bus::put(
+                    &hb_session,
+                    &hb_key,
+                    &GroundHeartbeat {
+                        counter,
+                        ground: epoch,
+                    },
+                    false,
+                )
+                .await
                 {
                     warn!(error = %e, "ground heartbeat not sent");
                 }
@@ -218,20 +238,21 @@ impl GroundLink {
             }));
         }
 
-        // Sequence numbers grow across ground restarts: start from the wall clock.
-        let start = SystemTime::now()
-            .duration_since(UNIX_EPOCH)
-            .map_or(1, |d| d.as_millis() as u64)
-            * 1000;
         Ok(GroundLink {
             session,
             keys,
             clock,
             calls_in_flight: Arc::new(calls_in_flight),
             shared,
-            next_seq: AtomicU64::new(start),
+            next_seq: AtomicU64::new(epoch),
+            epoch,
             tasks,
         })
+    }
+
+    /// This ground station's epoch (see `GroundHeartbeat::ground`).
+    pub fn epoch(&self) -> u64 {
+        self.epoch
     }
 
     pub fn session(&self) -> &zenoh::Session {
@@ -288,6 +309,7 @@ impl GroundLink {
     ) -> Result<u64, LinkError> {
         let seq = self.next_seq.fetch_add(1, Ordering::Relaxed);
         let command = ActionCommand {
+            ground: self.epoch,
             seq,
             task_id,
             action: checked.action().clone(),
@@ -353,6 +375,13 @@ impl GroundLink {
     ) -> Result<ActionState, LinkError> {
         let mut version = self.shared.version.subscribe();
         let deadline = tokio::time::Instant::now() + timeout;
+        // Statuses sent before the drone read the action may still name a ground it is about
+        // to give up: only one two statuses later tells.
+        let counter_at_send = self
+            .view()
+            .get(drone)
+            .and_then(|e| e.status.as_ref())
+            .map_or(0, |s| s.counter);
         loop {
             {
                 let view = self.view();
@@ -360,12 +389,34 @@ impl GroundLink {
                 if entry.is_some_and(|e| !e.alive) {
                     return Err(LinkError::DroneLost(drone.clone()));
                 }
+                if let Some(status) = entry.and_then(|e| e.status.as_ref())
+                    && status.counter >= counter_at_send + 2
+                    && let Some(followed) = status.ground
+                    && followed != self.epoch
+                {
+                    return Err(LinkError::NotFollowed {
+                        drone: drone.clone(),
+                        followed,
+                    });
+                }
                 if let Some(progress) = entry
                     .and_then(|e| e.status.as_ref())
                     .and_then(|s| s.action.as_ref())
                 {
                     if progress.seq == seq && progress.state.is_finished() {
                         return Ok(progress.state.clone());
+                    }
+                    // A newer action of another ground station is not ours superseded: the
+                    // drone follows that one.
+                    let other = entry
+                        .and_then(|e| e.status.as_ref())
+                        .and_then(|s| s.ground)
+                        .filter(|g| *g != self.epoch);
+                    if let (true, Some(followed)) = (progress.seq > seq, other) {
+                        return Err(LinkError::NotFollowed {
+                            drone: drone.clone(),
+                            followed,
+                        });
                     }
                     if progress.seq > seq {
                         return Err(LinkError::Superseded {

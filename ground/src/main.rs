@@ -385,8 +385,11 @@ async fn send(
     let id = tacos_shared::DroneId::new(drone).map_err(|e| anyhow::anyhow!("{drone:?}: {e}"))?;
     let gate = SafetyGate::new(tacos_bus::load_scenario(scenario)?);
     let link = GroundLink::connect(&bus).await?;
+    // Heard at all, then linked to its autopilot (a drone's first statuses may precede that).
+    let ready = |s: &tacos_shared::messages::DroneStatus| s.autopilot_link;
+    let one = std::slice::from_ref(&id);
     if link
-        .wait_for_drones(std::slice::from_ref(&id), Duration::from_secs(1), |_| true)
+        .wait_for_drones(one, Duration::from_secs(1), ready)
         .await
         .is_err()
     {
@@ -394,8 +397,9 @@ async fn send(
             "waiting up to {:.0} s for {drone} to be heard…",
             waits.drone.as_secs_f64()
         );
+        let started = tokio::time::Instant::now();
         if link
-            .wait_for_drones(std::slice::from_ref(&id), waits.drone, |_| true)
+            .wait_for_drones(one, waits.drone, |_| true)
             .await
             .is_err()
         {
@@ -410,6 +414,10 @@ async fn send(
                 },
                 bus.swarm
             );
+        }
+        let left = waits.drone.saturating_sub(started.elapsed());
+        if link.wait_for_drones(one, left, ready).await.is_err() {
+            bail!("{drone} is heard but has no link to its autopilot (is its tacos-px4 running?)");
         }
     }
     let checked = {

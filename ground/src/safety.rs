@@ -240,6 +240,7 @@ mod tests {
                 action: None,
                 failsafe: None,
                 malformed_actions: 0,
+                ground: None,
             },
             now,
         );

@@ -150,6 +150,7 @@ mod tests {
             action: None,
             failsafe: None,
             malformed_actions: 0,
+            ground: None,
         }
     }
 

@@ -104,10 +104,13 @@ impl fmt::Display for Action {
     }
 }
 
-/// An action sent from the ground to one drone. `seq` grows per drone so a drone can tell a new
-/// command from a repeated one; `task_id` ties it to a subtask of the plan, when there is one.
+/// An action sent from the ground to one drone. `ground` names the ground station that sent it
+/// (its epoch, as in its heartbeat); `seq` grows per ground station so a drone can tell a new
+/// command from a repeated or replayed one; `task_id` ties it to a subtask of the plan, when
+/// there is one.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ActionCommand {
+    pub ground: u64,
     pub seq: u64,
     pub task_id: Option<String>,
     pub action: Action,

@@ -7,7 +7,7 @@ use serde::Serialize;
 use serde::de::DeserializeOwned;
 
 /// The current wire version. Bump when any message changes shape.
-pub const WIRE_VERSION: u8 = 2;
+pub const WIRE_VERSION: u8 = 3;
 
 /// Upper bound on what one message may allocate while decoding, so garbage cannot exhaust memory.
 pub const MAX_MESSAGE_BYTES: usize = 1 << 20;
@@ -92,6 +92,7 @@ mod tests {
             action(),
         )
             .prop_map(|(seq, task_id, action)| ActionCommand {
+                ground: seq / 3,
                 seq,
                 task_id,
                 action,
@@ -120,6 +121,7 @@ mod tests {
                 }),
                 failsafe: Some(FailsafeStage::Holding),
                 malformed_actions: 3,
+                ground: Some(counter / 2),
             })
     }
 
@@ -154,6 +156,7 @@ mod tests {
     #[test]
     fn typed_errors() {
         let bytes = encode(&ActionCommand {
+            ground: 1,
             seq: 7,
             task_id: None,
             action: Action::Land,

@@ -107,6 +107,9 @@ pub struct DroneStatus {
     pub failsafe: Option<FailsafeStage>,
     /// Actions that arrived malformed on this drone's key since it started.
     pub malformed_actions: u64,
+    /// The ground station this drone follows (its epoch), once one is heard: a drone takes
+    /// actions from one ground station at a time (see `GroundHeartbeat::ground`).
+    pub ground: Option<u64>,
 }
 
 /// One observed target (perception, or the simulator standing in for it).
@@ -258,4 +261,7 @@ pub struct SimPace {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct GroundHeartbeat {
     pub counter: u64,
+    /// Which ground station beats: its epoch, chosen when it starts and carried by its actions
+    /// too (`ActionCommand::ground`). A drone follows one at a time.
+    pub ground: u64,
 }

@@ -107,6 +107,7 @@ async fn zenoh_action() -> anyhow::Result<((f64, f64), (f64, f64))> {
     });
     wait_for_match(&ground, &action_key).await?;
     let command = |seq| ActionCommand {
+        ground: 1,
         seq,
         task_id: Some("T1".into()),
         action: Action::Goto {

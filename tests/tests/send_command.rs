@@ -5,7 +5,7 @@
 use std::process::Stdio;
 use std::time::Duration;
 use tacos_ground::launch::{Stack, StackConfig};
-use tacos_ground::link::GroundLink;
+use tacos_ground::link::{GroundLink, GroundRole};
 use tacos_tests::unique_swarm;
 use tokio::process::Command;
 
@@ -28,7 +28,7 @@ async fn send_waits_for_a_drone_that_comes_late_and_names_the_heard_ones_when_it
     let scenario = tacos_bus::load_scenario("city")?;
     let config = StackConfig::on_loopback(unique_swarm("send"), "city", scenario, 1)?;
     // The hub the drones and `send` connect to.
-    let _hub = GroundLink::connect(&config.ground_bus()).await?;
+    let _hub = GroundLink::connect_as(&config.ground_bus(), GroundRole::Monitor).await?;
 
     let late = send_command(&config, &["--wait-for-drone", "30", "alfa", "arm_takeoff"]).spawn()?;
     // The drone comes up well after the old 3 s `send` gave it.

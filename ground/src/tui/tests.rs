@@ -46,6 +46,7 @@ fn status(
         action,
         failsafe: None,
         malformed_actions: 0,
+        ground: None,
     }
 }
 

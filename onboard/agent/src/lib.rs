@@ -6,6 +6,7 @@
 
 pub mod executor;
 pub mod failsafe;
+pub mod ground_follow;
 pub mod motion;
 pub mod planner;
 pub mod runtime;

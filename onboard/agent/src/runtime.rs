@@ -7,6 +7,7 @@
 
 use crate::executor::{Executor, ExecutorConfig};
 use crate::failsafe::FailsafeTimer;
+use crate::ground_follow::{Beat, GroundFollower};
 use crate::motion::{Motion, MotionConfig, SolveDone, Steering};
 use crate::planner::{PlannerConfig, PlannerError};
 use std::future::Future;
@@ -160,6 +161,10 @@ async fn run_inner(
     let mut plan_timer = clock.ticker(cfg.motion.plan_period);
     let mut last_steering: Option<Steering> = None;
     let mut failsafe = FailsafeTimer::new(cfg.failsafe_hold_s, cfg.failsafe_land_s, now());
+    // A ground station silent for the hold time may be replaced by another.
+    let mut grounds = GroundFollower::new(cfg.failsafe_hold_s);
+    // The other ground station last refused, logged once (heartbeats come several a second).
+    let mut refused_ground: Option<u64> = None;
     let mut control = clock.ticker(1.0 / cfg.control_rate_hz);
     let status_every = (cfg.control_rate_hz / cfg.status_rate_hz).round().max(1.0) as u64;
     let status_key = keys.status(&drone);
@@ -180,12 +185,17 @@ async fn run_inner(
             sample = actions.recv_async() => {
                 let sample = sample.map_err(|_| OnboardError::SubscriberClosed(keys.action(&drone)))?;
                 match tacos_bus::decode::<ActionCommand>(&sample) {
-                    Ok(command) => {
-                        if executor.on_command(&command, now()) {
-                            info!(seq = command.seq, action = %command.action, "action received");
-                            publish_now = true;
+                    Ok(command) => match grounds.admit(&command, now()) {
+                        Ok(()) => {
+                            if executor.on_command(&command, now()) {
+                                info!(seq = command.seq, action = %command.action, "action received");
+                                publish_now = true;
+                            }
                         }
-                    }
+                        Err(refusal) => {
+                            warn!(seq = command.seq, action = %command.action, "action refused: {refusal}");
+                        }
+                    },
                     Err(e) => {
                         malformed_actions += 1;
                         warn!(error = %e, count = malformed_actions, "malformed action ignored");
@@ -196,10 +206,24 @@ async fn run_inner(
             sample = heartbeats.recv_async() => {
                 let sample = sample.map_err(|_| OnboardError::SubscriberClosed(keys.ground_heartbeat()))?;
                 match tacos_bus::decode::<GroundHeartbeat>(&sample) {
-                    Ok(_) => {
+                    Ok(beat) => {
+                        let t = now();
+                        match grounds.on_heartbeat(beat.ground, t) {
+                            Beat::Refused { followed } => {
+                                if refused_ground != Some(beat.ground) {
+                                    refused_ground = Some(beat.ground);
+                                    warn!(other = beat.ground, followed, "a second ground station is beating while the followed one is: it is refused until the followed one falls silent");
+                                }
+                                continue;
+                            }
+                            Beat::Adopted { previous } => {
+                                info!(ground = beat.ground, ?previous, "following ground station");
+                                publish_now = true;
+                            }
+                            Beat::Followed => {}
+                        }
                         // At once, not at the next tick: an action that follows the beat must
                         // not meet a failsafe the beat has just ended.
-                        let t = now();
                         failsafe.heard(t);
                         if executor.failsafe().is_some() {
                             executor.set_failsafe(failsafe.stage(t), t);
@@ -336,6 +360,7 @@ async fn run_inner(
                 action: executor.progress().cloned(),
                 failsafe: executor.failsafe(),
                 malformed_actions,
+                ground: grounds.followed(),
             };
             if let Err(e) = tacos_bus::put(&session, &status_key, &status, false).await {
                 warn!(error = %e, "status not published");

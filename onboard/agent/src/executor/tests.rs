@@ -31,6 +31,7 @@ fn accept(ex: &mut Executor, cmd: &CommandSample, now: f64) {
 
 fn cmd(seq: u64, action: Action) -> ActionCommand {
     ActionCommand {
+        ground: 1,
         seq,
         task_id: None,
         action,
