@@ -5,7 +5,7 @@ use super::directives::{self, Directive};
 use super::grounding;
 use super::input::MissionInputs;
 use super::log::{MissionLog, Record};
-use super::resolve::{claimed_points, position_of, resolve};
+use super::resolve::{claimed_points, nearest_first, position_of, resolve};
 use super::untrusted;
 use crate::link::GroundLink;
 use crate::safety::{CheckedAction, SafetyGate};
@@ -2211,7 +2211,8 @@ fn check_live(
     let mut rejections = Vec::new();
     let view = link.view();
     let now = link.clock().instant();
-    for call in calls {
+    let order = nearest_first(calls, gate.scenario(), visible, |d| position_of(&view, d));
+    for call in order {
         if let Some((other, _)) = accepted.iter().find(|(c, _)| c.task == call.task) {
             rejections.push(format!(
                 "{call}: task {} already goes to {} this cycle",

@@ -99,6 +99,34 @@ fn free_spot(base: Vec3, scenario: &Scenario, claimed: &[Vec3], from: Option<Vec
         .unwrap_or(base)
 }
 
+/// The order in which a cycle's calls claim their goal points: the gotos by how far each drone
+/// is from the point it names, nearest first (the rest keep their order, ahead of the gotos).
+/// The nearest drone arrives first, so it takes the place itself and the later ones take free
+/// points on their own side. In the plan's order, the farthest of three drones sent to one car
+/// took the car's point, the two nearer ones the points between it and the car, and it could
+/// not get past them (seen in CI: its goto timed out three times). `from(drone)` is where a
+/// drone is, when known.
+pub fn nearest_first<'c>(
+    calls: &'c [Call],
+    scenario: &Scenario,
+    visible: &[TargetObservation],
+    from: impl Fn(&str) -> Option<Vec3>,
+) -> Vec<&'c Call> {
+    let distance = |call: &Call| -> f64 {
+        match (
+            resolve(call, scenario, visible, &[], None),
+            from(&call.drone),
+        ) {
+            (Ok(Action::Goto { target }), Some(at)) => (target - at).norm(),
+            (Ok(Action::Goto { .. }), None) => f64::INFINITY,
+            _ => -1.0,
+        }
+    };
+    let mut order: Vec<(f64, &Call)> = calls.iter().map(|c| (distance(c), c)).collect();
+    order.sort_by(|a, b| a.0.total_cmp(&b.0));
+    order.into_iter().map(|(_, c)| c).collect()
+}
+
 /// The action a call asks for, or why it names nothing that can be flown to. A goto to a named
 /// place keeps clear of the `claimed` points; a goto to an explicit point is flown as given, or
 /// refused when it is closer than `goal_spacing` to a claimed point. `from` is where the drone
@@ -378,6 +406,65 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn drones_sent_to_one_place_claim_it_nearest_first_and_none_is_walled_off() {
+        // The CI case: alfa, farthest from car_1, listed first.
+        let city = Scenario::builtin("city").expect("city");
+        let homes = [
+            ("alfa", Vec3::new(-50.0, -132.5, 10.0)),
+            ("bravo", Vec3::new(30.0, -132.5, 10.0)),
+            ("charlie", Vec3::new(-45.0, -132.5, 10.0)),
+        ];
+        let mut calls: Vec<Call> = homes
+            .iter()
+            .map(|(d, _)| Call {
+                drone: (*d).into(),
+                ..call(ActionName::Goto, "car_1", None)
+            })
+            .collect();
+        calls.insert(1, call(ActionName::Land, "none", None));
+        let at = |d: &str| homes.iter().find(|(h, _)| *h == d).map(|(_, p)| *p);
+        let order: Vec<&str> = nearest_first(&calls, &city, &[], at)
+            .into_iter()
+            .map(|c| c.drone.as_str())
+            .collect();
+        assert_eq!(order[1..], ["bravo", "charlie", "alfa"], "{order:?}");
+        // Each drone claims in turn; then each flies straight to its point, the nearer ones
+        // arriving first: a drone's line must pass the points of those that got there before
+        // it with the planner's room.
+        let claim = |order: Vec<&Call>| -> Vec<(Vec3, Vec3)> {
+            let mut goals: Vec<(Vec3, Vec3)> = Vec::new();
+            for c in order {
+                let claimed: Vec<Vec3> = goals.iter().map(|(_, g)| *g).collect();
+                if let Ok(Action::Goto { target }) = resolve(c, &city, &[], &claimed, at(&c.drone))
+                {
+                    goals.push((at(&c.drone).expect("home"), target));
+                }
+            }
+            goals
+        };
+        let room = city.limits.safety_distance * 4.0 / 3.0;
+        let walled_off = |goals: &[(Vec3, Vec3)]| -> Option<String> {
+            for (from, goal) in goals {
+                for (other_from, other) in goals {
+                    let earlier = (other - other_from).norm() < (goal - from).norm();
+                    let gap = clearance(*from, *goal, *other);
+                    if earlier && gap < room {
+                        return Some(format!(
+                            "{goal:?} from {from:?} passes {other:?} at {gap:.2} m"
+                        ));
+                    }
+                }
+            }
+            None
+        };
+        let goals = claim(nearest_first(&calls, &city, &[], at));
+        assert_eq!(goals.len(), 3);
+        assert_eq!(walled_off(&goals), None);
+        // In the plan's order the farthest drone is walled off (what CI saw).
+        assert!(walled_off(&claim(calls.iter().collect())).is_some());
     }
 
     /// The least horizontal distance from `p` to the segment from `a` to `b`.
