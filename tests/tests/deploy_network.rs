@@ -263,26 +263,13 @@ async fn the_router_admits_the_swarms_certificates_only_and_each_to_its_own_keys
         "a plain TCP client was admitted on the TLS port"
     );
 
-    let ground = open(
-        client_config(&certs, Some("ground"), port, MEMBER_MS)?,
-        "ground",
-    )
-    .await?;
-    let world = open(
-        client_config(&certs, Some("world"), port, MEMBER_MS)?,
-        "world",
-    )
-    .await?;
-    let alfa = open(
-        client_config(&certs, Some("alfa"), port, MEMBER_MS)?,
-        "alfa",
-    )
-    .await?;
-    let bravo = open(
-        client_config(&certs, Some("bravo"), port, MEMBER_MS)?,
-        "bravo",
-    )
-    .await?;
+    let member = async |name: &str| -> anyhow::Result<Session> {
+        open(client_config(&certs, Some(name), port, MEMBER_MS)?, name).await
+    };
+    let ground = member("ground").await?;
+    let world = member("world").await?;
+    let alfa = member("alfa").await?;
+    let bravo = member("bravo").await?;
     let keys = Keys::new(&SwarmId::new("default")?);
     let (a, b) = (DroneId::new("alfa")?, DroneId::new("bravo")?);
 
@@ -301,56 +288,52 @@ async fn the_router_admits_the_swarms_certificates_only_and_each_to_its_own_keys
     let paths = subscribe(&bravo, &keys.all_paths()).await?;
     reaches(&alfa, &keys.path(&a), "alfa path", &paths).await?;
 
-    // A drone's certificate cannot speak for another drone, the ground or the world.
-    refused(
-        &alfa,
-        &ground,
-        &keys.action(&b),
-        &bravo_actions,
-        "alfa commanding bravo",
-    )
-    .await?;
-    refused(
-        &alfa,
-        &ground,
-        &keys.ground_heartbeat(),
-        &heartbeat,
-        "alfa as the ground's heartbeat",
-    )
-    .await?;
-    refused(
-        &alfa,
-        &world,
-        &keys.targets(),
-        &targets,
-        "alfa placing targets",
-    )
-    .await?;
-    refused(
-        &alfa,
-        &bravo,
-        &keys.status(&b),
-        &statuses,
-        "alfa as bravo's status",
-    )
-    .await?;
-    refused(
-        &alfa,
-        &bravo,
-        &keys.path(&b),
-        &paths,
-        "alfa as bravo's path",
-    )
-    .await?;
-    // Nor can the world command a drone.
-    refused(
-        &world,
-        &ground,
-        &keys.action(&a),
-        &alfa_actions,
-        "the world commanding alfa",
-    )
-    .await?;
+    // A drone's certificate cannot speak for another drone, the ground or the world; nor can
+    // the world's command a drone. (intruder, the one allowed, key, who hears it, what.)
+    let (bravo_action, heartbeat_key, targets_key) =
+        (keys.action(&b), keys.ground_heartbeat(), keys.targets());
+    let (bravo_status, bravo_path, alfa_action) = (keys.status(&b), keys.path(&b), keys.action(&a));
+    let forgeries = [
+        (
+            &alfa,
+            &ground,
+            &bravo_action,
+            &bravo_actions,
+            "alfa commanding bravo",
+        ),
+        (
+            &alfa,
+            &ground,
+            &heartbeat_key,
+            &heartbeat,
+            "alfa as the ground's heartbeat",
+        ),
+        (
+            &alfa,
+            &world,
+            &targets_key,
+            &targets,
+            "alfa placing targets",
+        ),
+        (
+            &alfa,
+            &bravo,
+            &bravo_status,
+            &statuses,
+            "alfa as bravo's status",
+        ),
+        (&alfa, &bravo, &bravo_path, &paths, "alfa as bravo's path"),
+        (
+            &world,
+            &ground,
+            &alfa_action,
+            &alfa_actions,
+            "the world commanding alfa",
+        ),
+    ];
+    for (intruder, owner, key, sub, what) in forgeries {
+        refused(intruder, owner, key, sub, what).await?;
+    }
 
     // Liveliness: a drone's own token is seen by the ground; one in another's name is not.
     let alive = ground
