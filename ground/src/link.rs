@@ -376,7 +376,7 @@ impl GroundLink {
         let mut version = self.shared.version.subscribe();
         let deadline = tokio::time::Instant::now() + timeout;
         // Statuses sent before the drone read the action may still name a ground it is about
-        // to give up: only one two statuses later tells.
+        // to give up: only one two statuses later tells which it follows.
         let counter_at_send = self
             .view()
             .get(drone)
@@ -389,40 +389,34 @@ impl GroundLink {
                 if entry.is_some_and(|e| !e.alive) {
                     return Err(LinkError::DroneLost(drone.clone()));
                 }
-                if let Some(status) = entry.and_then(|e| e.status.as_ref())
-                    && status.counter >= counter_at_send + 2
-                    && let Some(followed) = status.ground
-                    && followed != self.epoch
+                let status = entry.and_then(|e| e.status.as_ref());
+                // The ground this drone follows, when it is another one.
+                let other = status.and_then(|s| s.ground).filter(|g| *g != self.epoch);
+                if let (Some(s), Some(followed)) = (status, other)
+                    && s.counter >= counter_at_send + 2
                 {
                     return Err(LinkError::NotFollowed {
                         drone: drone.clone(),
                         followed,
                     });
                 }
-                if let Some(progress) = entry
-                    .and_then(|e| e.status.as_ref())
-                    .and_then(|s| s.action.as_ref())
-                {
+                if let Some(progress) = status.and_then(|s| s.action.as_ref()) {
                     if progress.seq == seq && progress.state.is_finished() {
                         return Ok(progress.state.clone());
                     }
-                    // A newer action of another ground station is not ours superseded: the
-                    // drone follows that one.
-                    let other = entry
-                        .and_then(|e| e.status.as_ref())
-                        .and_then(|s| s.ground)
-                        .filter(|g| *g != self.epoch);
-                    if let (true, Some(followed)) = (progress.seq > seq, other) {
-                        return Err(LinkError::NotFollowed {
-                            drone: drone.clone(),
-                            followed,
-                        });
-                    }
                     if progress.seq > seq {
-                        return Err(LinkError::Superseded {
-                            drone: drone.clone(),
-                            seq,
-                            newer: progress.seq,
+                        // A newer action of another ground station is not ours superseded:
+                        // the drone follows that one.
+                        return Err(match other {
+                            Some(followed) => LinkError::NotFollowed {
+                                drone: drone.clone(),
+                                followed,
+                            },
+                            None => LinkError::Superseded {
+                                drone: drone.clone(),
+                                seq,
+                                newer: progress.seq,
+                            },
                         });
                     }
                 }

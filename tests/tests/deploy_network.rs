@@ -55,6 +55,22 @@ fn free_port() -> anyhow::Result<u16> {
         .port())
 }
 
+/// Points `transport/link/tls/<field>` at `certs/<file>` for each pair.
+fn set_tls_files(
+    c: &mut zenoh::Config,
+    certs: &Path,
+    files: &[(&str, &str)],
+) -> anyhow::Result<()> {
+    for (field, file) in files {
+        set(
+            c,
+            &format!("transport/link/tls/{field}"),
+            &path_json(&certs.join(file)),
+        )?;
+    }
+    Ok(())
+}
+
 fn router_config(certs: &Path, port: u16) -> anyhow::Result<zenoh::Config> {
     let mut c = tacos_bus::router::load(&repo().join("deploy/zenoh/router.json5"))?;
     set(
@@ -62,21 +78,14 @@ fn router_config(certs: &Path, port: u16) -> anyhow::Result<zenoh::Config> {
         "listen/endpoints",
         &format!("[\"tls/127.0.0.1:{port}\"]"),
     )?;
-    let tls = "transport/link/tls";
-    set(
+    set_tls_files(
         &mut c,
-        &format!("{tls}/root_ca_certificate"),
-        &path_json(&certs.join("ca.pem")),
-    )?;
-    set(
-        &mut c,
-        &format!("{tls}/listen_certificate"),
-        &path_json(&certs.join("router.pem")),
-    )?;
-    set(
-        &mut c,
-        &format!("{tls}/listen_private_key"),
-        &path_json(&certs.join("router-key.pem")),
+        certs,
+        &[
+            ("root_ca_certificate", "ca.pem"),
+            ("listen_certificate", "router.pem"),
+            ("listen_private_key", "router-key.pem"),
+        ],
     )?;
     Ok(c)
 }
@@ -97,26 +106,18 @@ fn client_config(
         "connect/endpoints",
         &format!("[\"tls/127.0.0.1:{port}\"]"),
     )?;
-    let tls = "transport/link/tls";
-    set(
-        &mut c,
-        &format!("{tls}/root_ca_certificate"),
-        &path_json(&certs.join("ca.pem")),
-    )?;
+    set_tls_files(&mut c, certs, &[("root_ca_certificate", "ca.pem")])?;
     match principal {
-        Some(name) => {
-            set(
-                &mut c,
-                &format!("{tls}/connect_certificate"),
-                &path_json(&certs.join(format!("{name}.pem"))),
-            )?;
-            set(
-                &mut c,
-                &format!("{tls}/connect_private_key"),
-                &path_json(&certs.join(format!("{name}-key.pem"))),
-            )?;
-        }
+        Some(name) => set_tls_files(
+            &mut c,
+            certs,
+            &[
+                ("connect_certificate", &format!("{name}.pem")),
+                ("connect_private_key", &format!("{name}-key.pem")),
+            ],
+        )?,
         None => {
+            let tls = "transport/link/tls";
             set(&mut c, &format!("{tls}/enable_mtls"), "false")?;
             set(&mut c, &format!("{tls}/connect_certificate"), "null")?;
             set(&mut c, &format!("{tls}/connect_private_key"), "null")?;
