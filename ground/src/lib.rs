@@ -16,6 +16,7 @@ pub mod pilot;
 pub mod plot;
 pub mod safety;
 pub mod script;
+pub mod send;
 pub mod swarm;
 pub mod table;
 pub mod task_guard;

@@ -13,9 +13,9 @@ use tacos_ground::mission::{MissionConfig, Mode};
 use tacos_ground::pilot::SessionOptions;
 use tacos_ground::safety::SafetyGate;
 use tacos_ground::script::ScriptOptions;
+use tacos_ground::send::SendWaits;
 use tacos_llm::{LlmBackend, OpenAiBackend, OpenAiConfig};
 use tacos_shared::action::Action;
-use tacos_shared::messages::ActionState;
 
 #[derive(Debug, Parser)]
 #[command(version, about = "TACOS ground station: fly a PX4 swarm")]
@@ -37,9 +37,10 @@ enum Cmd {
         #[arg(long, default_value_t = 0)]
         count: u64,
         /// Act as the ground station in control: beat the heartbeat that keeps the drones out
-        /// of their ground-silence failsafe (for flying by hand with `send`). Without it the
-        /// table only watches, and drones with no ground in control hold after 3 s and land
-        /// after 30 s.
+        /// of their ground-silence failsafe. A drone follows one ground station at a time, so
+        /// while this beats a `send` from another process is refused (it says so). Without it
+        /// the table only watches, and drones with no ground in control hold after 3 s and
+        /// land after 30 s.
         #[arg(long)]
         in_control: bool,
     },
@@ -367,12 +368,6 @@ async fn swarm(bus: BusArgs, period_ms: u64, count: u64, in_control: bool) -> an
     }
 }
 
-/// How long `send` waits for the drone to be heard, and then for the action's outcome.
-struct SendWaits {
-    drone: Duration,
-    outcome: Duration,
-}
-
 async fn send(
     bus: BusArgs,
     scenario: &str,
@@ -385,59 +380,16 @@ async fn send(
     let id = tacos_shared::DroneId::new(drone).map_err(|e| anyhow::anyhow!("{drone:?}: {e}"))?;
     let gate = SafetyGate::new(tacos_bus::load_scenario(scenario)?);
     let link = GroundLink::connect(&bus).await?;
-    // Heard at all, then linked to its autopilot (a drone's first statuses may precede that).
-    let ready = |s: &tacos_shared::messages::DroneStatus| s.autopilot_link;
-    let one = std::slice::from_ref(&id);
-    if link
-        .wait_for_drones(one, Duration::from_secs(1), ready)
-        .await
-        .is_err()
-    {
-        eprintln!(
-            "waiting up to {:.0} s for {drone} to be heard…",
-            waits.drone.as_secs_f64()
-        );
-        let started = tokio::time::Instant::now();
-        if link
-            .wait_for_drones(one, waits.drone, |_| true)
-            .await
-            .is_err()
-        {
-            let heard: Vec<String> = link.view().drones().map(|e| e.id.to_string()).collect();
-            bail!(
-                "{drone} was not heard within {:.0} s (heard: {}); is its onboard running and on this swarm ({})?",
-                waits.drone.as_secs_f64() + 1.0,
-                if heard.is_empty() {
-                    "none".to_owned()
-                } else {
-                    heard.join(", ")
-                },
-                bus.swarm
-            );
+    // Progress on stdout, waits on stderr, as before: scripts read the outcome from stdout.
+    let say = |line: String| {
+        if line.starts_with("waiting") {
+            eprintln!("{line}");
+        } else {
+            println!("{line}");
         }
-        let left = waits.drone.saturating_sub(started.elapsed());
-        if link.wait_for_drones(one, left, ready).await.is_err() {
-            bail!("{drone} is heard but has no link to its autopilot (is its tacos-px4 running?)");
-        }
-    }
-    let checked = {
-        let view = link.view();
-        gate.check(&view, drone, &action, link.clock().instant())
-    }
-    .map_err(|r| anyhow::anyhow!("refused by the safety gate: {r}"))?;
-    let seq = link.send(&checked, None).await?;
-    println!("sent #{seq} {action} to {drone}");
-    match link
-        .wait_outcome(checked.drone(), seq, waits.outcome)
-        .await?
-    {
-        ActionState::Done => {
-            println!("{drone}: {action} done");
-            Ok(())
-        }
-        ActionState::Failed(why) => bail!("{drone}: {action} failed: {why}"),
-        ActionState::Running { .. } => bail!("{drone}: {action} did not finish"),
-    }
+    };
+    tacos_ground::send::send(&link, &gate, waits, &id, &action, say).await?;
+    Ok(())
 }
 
 fn plot(log: &std::path::Path, output: &std::path::Path, map: Option<&str>) -> anyhow::Result<()> {

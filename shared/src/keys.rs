@@ -20,6 +20,11 @@ impl Keys {
         }
     }
 
+    /// `tacos/<swarm>`: what every key of this swarm starts with.
+    pub fn prefix(&self) -> &str {
+        &self.prefix
+    }
+
     fn drone_key(&self, drone: &DroneId, leaf: &str) -> String {
         format!("{}/drone/{drone}/{leaf}", self.prefix)
     }

@@ -1,7 +1,7 @@
 //! The field network of `deploy/`: every file in `deploy/zenoh/` loads, and the router of
 //! `router.json5`, with certificates from `deploy/certs.sh`, admits only clients with a
-//! certificate of the swarm's CA (mutual TLS) and lets each principal do only what its role
-//! needs. Real zenoh sessions over real TLS on loopback, opened from the shipped files with only
+//! certificate of the swarm's CA (QUIC with mutual TLS) and lets each principal do only what its
+//! role needs. Real zenoh sessions over real QUIC on loopback, opened from the shipped files with only
 //! the certificate paths and the address changed.
 
 use std::path::{Path, PathBuf};
@@ -50,7 +50,7 @@ fn path_json(p: &Path) -> String {
 }
 
 fn free_port() -> anyhow::Result<u16> {
-    Ok(std::net::TcpListener::bind("127.0.0.1:0")?
+    Ok(std::net::UdpSocket::bind("127.0.0.1:0")?
         .local_addr()?
         .port())
 }
@@ -76,7 +76,7 @@ fn router_config(certs: &Path, port: u16) -> anyhow::Result<zenoh::Config> {
     set(
         &mut c,
         "listen/endpoints",
-        &format!("[\"tls/127.0.0.1:{port}\"]"),
+        &format!("[\"quic/127.0.0.1:{port}\"]"),
     )?;
     set_tls_files(
         &mut c,
@@ -104,7 +104,7 @@ fn client_config(
     set(
         &mut c,
         "connect/endpoints",
-        &format!("[\"tls/127.0.0.1:{port}\"]"),
+        &format!("[\"quic/127.0.0.1:{port}\"]"),
     )?;
     set_tls_files(&mut c, certs, &[("root_ca_certificate", "ca.pem")])?;
     match principal {
@@ -241,7 +241,8 @@ async fn the_router_admits_the_swarms_certificates_only_and_each_to_its_own_keys
     let port = free_port()?;
     let _router = tacos_bus::router::open(router_config(&certs, port)?).await?;
 
-    // Without a certificate of the swarm's CA, or without any, nobody gets in; plain TCP neither.
+    // Without a certificate of the swarm's CA, or without any, nobody gets in; plain UDP (zenoh
+    // without QUIC and TLS) on the router's port neither.
     let forged = client_config(&other_ca, Some("alfa"), port, INTRUDER_MS)?;
     let forged = open(forged, "alfa signed by another CA").await;
     assert!(forged.is_err(), "a certificate of another CA was admitted");
@@ -255,13 +256,13 @@ async fn the_router_admits_the_swarms_certificates_only_and_each_to_its_own_keys
     set(
         &mut plain,
         "connect/endpoints",
-        &format!("[\"tcp/127.0.0.1:{port}\"]"),
+        &format!("[\"udp/127.0.0.1:{port}\"]"),
     )?;
     set(&mut plain, "connect/timeout_ms", "3000")?;
     set(&mut plain, "connect/exit_on_failure", "true")?;
     assert!(
-        open(plain, "plain TCP").await.is_err(),
-        "a plain TCP client was admitted on the TLS port"
+        open(plain, "plain UDP").await.is_err(),
+        "a plain UDP client was admitted on the QUIC port"
     );
 
     let member = async |name: &str| -> anyhow::Result<Session> {
@@ -340,6 +341,9 @@ async fn the_router_admits_the_swarms_certificates_only_and_each_to_its_own_keys
     let alive = ground
         .liveliness()
         .declare_subscriber(keys.all_alive())
+        // Tokens declared before this subscription reached the router count too: the two
+        // sessions' declarations race to it.
+        .history(true)
         .await
         .map_err(|e| anyhow::anyhow!("liveliness subscriber: {e}"))?;
     let _forged_token = alfa

@@ -7,6 +7,7 @@ pub mod router;
 use serde::Serialize;
 use serde::de::DeserializeOwned;
 use std::path::PathBuf;
+use std::time::Duration;
 use tacos_shared::SwarmId;
 use tacos_shared::codec::{self, CodecError};
 use tacos_shared::keys::Keys;
@@ -162,12 +163,48 @@ impl BusArgs {
         Ok(config)
     }
 
+    /// Opens the session. zenoh retries a connection for ever without saying why it fails (a
+    /// router refusing this host's certificate looks the same as one not yet up), so while the
+    /// session is not open this says so every [`JOIN_WARNING_PERIOD`], naming the endpoints and
+    /// the certificate in use. zenoh's open blocks its thread until it is connected (its future
+    /// is a `ready(wait())`), so it runs on a blocking thread, not on the caller's runtime.
     pub async fn open(&self) -> Result<Session, BusError> {
         let config = self.zenoh_config()?;
-        zenoh::open(config)
-            .await
-            .map_err(|e| BusError::Open(e.to_string()))
+        let joining = join_description(&config);
+        let mut open = tokio::task::spawn_blocking(move || zenoh::Wait::wait(zenoh::open(config)));
+        let mut waited = Duration::ZERO;
+        loop {
+            match tokio::time::timeout(JOIN_WARNING_PERIOD, &mut open).await {
+                Ok(Ok(opened)) => return opened.map_err(|e| BusError::Open(e.to_string())),
+                Ok(Err(join)) => return Err(BusError::Open(join.to_string())),
+                Err(_) => {
+                    waited += JOIN_WARNING_PERIOD;
+                    tracing::warn!(
+                        "not joined the swarm network after {:.0} s: {joining}; still trying. \
+                         A router that refuses this host's certificate (not signed by the swarm's \
+                         CA, or none shown) or a router not reachable looks like this; zenoh's \
+                         own warnings above say which",
+                        waited.as_secs_f64()
+                    );
+                }
+            }
+        }
     }
+}
+
+/// How often [`BusArgs::open`] says it has not yet joined.
+pub const JOIN_WARNING_PERIOD: Duration = Duration::from_secs(5);
+
+/// "connecting to [..] with certificate ..": what a session opened from `config` tries.
+fn join_description(config: &zenoh::Config) -> String {
+    let get = |key: &str| config.get_json(key).unwrap_or_else(|_| "none".into());
+    format!(
+        "{} to {} (TLS certificate {}, CA {})",
+        get("mode").trim_matches('"'),
+        get("connect/endpoints"),
+        get("transport/link/tls/connect_certificate"),
+        get("transport/link/tls/root_ca_certificate"),
+    )
 }
 
 /// Encodes `value` and puts it on `key`. `urgent` marks commands: reliable, never dropped,

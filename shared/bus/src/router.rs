@@ -5,6 +5,8 @@
 //! hear what. Chosen over `zenohd` because that is a second, larger zenoh build (plugins, REST)
 //! of which TACOS needs nothing.
 
+pub mod refusals;
+
 use crate::BusError;
 use std::path::Path;
 use zenoh::Session;

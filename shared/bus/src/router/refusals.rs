@@ -1,0 +1,356 @@
+//! Counting what the router's access control refuses. zenoh drops a denied message without a
+//! word to anyone; the one place it states a decision is a TRACE event of its access-control
+//! interceptor. [`RefusalCounter`] is a `tracing` layer that reads those events and keeps, per
+//! principal, kind of message and key, how many were refused on the way in, for `tacos-router`
+//! to report. The event text is zenoh's (the pinned version); [`parse`] is tested on it, and
+//! `tests/tests/multi_host.rs` fails should a zenoh upgrade change it.
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::{Arc, Mutex, PoisonError};
+use tracing::field::{Field, Visit};
+use tracing_subscriber::Layer;
+use tracing_subscriber::filter::{Filtered, Targets};
+use tracing_subscriber::layer::Context;
+
+/// The module whose events carry zenoh's access-control decisions.
+pub const ACL_TARGET: &str = "zenoh::net::routing::interceptor::access_control";
+
+/// One refusal as zenoh states it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Denial {
+    /// The zenoh id of the refused session.
+    pub zid: String,
+    /// The ACL subject it matched (certificate name, link, ...), when zenoh names it: it does
+    /// on a key's first refusal, not on the cached ones after.
+    pub subject: Option<String>,
+    /// zenoh's name of the message, e.g. "Put (ingress)".
+    pub what: String,
+    pub key: String,
+}
+
+impl Denial {
+    /// Refused on its way *into* the router (sent by that session), not held back from it.
+    pub fn inbound(&self) -> bool {
+        self.what.ends_with("(ingress)")
+    }
+}
+
+/// Reads one access-control event's text; `None` for anything but a refusal.
+pub fn parse(text: &str) -> Option<Denial> {
+    match decision(text)? {
+        (false, denial) => Some(denial),
+        (true, _) => None,
+    }
+}
+
+/// A decision's text: whether it allowed, and on what.
+fn decision(text: &str) -> Option<(bool, Denial)> {
+    let (allowed, (who, rest)) = match text.split_once(" is unauthorized to ") {
+        Some(parts) => (false, parts),
+        None => (true, text.split_once(" is authorized to ")?),
+    };
+    let (what, key) = rest.rsplit_once(" on ")?;
+    let who = who.strip_prefix("Using cached result: ").unwrap_or(who);
+    let (zid, subject) = match who.split_once(" on ") {
+        Some((zid, subject)) => (zid, Some(subject.to_owned())),
+        None => (who, None),
+    };
+    // An undeclaration names its key as `Some(key)` / `None`.
+    let key = key
+        .strip_prefix("Some(")
+        .and_then(|k| k.strip_suffix(')'))
+        .unwrap_or(key);
+    Some((
+        allowed,
+        Denial {
+            zid: zid.to_owned(),
+            subject,
+            what: what.to_owned(),
+            key: key.to_owned(),
+        },
+    ))
+}
+
+/// The certificate name in a zenoh subject such as
+/// `Interface(eth0)+CertCommonName(alfa)+Transport(Tls)+<zid>`.
+fn common_name(subject: &str) -> Option<&str> {
+    let rest = subject.split_once("CertCommonName(")?.1;
+    Some(rest.split_once(')')?.0)
+}
+
+/// Refusals counted so far: (principal, what, key) → how many.
+pub type Counts = BTreeMap<(String, String, String), u64>;
+
+#[derive(Default)]
+struct State {
+    counts: Counts,
+    /// zenoh id → the subject it was named with (cached refusals name only the id).
+    subjects: HashMap<String, String>,
+}
+
+/// Counts the refusals of the router's access control (install its [`RefusalCounter::layer`]).
+#[derive(Clone, Default)]
+pub struct RefusalCounter {
+    state: Arc<Mutex<State>>,
+}
+
+impl RefusalCounter {
+    /// The layer to add to the process's `tracing` subscriber: it sees zenoh's access-control
+    /// events at TRACE whatever the log filter says, and nothing else.
+    pub fn layer<S>(&self) -> Filtered<CountingLayer, Targets, S>
+    where
+        S: tracing::Subscriber + for<'a> tracing_subscriber::registry::LookupSpan<'a>,
+    {
+        CountingLayer {
+            counter: self.clone(),
+        }
+        .with_filter(Targets::new().with_target(ACL_TARGET, tracing::Level::TRACE))
+    }
+
+    /// Remembers the principal a decision names its session by (cached ones name only the id).
+    fn learn_name(&self, decision: &Denial) {
+        if let Some(subject) = &decision.subject {
+            let name = common_name(subject).unwrap_or(subject).to_owned();
+            let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
+            if state.subjects.get(&decision.zid) != Some(&name) {
+                state.subjects.insert(decision.zid.clone(), name);
+            }
+        }
+    }
+
+    /// Adds one event's refusal, if it is an inbound one.
+    pub fn record(&self, denial: Denial) {
+        if !denial.inbound() {
+            return;
+        }
+        let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
+        let principal = match &denial.subject {
+            Some(subject) => {
+                let name = common_name(subject).unwrap_or(subject).to_owned();
+                state.subjects.insert(denial.zid.clone(), name.clone());
+                name
+            }
+            None => state
+                .subjects
+                .get(&denial.zid)
+                .cloned()
+                .unwrap_or_else(|| denial.zid.clone()),
+        };
+        *state
+            .counts
+            .entry((principal, denial.what, denial.key))
+            .or_default() += 1;
+    }
+
+    pub fn counts(&self) -> Counts {
+        self.state
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .counts
+            .clone()
+    }
+}
+
+/// The `tracing` layer of a [`RefusalCounter`].
+pub struct CountingLayer {
+    counter: RefusalCounter,
+}
+
+/// The permissions zenoh is working out on this thread: a key, and the kinds of message not yet
+/// decided for it.
+struct Caching {
+    key: String,
+    kinds_left: Vec<&'static str>,
+}
+
+thread_local! {
+    static CACHING: std::cell::RefCell<Option<Caching>> = const { std::cell::RefCell::new(None) };
+}
+
+/// The kinds of message zenoh decides, once each, when it caches a key's permissions (its
+/// `compute_keyexpr_cache`, ingress and egress alike).
+const CACHED_KINDS: [&str; 9] = [
+    "Query",
+    "Reply",
+    "Put",
+    "Delete",
+    "Declare/Undeclare Subscriber",
+    "Declare/Undeclare Queryable",
+    "Declare/Undeclare Liveliness Token",
+    "Liveliness Query",
+    "Declare Liveliness Subscriber",
+];
+
+/// The key of zenoh's "ACL (ingress): caching permissions for `KEY` ..." event.
+fn caching_key(text: &str) -> Option<&str> {
+    let rest = text.split_once("caching permissions for `")?.1;
+    Some(rest.split_once('`')?.0)
+}
+
+/// Whether a decision is one of the nine zenoh works out while caching a key (not one on a
+/// message), consuming it if so.
+fn part_of_caching(decision: &Denial) -> bool {
+    if decision.subject.is_none() {
+        return false;
+    }
+    let kind = decision
+        .what
+        .rsplit_once(" (")
+        .map_or(decision.what.as_str(), |(kind, _)| kind);
+    CACHING.with(|c| {
+        let mut c = c.borrow_mut();
+        let Some(caching) = c.as_mut().filter(|c| c.key == decision.key) else {
+            return false;
+        };
+        match caching.kinds_left.iter().position(|k| *k == kind) {
+            Some(i) => {
+                caching.kinds_left.swap_remove(i);
+                true
+            }
+            None => false,
+        }
+    })
+}
+
+impl<S: tracing::Subscriber> Layer<S> for CountingLayer {
+    fn on_event(&self, event: &tracing::Event<'_>, _ctx: Context<'_, S>) {
+        let mut text = MessageText(String::new());
+        event.record(&mut text);
+        // The first message on a key makes zenoh work out every permission on it, each stated
+        // like a decision; the message's own decision follows as a cached one. Those nine are
+        // not decisions on anything sent.
+        if let Some(key) = caching_key(&text.0) {
+            CACHING.with(|c| {
+                *c.borrow_mut() = Some(Caching {
+                    key: key.to_owned(),
+                    kinds_left: CACHED_KINDS.to_vec(),
+                })
+            });
+            return;
+        }
+        if let Some((allowed, decision)) = decision(&text.0) {
+            self.counter.learn_name(&decision);
+            if !allowed && !part_of_caching(&decision) {
+                self.counter.record(decision);
+            }
+        }
+    }
+}
+
+struct MessageText(String);
+
+impl Visit for MessageText {
+    fn record_debug(&mut self, field: &Field, value: &dyn std::fmt::Debug) {
+        if field.name() == "message" {
+            self.0 = format!("{value:?}");
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn reads_zenohs_refusals_first_named_then_cached() {
+        let first = parse(
+            "6e9f4a1 on alfa is unauthorized to Put (ingress) on tacos/default/drone/bravo/action",
+        );
+        assert_eq!(
+            first,
+            Some(Denial {
+                zid: "6e9f4a1".into(),
+                subject: Some("alfa".into()),
+                what: "Put (ingress)".into(),
+                key: "tacos/default/drone/bravo/action".into(),
+            })
+        );
+        let cached = parse(
+            "Using cached result: 6e9f4a1 is unauthorized to Put (ingress) on tacos/default/ground/heartbeat",
+        )
+        .expect("a cached refusal");
+        assert_eq!(cached.subject, None);
+        assert_eq!(cached.key, "tacos/default/ground/heartbeat");
+        let undeclare = parse(
+            "Using cached result: 6e9f4a1 is unauthorized to Undeclare Subscriber (ingress) on Some(tacos/x)",
+        )
+        .expect("an undeclaration");
+        assert_eq!(undeclare.key, "tacos/x");
+        assert_eq!(
+            parse(
+                "6e9f4a1 on alfa is authorized to Put (ingress) on tacos/default/drone/alfa/status"
+            ),
+            None
+        );
+    }
+
+    #[test]
+    fn a_subject_is_named_by_its_certificate() {
+        assert_eq!(
+            common_name("Interface(eth0)+CertCommonName(alfa)+Transport(Tls)+2a85b8"),
+            Some("alfa")
+        );
+        assert_eq!(common_name("Interface(eth0)+2a85b8"), None);
+        assert_eq!(
+            caching_key("ACL (ingress): caching permissions for `tacos/s/ground/heartbeat` ..."),
+            Some("tacos/s/ground/heartbeat")
+        );
+    }
+
+    #[test]
+    fn counts_inbound_refusals_per_principal_naming_cached_ones_by_their_first() {
+        let counter = RefusalCounter::default();
+        for text in [
+            "z1 on Interface(eth0)+CertCommonName(alfa)+z1 is unauthorized to Put (ingress) on k/bravo/action",
+            "Using cached result: z1 is unauthorized to Put (ingress) on k/bravo/action",
+            "Using cached result: z1 is unauthorized to Put (ingress) on k/bravo/action",
+            // Held back from alfa, not sent by it: not a refusal of alfa's.
+            "z1 on alfa is unauthorized to Put (egress) on k/bravo/status",
+            "Using cached result: z9 is unauthorized to Put (ingress) on k/x",
+        ] {
+            counter.record(parse(text).expect("a refusal"));
+        }
+        let counts = counter.counts();
+        let key = |p: &str, k: &str| (p.to_owned(), "Put (ingress)".to_owned(), k.to_owned());
+        assert_eq!(counts.get(&key("alfa", "k/bravo/action")), Some(&3));
+        assert_eq!(counts.get(&key("z9", "k/x")), Some(&1));
+        assert_eq!(counts.len(), 2);
+    }
+
+    #[test]
+    fn the_decisions_zenoh_works_out_while_caching_a_key_are_not_counted() {
+        use tracing_subscriber::prelude::*;
+        let counter = RefusalCounter::default();
+        let subscriber = tracing_subscriber::registry().with(counter.layer());
+        let key = "tacos/s/world/targets";
+        let subject = "z1 on Interface(eth0)+CertCommonName(alfa)+z1";
+        tracing::subscriber::with_default(subscriber, || {
+            let say = |text: String| tracing::trace!(target: ACL_TARGET, "{text}");
+            say(format!(
+                "ACL (ingress): caching permissions for `{key}` ..."
+            ));
+            for kind in CACHED_KINDS {
+                say(format!(
+                    "{subject} is unauthorized to {kind} (ingress) on {key}"
+                ));
+            }
+            // The message's own decision, from the cache; then one decided without it.
+            say(format!(
+                "Using cached result: z1 is unauthorized to Put (ingress) on {key}"
+            ));
+            say(format!(
+                "{subject} is unauthorized to Put (ingress) on {key}"
+            ));
+            // Another module's event is not read.
+            tracing::trace!(target: "elsewhere", "{subject} is unauthorized to Put (ingress) on {key}");
+        });
+        let counts = counter.counts();
+        let puts = (
+            "alfa".to_owned(),
+            "Put (ingress)".to_owned(),
+            key.to_owned(),
+        );
+        assert_eq!(counts.get(&puts), Some(&2), "{counts:?}");
+        assert_eq!(counts.len(), 1, "{counts:?}");
+    }
+}
