@@ -1,10 +1,13 @@
 //! Hosts on a private LAN for tests: a network namespace per host, each with its own address on
 //! one bridge (in a switch namespace of its own), made by the test and removed when the [`Lan`]
-//! is dropped. Nothing touches the machine's own interfaces: every address lives inside these
-//! namespaces. Needs root (`ip netns`).
+//! is dropped; and [`Hosts`], the processes started on them. Nothing touches the machine's own
+//! interfaces: every address lives inside these namespaces. Needs root (`ip netns`).
 
 use std::ffi::OsStr;
-use std::process::Command;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+use tokio::process::Child;
 
 /// The LAN's subnet: each namespace set is isolated, so concurrent runs may share it.
 const SUBNET: &str = "10.77.0";
@@ -129,5 +132,87 @@ impl Drop for Lan {
             let _ = ip(&["netns", "del", &self.ns(host)]);
         }
         let _ = ip(&["netns", "del", &self.switch()]);
+    }
+}
+
+/// Processes started on a [`Lan`]'s hosts, each logging to `dir/<name>.log`, killed when dropped.
+pub struct Hosts<'a> {
+    lan: &'a Lan,
+    dir: PathBuf,
+    children: Vec<(String, Child)>,
+}
+
+impl<'a> Hosts<'a> {
+    pub fn new(lan: &'a Lan, dir: &Path) -> Self {
+        Hosts {
+            lan,
+            dir: dir.to_owned(),
+            children: Vec::new(),
+        }
+    }
+
+    pub fn log(&self, name: &str) -> PathBuf {
+        self.dir.join(format!("{name}.log"))
+    }
+
+    pub fn command(
+        &self,
+        host: &str,
+        name: &str,
+        program: &Path,
+    ) -> anyhow::Result<tokio::process::Command> {
+        let log = std::fs::File::create(self.log(name))?;
+        let mut cmd = self.lan.command(host, program);
+        // Plain text logs: the test reads them.
+        cmd.env("NO_COLOR", "1")
+            .stdout(Stdio::from(log.try_clone()?))
+            .stderr(Stdio::from(log));
+        Ok(cmd)
+    }
+
+    pub fn start(
+        &mut self,
+        host: &str,
+        name: &str,
+        program: &Path,
+        args: &[&str],
+    ) -> anyhow::Result<()> {
+        let child = self.command(host, name, program)?.args(args).spawn()?;
+        self.children.push((name.to_owned(), child));
+        Ok(())
+    }
+
+    pub fn read_log(&self, name: &str) -> String {
+        std::fs::read_to_string(self.log(name)).unwrap_or_default()
+    }
+
+    /// Waits until `name`'s log holds `needle`; the time it took.
+    pub async fn log_says(
+        &self,
+        name: &str,
+        needle: &str,
+        within: Duration,
+    ) -> anyhow::Result<Duration> {
+        let start = Instant::now();
+        while start.elapsed() < within {
+            if self.read_log(name).contains(needle) {
+                return Ok(start.elapsed());
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        anyhow::bail!(
+            "{name} did not log {needle:?} within {within:?}; its log:\n{}",
+            self.read_log(name)
+        )
+    }
+
+    /// Each child still running (`None` when all are).
+    pub fn exited(&mut self) -> Option<String> {
+        self.children
+            .iter_mut()
+            .find_map(|(name, c)| match c.try_wait() {
+                Ok(Some(status)) => Some(format!("{name} exited: {status}")),
+                _ => None,
+            })
     }
 }

@@ -18,7 +18,6 @@
 //! Needs root and iproute2; without them it says so and passes, except under `CI=true`.
 
 use std::path::{Path, PathBuf};
-use std::process::Stdio;
 use std::time::{Duration, Instant};
 use tacos_bus::BusArgs;
 use tacos_ground::direct::run_actions;
@@ -28,9 +27,8 @@ use tacos_ground::safety::SafetyGate;
 use tacos_ground::swarm::SwarmChange;
 use tacos_shared::action::Action;
 use tacos_shared::{DroneId, DroneMode, SwarmId, Vec3};
-use tacos_tests::netns::{self, Lan};
+use tacos_tests::netns::{self, Hosts, Lan};
 use tacos_tests::{id, unique_swarm};
-use tokio::process::{Child, Command};
 
 const HOSTS: [&str; 5] = ["router", "ground", "alfa", "bravo", "intruder"];
 const DRONES: [&str; 2] = ["alfa", "bravo"];
@@ -176,75 +174,6 @@ fn one_vehicle_scenario(drone: &str) -> anyhow::Result<String> {
     Ok(out.join("\n") + "\n")
 }
 
-/// Started processes, each logging to `dir/<name>.log`, killed when dropped.
-struct Hosts<'a> {
-    lan: &'a Lan,
-    dir: PathBuf,
-    children: Vec<(String, Child)>,
-}
-
-impl Hosts<'_> {
-    fn log(&self, name: &str) -> PathBuf {
-        self.dir.join(format!("{name}.log"))
-    }
-
-    fn command(&self, host: &str, name: &str, program: &Path) -> anyhow::Result<Command> {
-        let log = std::fs::File::create(self.log(name))?;
-        let mut cmd = self.lan.command(host, program);
-        // Plain text logs: the test reads them.
-        cmd.env("NO_COLOR", "1")
-            .stdout(Stdio::from(log.try_clone()?))
-            .stderr(Stdio::from(log));
-        Ok(cmd)
-    }
-
-    fn start(
-        &mut self,
-        host: &str,
-        name: &str,
-        program: &Path,
-        args: &[&str],
-    ) -> anyhow::Result<()> {
-        let child = self.command(host, name, program)?.args(args).spawn()?;
-        self.children.push((name.to_owned(), child));
-        Ok(())
-    }
-
-    fn read_log(&self, name: &str) -> String {
-        std::fs::read_to_string(self.log(name)).unwrap_or_default()
-    }
-
-    /// Waits until `name`'s log holds `needle`; the time it took.
-    async fn log_says(
-        &self,
-        name: &str,
-        needle: &str,
-        within: Duration,
-    ) -> anyhow::Result<Duration> {
-        let start = Instant::now();
-        while start.elapsed() < within {
-            if self.read_log(name).contains(needle) {
-                return Ok(start.elapsed());
-            }
-            tokio::time::sleep(Duration::from_millis(100)).await;
-        }
-        anyhow::bail!(
-            "{name} did not log {needle:?} within {within:?}; its log:\n{}",
-            self.read_log(name)
-        )
-    }
-
-    /// Each child still running (`None` when all are).
-    fn exited(&mut self) -> Option<String> {
-        self.children
-            .iter_mut()
-            .find_map(|(name, c)| match c.try_wait() {
-                Ok(Some(status)) => Some(format!("{name} exited: {status}")),
-                _ => None,
-            })
-    }
-}
-
 fn figure(text: impl AsRef<str>) {
     println!("figure: {}", text.as_ref());
 }
@@ -270,11 +199,7 @@ async fn fly(lan: &Lan) -> anyhow::Result<()> {
     let swarm = configs.swarm.to_string();
     let bins = bin_dir();
     let bin = |name: &str| bins.join(name);
-    let mut hosts = Hosts {
-        lan,
-        dir: dir.clone(),
-        children: Vec::new(),
-    };
+    let mut hosts = Hosts::new(lan, &dir);
 
     let router = configs.router()?;
     let started = Instant::now();
