@@ -421,6 +421,53 @@ async fn fly(lan: &Lan) -> anyhow::Result<()> {
         "{forged} forged puts on each of bravo's action, the heartbeat, the targets and bravo's status: all refused and counted by the router; bravo flew on"
     ));
 
+    // The latency tool across the hosts: alfa's slot answered from alfa's host with alfa's
+    // certificate, pinged from the ground host with the ground's, through the router.
+    let alfa_config = dir.join("alfa.json5").display().to_string();
+    let ground_arg = ground_config.display().to_string();
+    hosts.start(
+        "alfa",
+        "latency-pong",
+        &bin("tacos-latency"),
+        &[
+            "pong",
+            "--swarm",
+            &swarm,
+            "--drone",
+            "alfa",
+            "--zenoh-config",
+            &alfa_config,
+        ],
+    )?;
+    let ping = hosts
+        .command("ground", "latency-ping", &bin("tacos-latency"))?
+        .args([
+            "ping",
+            "--swarm",
+            &swarm,
+            "--drone",
+            "alfa",
+            "--zenoh-config",
+            &ground_arg,
+            "--count",
+            "300",
+            "--warmup",
+            "50",
+        ])
+        .status();
+    let status = tokio::time::timeout(Duration::from_secs(90), ping).await??;
+    let report = hosts.read_log("latency-ping");
+    anyhow::ensure!(status.success(), "tacos-latency ping failed:\n{report}");
+    for name in ["bare zenoh", "tacos ", "tacos / bare"] {
+        let line = report
+            .lines()
+            .find(|l| l.starts_with(name))
+            .ok_or_else(|| anyhow::anyhow!("no {name:?} line:\n{report}"))?;
+        figure(format!(
+            "latency, ground host to alfa's host through the router over QUIC: {line}"
+        ));
+    }
+
     // Partition bravo's host (what the ground heard of members before is not news).
     while membership.try_recv().is_ok() {}
     lan.set_link("bravo", false)?;

@@ -2,6 +2,7 @@
 //! messages through the one wire codec. Kept apart from `tacos-shared`, which does no I/O.
 
 pub mod clock;
+pub mod latency;
 pub mod router;
 
 use serde::Serialize;
