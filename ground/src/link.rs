@@ -12,8 +12,8 @@ use tacos_bus::clock::Clock;
 use tacos_bus::{BusArgs, BusError};
 use tacos_shared::keys::Keys;
 use tacos_shared::messages::{
-    ActionState, DroneStatus, FaultRequest, GroundHeartbeat, SimPace, SimTruth, TargetObservation,
-    TargetsMessage, WorldEvent,
+    ActionState, DroneStatus, FaultRequest, GroundHeartbeat, RefusedBecause, SimPace, SimTruth,
+    TargetObservation, TargetsMessage, WorldEvent,
 };
 use tacos_shared::scenario::FaultKind;
 use tacos_shared::{ActionCommand, DroneId};
@@ -52,6 +52,12 @@ pub enum LinkError {
         "{drone} follows another ground station ({followed}), which is still beating: a drone takes actions from one ground station at a time"
     )]
     NotFollowed { drone: DroneId, followed: u64 },
+    #[error("{drone} refused action #{seq}: {why}")]
+    Refused {
+        drone: DroneId,
+        seq: u64,
+        why: RefusedBecause,
+    },
 }
 
 struct Shared {
@@ -193,6 +199,7 @@ impl GroundLink {
         let hb_session = session.clone();
         let hb_key = keys.ground_heartbeat();
         let hb_shared = shared.clone();
+        let hb_clock = clock.clone();
         tasks.push(tokio::spawn(async move {
             let mut tick = tokio::time::interval(HEARTBEAT_PERIOD);
             let mut counter = 0u64;
@@ -208,6 +215,7 @@ impl GroundLink {
                     &GroundHeartbeat {
                         counter,
                         ground: epoch,
+                        stamp: hb_clock.now(),
                     },
                     false,
                 )
@@ -311,6 +319,7 @@ impl GroundLink {
         let command = ActionCommand {
             ground: self.epoch,
             seq,
+            sent_at: self.clock.now(),
             task_id,
             action: checked.action().clone(),
         };
@@ -398,6 +407,15 @@ impl GroundLink {
                     return Err(LinkError::NotFollowed {
                         drone: drone.clone(),
                         followed,
+                    });
+                }
+                if let Some(refused) = status.and_then(|s| s.refused.as_ref())
+                    && refused.seq == seq
+                {
+                    return Err(LinkError::Refused {
+                        drone: drone.clone(),
+                        seq,
+                        why: refused.why,
                     });
                 }
                 if let Some(progress) = status.and_then(|s| s.action.as_ref()) {

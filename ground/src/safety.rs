@@ -241,6 +241,7 @@ mod tests {
                 failsafe: None,
                 malformed_actions: 0,
                 ground: None,
+                refused: None,
             },
             now,
         );

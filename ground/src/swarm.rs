@@ -151,6 +151,7 @@ mod tests {
             failsafe: None,
             malformed_actions: 0,
             ground: None,
+            refused: None,
         }
     }
 

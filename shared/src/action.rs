@@ -112,6 +112,10 @@ impl fmt::Display for Action {
 pub struct ActionCommand {
     pub ground: u64,
     pub seq: u64,
+    /// When the ground station sent it, in seconds of its clock (as its heartbeats'
+    /// `GroundHeartbeat::stamp`): a drone measures how late an action arrives against the
+    /// beats of the same ground, so the two clocks need not agree.
+    pub sent_at: f64,
     pub task_id: Option<String>,
     pub action: Action,
 }

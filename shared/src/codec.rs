@@ -7,7 +7,7 @@ use serde::Serialize;
 use serde::de::DeserializeOwned;
 
 /// The current wire version. Bump when any message changes shape.
-pub const WIRE_VERSION: u8 = 3;
+pub const WIRE_VERSION: u8 = 4;
 
 /// Upper bound on what one message may allocate while decoding, so garbage cannot exhaust memory.
 pub const MAX_MESSAGE_BYTES: usize = 1 << 20;
@@ -94,6 +94,7 @@ mod tests {
             .prop_map(|(seq, task_id, action)| ActionCommand {
                 ground: seq / 3,
                 seq,
+                sent_at: seq as f64 / 7.0,
                 task_id,
                 action,
             })
@@ -115,13 +116,20 @@ mod tests {
                 position,
                 velocity,
                 autopilot_link: true,
-                action: cmd.map(|c| ActionProgress {
+                action: cmd.as_ref().map(|c| ActionProgress {
                     state: ActionState::Failed(FailureReason::Unreachable("x".into())),
-                    ..ActionProgress::started(&c)
+                    ..ActionProgress::started(c)
                 }),
                 failsafe: Some(FailsafeStage::Holding),
                 malformed_actions: 3,
                 ground: Some(counter / 2),
+                refused: cmd.map(|c| ActionRefused {
+                    seq: c.seq,
+                    why: RefusedBecause::Late {
+                        late_s: 2.5,
+                        bound_s: 2.0,
+                    },
+                }),
             })
     }
 
@@ -158,6 +166,7 @@ mod tests {
         let bytes = encode(&ActionCommand {
             ground: 1,
             seq: 7,
+            sent_at: 1.0,
             task_id: None,
             action: Action::Land,
         })
@@ -179,9 +188,9 @@ mod tests {
             decode::<ActionCommand>(&trailing),
             Err(CodecError::TrailingBytes(2))
         );
-        // An enum discriminant that does not exist.
+        // An enum discriminant that does not exist (after ground, seq and an 8-byte sent_at).
         assert!(matches!(
-            decode::<ActionCommand>(&[WIRE_VERSION, 1, 0, 99]),
+            decode::<ActionCommand>(&[WIRE_VERSION, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 99]),
             Err(CodecError::Malformed(_))
         ));
     }

@@ -110,6 +110,37 @@ pub struct DroneStatus {
     /// The ground station this drone follows (its epoch), once one is heard: a drone takes
     /// actions from one ground station at a time (see `GroundHeartbeat::ground`).
     pub ground: Option<u64>,
+    /// The latest action of the followed ground station that this drone refused on arrival
+    /// (it came too late): the ground's wait for that action ends with the reason.
+    pub refused: Option<ActionRefused>,
+}
+
+/// An action of the followed ground station refused on arrival, and why.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ActionRefused {
+    pub seq: u64,
+    pub why: RefusedBecause,
+}
+
+/// Why a drone refused an action of the ground station it follows.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub enum RefusedBecause {
+    /// It arrived `late_s` seconds later than the ground's heartbeats take, more than the
+    /// drone's bound: the network held it (a link that stalled, then delivered), and what it
+    /// asked for may no longer be what the ground wants.
+    Late { late_s: f64, bound_s: f64 },
+}
+
+impl std::fmt::Display for RefusedBecause {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            RefusedBecause::Late { late_s, bound_s } => write!(
+                f,
+                "it arrived {late_s:.1} s later than this ground station's heartbeats take \
+                 (bound {bound_s:.1} s): the network held it; send it again if it is still wanted"
+            ),
+        }
+    }
 }
 
 /// One observed target (perception, or the simulator standing in for it).
@@ -264,4 +295,6 @@ pub struct GroundHeartbeat {
     /// Which ground station beats: its epoch, chosen when it starts and carried by its actions
     /// too (`ActionCommand::ground`). A drone follows one at a time.
     pub ground: u64,
+    /// The ground station's clock when it beat (seconds, as `ActionCommand::sent_at`).
+    pub stamp: f64,
 }

@@ -109,6 +109,7 @@ async fn zenoh_action() -> anyhow::Result<((f64, f64), (f64, f64))> {
     let command = |seq| ActionCommand {
         ground: 1,
         seq,
+        sent_at: 0.0,
         task_id: Some("T1".into()),
         action: Action::Goto {
             target: Vec3::new(12.5, -40.0, 10.0),

@@ -11,6 +11,7 @@ use tacos_shared::{DroneId, DroneMode};
 use tokio::sync::watch;
 
 pub mod chat_server;
+pub mod deploy;
 pub mod netns;
 pub mod prompt_text;
 

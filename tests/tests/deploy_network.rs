@@ -5,38 +5,19 @@
 //! the certificate paths and the address changed.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::Duration;
 use tacos_shared::keys::Keys;
 use tacos_shared::{DroneId, SwarmId};
+use tacos_tests::deploy::{make_certs, repo};
 use zenoh::Session;
 use zenoh::handlers::FifoChannelHandler;
 use zenoh::pubsub::Subscriber;
 use zenoh::sample::Sample;
 
-fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
-}
-
 fn scratch(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("tacos-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     dir
-}
-
-/// Runs `deploy/certs.sh` as a user would.
-fn make_certs(dir: &Path, principals: &[&str]) -> anyhow::Result<()> {
-    let out = Command::new("bash")
-        .arg(repo().join("deploy/certs.sh"))
-        .arg(dir)
-        .args(principals)
-        .output()?;
-    anyhow::ensure!(
-        out.status.success(),
-        "deploy/certs.sh failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    Ok(())
 }
 
 fn set(config: &mut zenoh::Config, key: &str, value: &str) -> anyhow::Result<()> {

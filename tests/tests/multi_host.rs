@@ -10,23 +10,31 @@
 //! - hosts with another CA's certificate, or none, never join, and say so in their own log;
 //! - alfa's certificate cannot put bravo's action, the heartbeat, a target or bravo's status: the
 //!   router refuses and counts each, and bravo flies on;
-//! - bravo's host partitioned: bravo holds within its failsafe time and lands later, the ground
-//!   marks it lost; when the link is back it is seen again;
+//! - bravo's host partitioned while a mission gives it work: bravo holds within its failsafe time
+//!   and lands later, the ground marks it lost and its mission replans, handing bravo's unstarted
+//!   work to alfa (a stand-in model: `multi_host/mission.rs`); when the link is back bravo is
+//!   seen again;
 //! - the ground station restarted mid-flight: a new `tacos-ground send` waits until alfa follows
 //!   it and lands it.
 //!
 //! Needs root and iproute2; without them it says so and passes, except under `CI=true`.
 
+#[path = "multi_host/mission.rs"]
+mod mission;
+
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tacos_bus::BusArgs;
 use tacos_ground::direct::run_actions;
 use tacos_ground::launch::bin_dir;
 use tacos_ground::link::{GroundLink, GroundRole};
+use tacos_ground::mission::MissionUpdate;
 use tacos_ground::safety::SafetyGate;
 use tacos_ground::swarm::SwarmChange;
 use tacos_shared::action::Action;
 use tacos_shared::{DroneId, DroneMode, SwarmId, Vec3};
+use tacos_tests::deploy::{make_certs, repo, shipped_zenoh as shipped};
 use tacos_tests::netns::{self, Hosts, Lan};
 use tacos_tests::{id, unique_swarm};
 
@@ -57,30 +65,6 @@ fn a_swarm_flies_through_the_router_across_hosts_and_keeps_intruders_partitions_
     let result = runtime.block_on(fly(&lan));
     drop(runtime);
     result
-}
-
-fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
-}
-
-fn shipped(file: &str) -> anyhow::Result<String> {
-    Ok(std::fs::read_to_string(
-        repo().join("deploy/zenoh").join(file),
-    )?)
-}
-
-fn make_certs(dir: &Path, principals: &[&str]) -> anyhow::Result<()> {
-    let out = std::process::Command::new("bash")
-        .arg(repo().join("deploy/certs.sh"))
-        .arg(dir)
-        .args(principals)
-        .output()?;
-    anyhow::ensure!(
-        out.status.success(),
-        "deploy/certs.sh failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    Ok(())
 }
 
 /// The shipped files with this run's paths, router address and swarm.
@@ -291,7 +275,7 @@ async fn fly(lan: &Lan) -> anyhow::Result<()> {
     let ground_config = configs.client("ground.json5", Some((&certs, "ground")))?;
     let mut bus = BusArgs::loopback(configs.swarm.clone(), None, vec![]);
     bus.config_file = Some(ground_config.clone());
-    let link = GroundLink::connect_as(&bus, GroundRole::InControl).await?;
+    let link = Arc::new(GroundLink::connect_as(&bus, GroundRole::InControl).await?);
     let mut membership = link.membership();
     let ids: Vec<DroneId> = DRONES.iter().map(|d| id(d)).collect();
     link.wait_for_drones(&ids, Duration::from_secs(60), |s| {
@@ -307,7 +291,7 @@ async fn fly(lan: &Lan) -> anyhow::Result<()> {
     }
 
     let scenario = tacos_bus::load_scenario("lab")?;
-    let gate = SafetyGate::new(scenario);
+    let gate = SafetyGate::new(scenario.clone());
     let t = Instant::now();
     let takeoffs: Vec<_> = ids
         .iter()
@@ -468,8 +452,17 @@ async fn fly(lan: &Lan) -> anyhow::Result<()> {
         ));
     }
 
-    // Partition bravo's host (what the ground heard of members before is not news).
+    // A mission gives bravo work; bravo's host is partitioned as soon as its first goto is sent
+    // (what the ground heard of members before is not news).
     while membership.try_recv().is_ok() {}
+    let mut running = mission::start(link.clone(), SafetyGate::new(scenario), &dir).await?;
+    running
+        .until(
+            "bravo's first goto",
+            Duration::from_secs(30),
+            |u| matches!(u, MissionUpdate::Sent { drone, .. } if drone == "bravo"),
+        )
+        .await?;
     lan.set_link("bravo", false)?;
     let cut = Instant::now();
     let lost = tokio::time::timeout(Duration::from_secs(15), async {
@@ -524,6 +517,18 @@ async fn fly(lan: &Lan) -> anyhow::Result<()> {
         link.view().get(&ids[0]).is_some_and(|e| e.alive),
         "alfa was lost too"
     );
+    // The mission went on without bravo: replanned, alfa took bravo's unstarted work.
+    running
+        .until("the replanned mission", Duration::from_secs(30), |u| {
+            matches!(u, MissionUpdate::PlanComplete { .. })
+        })
+        .await?;
+    let log_path = running.log_path.clone();
+    running.stop().await?;
+    let (replan_s, done_s) = mission::replanned(&log_path)?;
+    figure(format!(
+        "the ground's mission replanned {replan_s:.1} s after bravo's goto was sent and cut off; alfa was given bravo's unstarted goto and finished it at {done_s:.1} s"
+    ));
 
     // The link back.
     lan.set_link("bravo", true)?;

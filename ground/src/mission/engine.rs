@@ -707,11 +707,14 @@ impl Mission {
                     continue;
                 };
                 let running = task.status == TaskStatus::Running;
-                let progress = view
-                    .get(drone)
-                    .and_then(|e| e.status.as_ref())
-                    .and_then(|s| s.action.as_ref());
+                let status = view.get(drone).and_then(|e| e.status.as_ref());
+                let progress = status.and_then(|s| s.action.as_ref());
+                let refused = status
+                    .and_then(|s| s.refused.as_ref())
+                    .filter(|r| r.seq == *seq && running);
                 let new = match progress {
+                    _ if refused.is_some() => refused
+                        .map(|r| TaskStatus::Failed(format!("refused by the drone: {}", r.why))),
                     Some(p) if p.seq == *seq => match &p.state {
                         ActionState::Done if running => Some(TaskStatus::Done),
                         ActionState::Failed(why) => Some(TaskStatus::Failed(why.to_string())),

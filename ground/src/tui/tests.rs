@@ -47,6 +47,7 @@ fn status(
         failsafe: None,
         malformed_actions: 0,
         ground: None,
+        refused: None,
     }
 }
 

@@ -23,6 +23,10 @@ struct Args {
     /// Seconds of ground silence before landing.
     #[arg(long, default_value_t = 30.0)]
     failsafe_land_s: f64,
+    /// Refuse an action (land and hold aside) that arrives this many seconds later than the
+    /// ground station's heartbeats take: the network held it, and the ground has moved on.
+    #[arg(long, default_value_t = 2.0)]
+    max_action_late_s: f64,
 }
 
 fn main() -> std::process::ExitCode {
@@ -48,6 +52,12 @@ fn run() -> anyhow::Result<()> {
     let mut cfg = OnboardConfig::new(args.bus, args.drone, scenario);
     cfg.failsafe_hold_s = args.failsafe_hold_s;
     cfg.failsafe_land_s = args.failsafe_land_s;
+    anyhow::ensure!(
+        args.max_action_late_s > 0.0,
+        "--max-action-late-s must be above 0 (got {})",
+        args.max_action_late_s
+    );
+    cfg.max_action_late_s = args.max_action_late_s;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()

@@ -7,7 +7,7 @@
 
 use crate::executor::{Executor, ExecutorConfig};
 use crate::failsafe::FailsafeTimer;
-use crate::ground_follow::{Beat, GroundFollower};
+use crate::ground_follow::{Beat, GroundFollower, Refusal};
 use crate::motion::{Motion, MotionConfig, SolveDone, Steering};
 use crate::planner::{PlannerConfig, PlannerError};
 use std::future::Future;
@@ -16,7 +16,9 @@ use tacos_ipc::{IpcError, IpcNode};
 use tacos_shared::ActionCommand;
 use tacos_shared::DroneId;
 use tacos_shared::ipc::SetpointSample;
-use tacos_shared::messages::{DroneStatus, GroundHeartbeat, PathMessage, TargetsMessage};
+use tacos_shared::messages::{
+    ActionRefused, DroneStatus, GroundHeartbeat, PathMessage, TargetsMessage,
+};
 use tacos_shared::scenario::Scenario;
 use tracing::{Instrument, info, info_span, warn};
 
@@ -33,6 +35,9 @@ pub struct OnboardConfig {
     pub failsafe_hold_s: f64,
     /// Ground silent this long → land.
     pub failsafe_land_s: f64,
+    /// An action of the followed ground arriving this much later than its heartbeats take is
+    /// refused (land and hold aside): see `ground_follow`.
+    pub max_action_late_s: f64,
     /// No vehicle state from the writer for this long → autopilot link treated as lost.
     pub writer_timeout_s: f64,
     /// The planner's rate, the neighbours' paths, the tracker.
@@ -49,6 +54,7 @@ impl OnboardConfig {
             status_rate_hz: 20.0,
             failsafe_hold_s: 3.0,
             failsafe_land_s: 30.0,
+            max_action_late_s: 2.0,
             writer_timeout_s: 1.0,
             motion: MotionConfig::default(),
         }
@@ -162,7 +168,9 @@ async fn run_inner(
     let mut last_steering: Option<Steering> = None;
     let mut failsafe = FailsafeTimer::new(cfg.failsafe_hold_s, cfg.failsafe_land_s, now());
     // A ground station silent for the hold time may be replaced by another.
-    let mut grounds = GroundFollower::new(cfg.failsafe_hold_s);
+    let mut grounds = GroundFollower::new(cfg.failsafe_hold_s, cfg.max_action_late_s);
+    // The latest action of the followed ground refused for arriving late, told in the status.
+    let mut refused: Option<ActionRefused> = None;
     // The other ground station last refused, logged once (heartbeats come several a second).
     let mut refused_ground: Option<u64> = None;
     let mut control = clock.ticker(1.0 / cfg.control_rate_hz);
@@ -194,6 +202,10 @@ async fn run_inner(
                         }
                         Err(refusal) => {
                             warn!(seq = command.seq, action = %command.action, "action refused: {refusal}");
+                            if let Refusal::Late(why) = refusal {
+                                refused = Some(ActionRefused { seq: command.seq, why });
+                                publish_now = true;
+                            }
                         }
                     },
                     Err(e) => {
@@ -208,7 +220,7 @@ async fn run_inner(
                 match tacos_bus::decode::<GroundHeartbeat>(&sample) {
                     Ok(beat) => {
                         let t = now();
-                        match grounds.on_heartbeat(beat.ground, t) {
+                        match grounds.on_heartbeat(beat.ground, beat.stamp, t) {
                             Beat::Refused { followed } => {
                                 if refused_ground != Some(beat.ground) {
                                     refused_ground = Some(beat.ground);
@@ -361,6 +373,7 @@ async fn run_inner(
                 failsafe: executor.failsafe(),
                 malformed_actions,
                 ground: grounds.followed(),
+                refused: refused.clone(),
             };
             if let Err(e) = tacos_bus::put(&session, &status_key, &status, false).await {
                 warn!(error = %e, "status not published");

@@ -81,12 +81,14 @@ fn now_us() -> u64 {
 }
 
 fn ping_message(seq: u64, drone: &DroneId) -> Ping {
+    let sent_us = now_us();
     Ping {
         seq,
-        sent_us: now_us(),
+        sent_us,
         command: ActionCommand {
             ground: 1,
             seq,
+            sent_at: sent_us as f64 / 1e6,
             task_id: Some(format!("bench-{drone}")),
             action: Action::Goto {
                 target: Vec3::new(12.5, -40.0, 10.0),
@@ -112,6 +114,7 @@ fn pong_message(ping: &Ping, received_us: u64, drone: &DroneId) -> Pong {
             failsafe: None,
             malformed_actions: 0,
             ground: Some(ping.command.ground),
+            refused: None,
         },
     }
 }

@@ -64,6 +64,7 @@ async fn main() -> anyhow::Result<()> {
         let land = ActionCommand {
             ground: beat.ground,
             seq: u64::MAX / 2 + i,
+            sent_at: beat.stamp,
             task_id: None,
             action: Action::Land,
         };
@@ -71,6 +72,7 @@ async fn main() -> anyhow::Result<()> {
         let forged_beat = GroundHeartbeat {
             counter: beat.counter + 1 + i,
             ground: beat.ground,
+            stamp: beat.stamp,
         };
         tacos_bus::put(&session, &keys.ground_heartbeat(), &forged_beat, true).await?;
         let target = TargetsMessage {

@@ -33,6 +33,7 @@ fn cmd(seq: u64, action: Action) -> ActionCommand {
     ActionCommand {
         ground: 1,
         seq,
+        sent_at: 0.0,
         task_id: None,
         action,
     }
