@@ -144,12 +144,13 @@ impl PilotInput {
             .iter()
             .map(|checked| async move { (checked, self.link.send(checked, None).await) });
         let mut sent = Vec::new();
+        let mut records = Vec::new();
         for (checked, result) in futures_util::future::join_all(sends).await {
             let drone = checked.drone().to_string();
             match result {
                 Ok(seq) => {
                     self.follow_outcome(checked.drone().clone(), action.to_string(), seq);
-                    self.log.note(Record::action_sent(checked, None, seq));
+                    records.push(Record::action_sent(checked, None, seq));
                     sent.push(drone);
                 }
                 Err(e) => outcomes.push(format!("{drone}: {e}")),
@@ -159,10 +160,13 @@ impl PilotInput {
             outcomes.insert(0, format!("{action} sent to {}", sent.join(", ")));
         }
         let outcome = outcomes.join("; ");
-        self.log.note(Record::Direct {
+        records.push(Record::Direct {
             text: text.to_owned(),
             outcome: outcome.clone(),
         });
+        // Every send of the command and the command itself on the disk with one sync (20 syncs
+        // one by one held `land all` for 70 ms here).
+        self.log.note_all(records);
         let _ = self.updates.send(MissionUpdate::Event(format!(
             "direct command {text:?}: {outcome}"
         )));

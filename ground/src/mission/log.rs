@@ -219,10 +219,36 @@ impl MissionLog {
         })
     }
 
+    /// Appends several records with one sync for all of them (when any is one a mission is
+    /// rebuilt from): a sync takes milliseconds, and `land all` logs a send per drone.
+    pub fn write_all(&self, records: Vec<Record>) -> Result<(), LogError> {
+        let io = |source| LogError::Io {
+            path: self.path.display().to_string(),
+            source,
+        };
+        let sync = records.iter().any(Record::must_persist);
+        let t = self.elapsed();
+        let mut file = self.file.lock().unwrap_or_else(|p| p.into_inner());
+        for record in records {
+            jsonl::append(&mut file, &Line { t, record }, false).map_err(io)?;
+        }
+        if sync {
+            file.sync_data().map_err(io)?;
+        }
+        Ok(())
+    }
+
     /// Like [`write`](Self::write), but a failure is only reported through tracing: the mission
     /// goes on when the disk is full.
     pub fn note(&self, record: Record) {
         if let Err(e) = self.write(record) {
+            tracing::error!(error = %e, "mission log write failed");
+        }
+    }
+
+    /// [`write_all`](Self::write_all), a failure only reported through tracing.
+    pub fn note_all(&self, records: Vec<Record>) {
+        if let Err(e) = self.write_all(records) {
             tracing::error!(error = %e, "mission log write failed");
         }
     }
@@ -382,13 +408,20 @@ mod tests {
             text: "all drones take off".into(),
         })
         .expect("write");
-        log.write(Record::ActionSent {
-            drone: "alfa".into(),
-            task: Some("T1".into()),
-            seq: 9,
-            action: "arm_takeoff()".into(),
-            checked: None,
-        })
+        // Several at once, with one sync (a direct command's sends and the command).
+        log.write_all(vec![
+            Record::ActionSent {
+                drone: "alfa".into(),
+                task: Some("T1".into()),
+                seq: 9,
+                action: "arm_takeoff()".into(),
+                checked: None,
+            },
+            Record::Direct {
+                text: "hold all".into(),
+                outcome: "hold() sent to alfa".into(),
+            },
+        ])
         .expect("write");
         drop(log);
         // A crash in the middle of the next record.
@@ -398,7 +431,8 @@ mod tests {
             .expect("open");
         std::io::Write::write_all(&mut f, b"{\"t\":3.0,\"kind\":\"pil").expect("append");
         let lines = read(&path).expect("read");
-        assert_eq!(lines.len(), 2);
+        assert_eq!(lines.len(), 3);
+        assert!(matches!(lines[2].record, Record::Direct { .. }));
         assert_eq!(
             lines[0].record,
             Record::Pilot {
