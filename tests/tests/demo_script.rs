@@ -285,6 +285,45 @@ async fn a_failing_step_ends_the_run_non_zero_naming_its_line() -> anyhow::Resul
     Ok(())
 }
 
+/// The stand-in plans nothing for a drone the map lacks; every repair round is refused too, so
+/// the mission gives the instruction up: the waiting step ends then, with the mission's reason,
+/// not when its 600 s run out.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_step_waiting_on_an_instruction_the_mission_gave_up_fails_at_once() -> anyhow::Result<()>
+{
+    let server = ChatServer::start("stand-in", policy).await?;
+    let script = temp("gaveup", "txt");
+    std::fs::write(
+        &script,
+        "say zulu, go to car_11\nwait until plan complete within 600\nsay land all\n",
+    )?;
+    let log_path = temp("gaveup", "jsonl");
+    let started = std::time::Instant::now();
+    let (ok, stdout, stderr) = demo(&script, &server, &log_path).await?;
+    let took = started.elapsed();
+    assert!(!ok, "the run must fail\nstdout:\n{stdout}");
+    assert!(
+        stderr.contains(
+            "script line 2 `wait until plan complete within 600` failed: the mission gave up: "
+        ) && stderr.contains("no call of its plan passed the checks"),
+        "unclear error: {stderr}"
+    );
+    assert!(
+        took < Duration::from_secs(120),
+        "the step waited {took:?} after the mission gave up"
+    );
+    let lines = log::read(&log_path)?;
+    assert!(
+        !lines
+            .iter()
+            .any(|l| matches!(l.record, Record::Direct { .. } | Record::ActionSent { .. })),
+        "something was sent"
+    );
+    let _ = std::fs::remove_file(&script);
+    let _ = std::fs::remove_file(&log_path);
+    Ok(())
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_malformed_script_is_refused_before_anything_starts() -> anyhow::Result<()> {
     let server = ChatServer::start("stand-in", policy).await?;

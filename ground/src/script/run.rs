@@ -60,6 +60,9 @@ struct Seen {
     plans_since_fail: u32,
     /// Drones a `fail` step killed: `all` no longer counts them.
     killed: Vec<DroneId>,
+    /// What the mission last gave up on since the last `say` (a plan given up, an instruction
+    /// no reply could carry out, a model that failed): a `wait until` ends with it at once.
+    gave_up_since_say: Option<String>,
 }
 
 /// Everything a condition is judged on, at one instant.
@@ -228,6 +231,7 @@ impl Runner {
         match update {
             MissionUpdate::PlanComplete { .. } => self.seen.plans_complete_since_say += 1,
             MissionUpdate::Plan { .. } => self.seen.plans_since_fail += 1,
+            MissionUpdate::Error(why) => self.seen.gave_up_since_say = Some(why.clone()),
             _ => {}
         }
     }
@@ -296,6 +300,7 @@ impl Runner {
         match kind {
             StepKind::Say(text) => {
                 self.seen.plans_complete_since_say = 0;
+                self.seen.gave_up_since_say = None;
                 self.input.submit(text).await.map_err(|e| e.to_string())?;
                 Ok(())
             }
@@ -304,15 +309,21 @@ impl Runner {
                 Ok(())
             }
             StepKind::WaitUntil { condition, within } => {
-                if self
-                    .follow_until(*within, |r| r.check(condition).is_ok())
-                    .await
-                {
-                    Ok(())
-                } else {
-                    let why = self.check(condition).err().unwrap_or_default();
-                    Err(format!("not within {} s: {why}", within.as_secs_f64()))
+                // Waiting on after the mission gave up would only run out the time.
+                let mut held = false;
+                self.follow_until(*within, |r| {
+                    held = r.check(condition).is_ok();
+                    held || r.seen.gave_up_since_say.is_some()
+                })
+                .await;
+                if held {
+                    return Ok(());
                 }
+                if let Some(gave_up) = &self.seen.gave_up_since_say {
+                    return Err(format!("the mission gave up: {gave_up}"));
+                }
+                let why = self.check(condition).err().unwrap_or_default();
+                Err(format!("not within {} s: {why}", within.as_secs_f64()))
             }
             StepKind::Expect(condition) => {
                 self.drain();
