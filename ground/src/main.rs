@@ -7,7 +7,7 @@ use std::sync::Arc;
 use std::time::Duration;
 use tacos_bus::BusArgs;
 use tacos_embedded::{EmbeddedBackend, EmbeddedOptions};
-use tacos_ground::demo::{DemoOptions, DemoPlan, DemoReport, run_demo};
+use tacos_ground::demo::{DemoOptions, DemoPlan, run_demo};
 use tacos_ground::link::{GroundLink, GroundRole};
 use tacos_ground::mission::{MissionConfig, Mode};
 use tacos_ground::pilot::SessionOptions;
@@ -508,7 +508,7 @@ async fn demo(args: DemoArgs) -> anyhow::Result<()> {
     if let Some(script) = script {
         let options = ScriptOptions {
             mission,
-            log_path,
+            log_path: log_path.clone(),
             verbose: true,
         };
         let plan = DemoPlan::Script {
@@ -516,34 +516,35 @@ async fn demo(args: DemoArgs) -> anyhow::Result<()> {
             script,
             options,
         };
-        if let DemoReport::Script(report) = run_demo(opts, plan, interrupt).await? {
-            print_stats(&report.stats, &report.log_path);
-        }
+        // The summary comes from the log, so a script that failed gets one too.
+        let result = run_demo(opts, plan, interrupt).await;
+        print_summary(&log_path);
+        result?;
         return Ok(());
     }
     let session = SessionOptions {
         mission,
         say: args.say.clone(),
         interactive: !args.no_terminal,
-        log_path,
+        log_path: log_path.clone(),
         line_timeout: Duration::from_secs(600),
         verbose: true,
     };
-    if let DemoReport::Session(report) =
-        run_demo(opts, DemoPlan::Llm { backend, session }, interrupt).await?
-    {
-        print_stats(&report.stats, &report.log_path);
-    }
+    let result = run_demo(opts, DemoPlan::Llm { backend, session }, interrupt).await;
+    print_summary(&log_path);
+    result?;
     Ok(())
 }
 
-fn print_stats(s: &tacos_ground::mission::MissionStats, log: &std::path::Path) {
-    println!(
-        "demo finished: {} model calls, {} supervisor cycles, {} actions sent by the models, {} gate rejections; mission log {}",
-        s.model_calls,
-        s.cycles_total,
-        s.actions_sent,
-        s.gate_rejections,
-        log.display()
-    );
+/// The run's summary, counted from its mission log: what happened, however the run ended.
+fn print_summary(log: &std::path::Path) {
+    use tacos_ground::mission::log::{Tally, last_mission, read};
+    match read(log) {
+        Ok(lines) => println!(
+            "demo finished: {}; mission log {}",
+            Tally::of(last_mission(&lines)),
+            log.display()
+        ),
+        Err(e) => println!("demo finished; its mission log could not be read: {e}"),
+    }
 }

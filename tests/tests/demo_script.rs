@@ -163,6 +163,9 @@ async fn a_script_takes_off_flies_one_goto_and_lands_all_in_order() -> anyhow::R
     );
 
     let lines = log::read(&log_path)?;
+    // The closing summary is the log's own count.
+    let summary = format!("demo finished: {};", log::Tally::of(&lines));
+    assert!(stdout.contains(&summary), "no {summary:?} in:\n{stdout}");
     let sent: Vec<(usize, String, String, u64)> = lines
         .iter()
         .enumerate()
@@ -318,6 +321,17 @@ async fn a_step_waiting_on_an_instruction_the_mission_gave_up_fails_at_once() ->
             .iter()
             .any(|l| matches!(l.record, Record::Direct { .. } | Record::ActionSent { .. })),
         "something was sent"
+    );
+    // A failed run still closes with what happened: three Coordinator requests, nothing sent.
+    let tally = log::Tally::of(&lines);
+    assert_eq!(
+        (tally.model_calls, tally.model_actions),
+        (3, 0),
+        "{tally:?}"
+    );
+    assert!(
+        stdout.contains(&format!("demo finished: {tally};")),
+        "no summary in:\n{stdout}"
     );
     let _ = std::fs::remove_file(&script);
     let _ = std::fs::remove_file(&log_path);

@@ -272,6 +272,52 @@ pub fn read_checked(path: &Path) -> Result<jsonl::Contents<Line>, LogError> {
     })
 }
 
+/// What a mission did, counted from its records: a run's closing summary, which therefore
+/// agrees with the log however the run ended (a model call still in flight included).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Tally {
+    /// Requests to a model (repair rounds included).
+    pub model_calls: usize,
+    pub supervisor_cycles: usize,
+    /// Actions sent for a model's plan or cycle (they carry a task).
+    pub model_actions: usize,
+    /// Actions sent for the pilot's direct commands.
+    pub direct_actions: usize,
+    /// Calls of the models' replies that the checks refused.
+    pub rejections: usize,
+}
+
+impl Tally {
+    pub fn of(lines: &[Line]) -> Tally {
+        let mut t = Tally::default();
+        for line in lines {
+            match &line.record {
+                Record::LlmRequest { .. } => t.model_calls += 1,
+                Record::SupervisorCycle { .. } => t.supervisor_cycles += 1,
+                Record::ActionSent { task: Some(_), .. } => t.model_actions += 1,
+                Record::ActionSent { task: None, .. } => t.direct_actions += 1,
+                Record::GateRejected { .. } => t.rejections += 1,
+                _ => {}
+            }
+        }
+        t
+    }
+}
+
+impl std::fmt::Display for Tally {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} model calls, {} supervisor cycles, {} actions sent by the models, {} by direct commands, {} calls refused by the checks",
+            self.model_calls,
+            self.supervisor_cycles,
+            self.model_actions,
+            self.direct_actions,
+            self.rejections
+        )
+    }
+}
+
 /// The lines of the last mission in a log that holds several (a reused `--log` path): from its
 /// last `mission_start` on; all of them when there is none.
 pub fn last_mission(lines: &[Line]) -> &[Line] {
@@ -439,6 +485,8 @@ mod tests {
                 text: "all drones take off".into()
             }
         );
+        let tally = Tally::of(&lines);
+        assert_eq!((tally.model_actions, tally.direct_actions), (1, 0));
         let text = timeline(&lines);
         assert!(
             text.contains("pilot: all drones take off")
