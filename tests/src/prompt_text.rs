@@ -67,3 +67,26 @@ pub fn swarm_lines(text: &str) -> Vec<SwarmLine> {
         })
         .collect()
 }
+
+/// What a stand-in Supervisor starts: for each drone, the first call the engine's schema offers
+/// it (`/properties/actions/items/anyOf`), as the `actions` of a reply.
+pub fn first_offered_per_drone(request: &tacos_llm::ChatRequest) -> Vec<serde_json::Value> {
+    let offered: Vec<serde_json::Value> = request
+        .schema
+        .as_ref()
+        .and_then(|s| s.schema.pointer("/properties/actions/items/anyOf"))
+        .and_then(serde_json::Value::as_array)
+        .cloned()
+        .unwrap_or_default();
+    let first = |alt: &serde_json::Value, field: &str| alt["properties"][field]["enum"][0].clone();
+    let mut actions: Vec<serde_json::Value> = Vec::new();
+    for alt in &offered {
+        if !actions.iter().any(|a| a["drone"] == first(alt, "drone")) {
+            actions.push(serde_json::json!({
+                "task": first(alt, "task"), "drone": first(alt, "drone"),
+                "action": first(alt, "action"), "target": first(alt, "target"), "xyz": null
+            }));
+        }
+    }
+    actions
+}

@@ -14,7 +14,7 @@ use tacos_ground::mission::{Mission, MissionConfig, MissionUpdate, Mode};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{ChatRequest, LlmError, Role as ChatRole};
 use tacos_shared::DroneId;
-use tacos_tests::prompt_text::{plan_lines, request_text, swarm_lines};
+use tacos_tests::prompt_text::{first_offered_per_drone, plan_lines, request_text, swarm_lines};
 use tacos_tests::{PolicyBackend, SimSwarm, within};
 use tokio::sync::mpsc;
 
@@ -402,20 +402,7 @@ fn offered_policy(
         if system.starts_with("You are the Coordinator") {
             return Ok(json!({ "reasoning": "As the pilot said.", "plan": plan }).to_string());
         }
-        let offered: Vec<Value> = request
-            .schema
-            .as_ref()
-            .and_then(|s| s.schema.pointer("/properties/actions/items/anyOf"))
-            .and_then(Value::as_array)
-            .cloned()
-            .unwrap_or_default();
-        let first = |alt: &Value, field: &str| alt["properties"][field]["enum"][0].clone();
-        let mut actions: Vec<Value> = Vec::new();
-        for alt in &offered {
-            if !actions.iter().any(|a| a["drone"] == first(alt, "drone")) {
-                actions.push(json!({ "task": first(alt, "task"), "drone": first(alt, "drone"), "action": first(alt, "action"), "target": first(alt, "target"), "xyz": null }));
-            }
-        }
+        let mut actions = first_offered_per_drone(request);
         if stutter {
             actions = actions
                 .iter()

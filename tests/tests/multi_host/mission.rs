@@ -14,7 +14,7 @@ use tacos_ground::mission::{Mission, MissionConfig, MissionUpdate};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{ChatRequest, LlmError};
 use tacos_tests::PolicyBackend;
-use tacos_tests::prompt_text::{plan_lines, request_text, swarm_lines};
+use tacos_tests::prompt_text::{first_offered_per_drone, plan_lines, request_text, swarm_lines};
 use tokio::sync::mpsc;
 
 /// What the pilot says: both places named, so the plan stays within them.
@@ -65,23 +65,7 @@ fn model(request: &ChatRequest) -> Result<String, LlmError> {
         })
         .to_string());
     }
-    let offered: Vec<Value> = request
-        .schema
-        .as_ref()
-        .and_then(|s| s.schema.pointer("/properties/actions/items/anyOf"))
-        .and_then(Value::as_array)
-        .cloned()
-        .unwrap_or_default();
-    let first = |alt: &Value, field: &str| alt["properties"][field]["enum"][0].clone();
-    let mut actions: Vec<Value> = Vec::new();
-    for alt in &offered {
-        if !actions.iter().any(|a| a["drone"] == first(alt, "drone")) {
-            actions.push(json!({
-                "task": first(alt, "task"), "drone": first(alt, "drone"),
-                "action": first(alt, "action"), "target": first(alt, "target"), "xyz": null
-            }));
-        }
-    }
+    let actions = first_offered_per_drone(request);
     Ok(json!({ "reasoning": "Each drone does its next task.", "actions": actions, "plan_complete": false }).to_string())
 }
 
