@@ -248,7 +248,7 @@ async fn zenoh_action() -> anyhow::Result<Vec<(ZenohPath, Vec<f64>)>> {
         let (tx, _) = tokio::sync::watch::channel((u64::MAX, Instant::now()));
         let receipts = Arc::new(tx);
         let end = receiver(&onboard, path, &key, receipts.clone()).await?;
-        wait_for_match(&ground, &key).await?;
+        tacos_tests::wait_for_subscriber(&ground, &key).await?;
         ends.push((path, key, receipts, end, Vec::with_capacity(MESSAGES)));
     }
     let per_round = MESSAGES / ROUNDS;
@@ -266,27 +266,6 @@ async fn zenoh_action() -> anyhow::Result<Vec<(ZenohPath, Vec<f64>)>> {
         .into_iter()
         .map(|(path, _, _, _, samples)| (path, samples))
         .collect())
-}
-
-/// Waits until a put on `key` from `session` reaches a subscriber (routes are set up).
-async fn wait_for_match(session: &zenoh::Session, key: &str) -> anyhow::Result<()> {
-    let publisher = session
-        .declare_publisher(key.to_owned())
-        .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
-    let deadline = Instant::now() + Duration::from_secs(10);
-    while !publisher
-        .matching_status()
-        .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?
-        .matching()
-    {
-        if Instant::now() > deadline {
-            anyhow::bail!("no subscriber matched {key} within 10 s");
-        }
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    }
-    Ok(())
 }
 
 type Svc = iceoryx2::prelude::ipc_threadsafe::Service;

@@ -124,6 +124,28 @@ pub async fn all_ready(sim: &SimSwarm, ids: &[DroneId]) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Waits until a put on `key` from `session` reaches a subscriber: a fresh session's puts
+/// reach only the subscribers it already knows of.
+pub async fn wait_for_subscriber(session: &zenoh::Session, key: &str) -> anyhow::Result<()> {
+    let publisher = session
+        .declare_publisher(key.to_owned())
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    while !publisher
+        .matching_status()
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?
+        .matching()
+    {
+        if std::time::Instant::now() > deadline {
+            anyhow::bail!("no subscriber matched {key} within 10 s");
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    Ok(())
+}
+
 /// Runs `fut` with a deadline, naming what timed out.
 pub async fn within<T>(
     what: &str,

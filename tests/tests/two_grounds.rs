@@ -159,24 +159,7 @@ async fn held_steps(sim: &SimSwarm) -> anyhow::Result<()> {
     bus.connect = std::mem::take(&mut bus.listen);
     let network = bus.open().await?;
     let key = bus.keys().action(&alfa);
-    // A fresh session's puts reach only the subscribers it already knows of.
-    let publisher = network
-        .declare_publisher(key.clone())
-        .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
-    let started = Instant::now();
-    while !publisher
-        .matching_status()
-        .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?
-        .matching()
-    {
-        anyhow::ensure!(
-            started.elapsed() < Duration::from_secs(10),
-            "alfa's action subscriber not seen"
-        );
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+    tacos_tests::wait_for_subscriber(&network, &key).await?;
     let held = |seq: u64, action: Action| ActionCommand {
         ground: link.epoch(),
         seq,

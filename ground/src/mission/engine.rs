@@ -712,15 +712,17 @@ impl Mission {
                 let refused = status
                     .and_then(|s| s.refused.as_ref())
                     .filter(|r| r.seq == *seq && running);
-                let new = match progress {
-                    _ if refused.is_some() => refused
-                        .map(|r| TaskStatus::Failed(format!("refused by the drone: {}", r.why))),
-                    Some(p) if p.seq == *seq => match &p.state {
+                let new = match (refused, progress) {
+                    (Some(r), _) => Some(TaskStatus::Failed(format!(
+                        "refused by the drone: {}",
+                        r.why
+                    ))),
+                    (None, Some(p)) if p.seq == *seq => match &p.state {
                         ActionState::Done if running => Some(TaskStatus::Done),
                         ActionState::Failed(why) => Some(TaskStatus::Failed(why.to_string())),
                         _ => None,
                     },
-                    Some(p) if p.seq > *seq && running => {
+                    (None, Some(p)) if p.seq > *seq && running => {
                         Some(TaskStatus::Failed("replaced by a newer action".into()))
                     }
                     _ => None,

@@ -207,16 +207,7 @@ impl MissionLog {
     /// Appends one record (synced to the disk when it is one a mission is rebuilt from). A
     /// failing disk is reported, never a panic.
     pub fn write(&self, record: Record) -> Result<(), LogError> {
-        let sync = record.must_persist();
-        let line = Line {
-            t: self.elapsed(),
-            record,
-        };
-        let mut file = self.file.lock().unwrap_or_else(|p| p.into_inner());
-        jsonl::append(&mut file, &line, sync).map_err(|source| LogError::Io {
-            path: self.path.display().to_string(),
-            source,
-        })
+        self.write_all(vec![record])
     }
 
     /// Appends several records with one sync for all of them (when any is one a mission is
@@ -241,9 +232,7 @@ impl MissionLog {
     /// Like [`write`](Self::write), but a failure is only reported through tracing: the mission
     /// goes on when the disk is full.
     pub fn note(&self, record: Record) {
-        if let Err(e) = self.write(record) {
-            tracing::error!(error = %e, "mission log write failed");
-        }
+        self.note_all(vec![record]);
     }
 
     /// [`write_all`](Self::write_all), a failure only reported through tracing.
