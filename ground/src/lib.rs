@@ -4,6 +4,7 @@
 //! and runs the simulated demo (`launch`, `demo`). The LLM layers and the terminal build on
 //! these pieces.
 
+pub mod cli;
 pub mod demo;
 pub mod direct;
 pub mod eval;

@@ -205,7 +205,7 @@ pub async fn run_session(
         }
     }
     drop(input);
-    let stats = crate::mission::engine::stats_when_done(mission_task).await;
+    let stats = crate::mission::stats_when_done(mission_task).await;
     result.map(|()| SessionReport {
         stats,
         log_path: log.path().to_owned(),

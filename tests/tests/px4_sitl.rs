@@ -107,7 +107,20 @@ async fn conformance_steps(sim: &mut SimSwarm) -> anyhow::Result<Vec<Observation
         act(sim, &gate, &alfa, Action::ArmTakeoff).await,
     ));
 
-    // The writer dies mid-air: no setpoints, so the autopilot's offboard-loss failsafe holds it.
+    // The writer dies mid-air, in a settled hover (a kill during the last metre of the climb
+    // would measure the climb's own braking, not the hold): no setpoints, so the autopilot's
+    // offboard-loss failsafe holds it.
+    truth_until(
+        &mut truth,
+        Duration::from_secs(15),
+        "alfa hovering at take-off altitude",
+        |t| {
+            vehicle(t, &alfa).is_some_and(|v| {
+                v.armed && (v.position.z - home.z - alt).abs() < 0.5 && v.velocity.norm() < 0.3
+            })
+        },
+    )
+    .await?;
     let before = truth
         .borrow()
         .as_ref()
@@ -120,6 +133,12 @@ async fn conformance_steps(sim: &mut SimSwarm) -> anyhow::Result<Vec<Observation
     let held = match (before, after) {
         (Some(b), Some(v)) => {
             let mode = Px4Mode::from_custom_mode(v.custom_mode);
+            eprintln!(
+                "writer killed: moved {:.2} m in 4 s ({:?} to {:?})",
+                (v.position - b).norm(),
+                b,
+                v.position
+            );
             format!(
                 "armed {}, mode {mode:?}, moved under 1.5 m: {}",
                 v.armed,

@@ -6,8 +6,8 @@
 //! queued for the engine.
 
 use super::directives::{self, Directive};
-use super::engine::MissionUpdate;
 use super::log::{MissionLog, Record};
+use super::report::MissionUpdate;
 use crate::link::GroundLink;
 use crate::safety::SafetyGate;
 use std::sync::Arc;

@@ -7,15 +7,17 @@
 //! commands (`directives`) never wait for a model: `input` carries them out beside the engine.
 //! Everything is written to the mission `log`.
 
+pub mod config;
 pub mod directives;
 pub mod engine;
 pub mod grounding;
 pub mod input;
 pub mod log;
+pub mod report;
 pub mod resolve;
 pub mod untrusted;
 
-pub use engine::{
-    Mission, MissionConfig, MissionError, MissionStats, MissionUpdate, Mode, coordinator_messages,
-};
+pub use config::{MissionConfig, Mode};
+pub use engine::{Mission, coordinator_messages, supervisor_messages};
 pub use input::{InputClosed, MissionInputs, PilotInput};
+pub use report::{MissionError, MissionStats, MissionUpdate, stats_when_done};

@@ -443,7 +443,7 @@ pub async fn run_script(
     // Closing the input ends the mission (after any model call in flight).
     let Runner { input, .. } = runner;
     drop(input);
-    let stats = crate::mission::engine::stats_when_done(mission_task).await;
+    let stats = crate::mission::stats_when_done(mission_task).await;
     result.map(|()| ScriptReport {
         stats,
         log_path: log.path().to_owned(),

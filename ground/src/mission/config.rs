@@ -1,0 +1,70 @@
+//! How a mission runs: the ablation mode and the engine's bounds.
+
+use std::time::Duration;
+
+/// The ablation modes of the paper.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Mode {
+    /// Coordinator + Supervisor, the Supervisor sees the Coordinator's reasoning.
+    Tacos,
+    /// The Supervisor does not get the Coordinator's reasoning.
+    Wor,
+    /// One model plans and executes; its history keeps executed actions only.
+    Mnl,
+}
+
+impl Mode {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Mode::Tacos => "tacos",
+            Mode::Wor => "wor",
+            Mode::Mnl => "mnl",
+        }
+    }
+}
+
+impl std::str::FromStr for Mode {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Mode, String> {
+        match s {
+            "tacos" => Ok(Mode::Tacos),
+            "wor" => Ok(Mode::Wor),
+            "mnl" => Ok(Mode::Mnl),
+            other => Err(format!("unknown mode {other:?} (tacos, wor, mnl)")),
+        }
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct MissionConfig {
+    pub mode: Mode,
+    /// How many times a rejected or unparsable reply goes back to its model.
+    pub max_repairs: u32,
+    /// A Supervisor cycle runs at the latest this long after the previous one while a plan runs.
+    pub cycle_timeout: Duration,
+    /// A plan is abandoned after this many Supervisor cycles.
+    pub max_cycles_per_plan: u32,
+    /// A plan is abandoned when one of its tasks has failed this many times: a goal that cannot
+    /// be reached is reported to the pilot, not retried until the cycle limit.
+    pub max_task_failures: u32,
+    pub coordinator_max_tokens: u32,
+    pub supervisor_max_tokens: u32,
+    pub temperature: f32,
+    pub seed: Option<u64>,
+}
+
+impl Default for MissionConfig {
+    fn default() -> Self {
+        MissionConfig {
+            mode: Mode::Tacos,
+            max_repairs: 2,
+            cycle_timeout: Duration::from_secs(10),
+            max_cycles_per_plan: 30,
+            max_task_failures: 3,
+            coordinator_max_tokens: 600,
+            supervisor_max_tokens: 400,
+            temperature: 0.0,
+            seed: Some(7),
+        }
+    }
+}

@@ -1,0 +1,263 @@
+//! Asking a model: the request, the parse and check of its reply, and the repair loop that sends
+//! a rejected reply back with the reasons.
+
+use crate::link::GroundLink;
+use crate::mission::log::{MissionLog, Record};
+use crate::mission::report::{MissionError, MissionStats, MissionUpdate};
+use std::sync::Arc;
+use tacos_llm::{ChatMessage, ChatReply, ChatRequest, LlmBackend, LlmError, ResponseSchema};
+use tacos_prompts::ReplyError;
+use tacos_prompts::schema::Output;
+use tokio::sync::mpsc;
+
+/// Asks models: the backend, the repair loop's bounds, and where calls are recorded.
+pub(super) struct Caller {
+    pub(super) backend: Arc<dyn LlmBackend>,
+    /// Told of every call in flight, so a simulation holds real time meanwhile.
+    pub(super) link: Arc<GroundLink>,
+    pub(super) log: Arc<MissionLog>,
+    pub(super) updates: mpsc::UnboundedSender<MissionUpdate>,
+    pub(super) max_repairs: u32,
+    pub(super) temperature: f32,
+    pub(super) seed: Option<u64>,
+}
+
+/// The result of checking one reply: what may be done, and why the rest may not.
+pub(super) struct Checked<U> {
+    pub(super) accepted: U,
+    pub(super) rejections: Vec<String>,
+    /// The schema for the repair round, when the reply missed something the grammar can hold
+    /// the next one to; `None`: the same schema again.
+    pub(super) narrowed: Option<serde_json::Value>,
+}
+
+impl Caller {
+    /// Asks a model, parses and checks its reply, and sends rejected replies back with the
+    /// reasons up to `max_repairs` times. After the last attempt only what passed is returned.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) async fn ask<T, U>(
+        &self,
+        stats: &mut MissionStats,
+        layer: &'static str,
+        mut messages: Vec<ChatMessage>,
+        output: Output,
+        mut schema: serde_json::Value,
+        max_tokens: u32,
+        parse: fn(&str) -> Result<T, ReplyError>,
+        mut check: impl FnMut(&T) -> Checked<U>,
+    ) -> Result<U, MissionError> {
+        let attempts = self.max_repairs + 1;
+        let mut last_problem = String::new();
+        // What passed in the last checked reply: a repair round that the backend cannot answer
+        // (e.g. the repair prompt has outgrown the embedded model's window) leaves it in force.
+        let mut passed_before: Option<U> = None;
+        for attempt in 1..=attempts {
+            let request = ChatRequest {
+                messages: messages.clone(),
+                schema: Some(ResponseSchema {
+                    name: output.name().into(),
+                    schema: schema.clone(),
+                }),
+                max_tokens,
+                temperature: self.temperature,
+                seed: self.seed,
+                reasoning_effort: Some("low".into()),
+            };
+            self.log.note(Record::LlmRequest {
+                layer: layer.into(),
+                attempt,
+                messages: serde_json::to_value(&messages).unwrap_or_default(),
+            });
+            stats.model_calls += 1;
+            let in_flight = self.link.model_call();
+            let reply = self.backend.chat(&request).await;
+            drop(in_flight);
+            let reply = match reply {
+                Ok(reply) => reply,
+                Err(LlmError::Truncated(n)) => {
+                    self.log.note(Record::LlmError {
+                        layer: layer.into(),
+                        attempt,
+                        error: LlmError::Truncated(n).to_string(),
+                    });
+                    last_problem = format!("the reply was cut off at {n} tokens");
+                    messages.push(ChatMessage::user(format!("Your reply was cut off at {n} tokens. Answer again, shorter: brief reasoning, same JSON structure.")));
+                    continue;
+                }
+                Err(error) => {
+                    self.log.note(Record::LlmError {
+                        layer: layer.into(),
+                        attempt,
+                        error: error.to_string(),
+                    });
+                    if let Some(passed) = passed_before {
+                        return Ok(passed);
+                    }
+                    return Err(MissionError::Llm { layer, error });
+                }
+            };
+            self.account(stats, layer, attempt, &reply);
+            let problems = match parse(&reply.content) {
+                Err(e) => vec![e.to_string()],
+                Ok(parsed) => {
+                    let checked = check(&parsed);
+                    for r in &checked.rejections {
+                        stats.gate_rejections += 1;
+                        self.log.note(Record::GateRejected {
+                            layer: layer.into(),
+                            call: r.clone(),
+                            reason: String::new(),
+                        });
+                        let _ = self.updates.send(MissionUpdate::Rejected {
+                            call: r.clone(),
+                            reason: format!("{layer} reply"),
+                        });
+                    }
+                    if checked.rejections.is_empty() || attempt == attempts {
+                        return Ok(checked.accepted);
+                    }
+                    if let Some(narrowed) = checked.narrowed {
+                        schema = narrowed;
+                    }
+                    passed_before = Some(checked.accepted);
+                    checked.rejections
+                }
+            };
+            let problems = distinct_problems(problems);
+            last_problem = problems.join("; ");
+            messages.push(ChatMessage::assistant(without_repeated_items(
+                &reply.content,
+            )));
+            messages.push(ChatMessage::user(format!(
+                "Your reply was rejected:\n- {}\nAnswer again with the corrected JSON object only.",
+                problems.join("\n- ")
+            )));
+        }
+        if let Some(passed) = passed_before {
+            return Ok(passed);
+        }
+        Err(MissionError::NoValidReply {
+            layer,
+            attempts,
+            reason: last_problem,
+        })
+    }
+
+    pub(super) fn account(
+        &self,
+        stats: &mut MissionStats,
+        layer: &'static str,
+        attempt: u32,
+        reply: &ChatReply,
+    ) {
+        stats.prompt_tokens += u64::from(reply.usage.prompt_tokens);
+        stats.completion_tokens += u64::from(reply.usage.completion_tokens);
+        stats.call_latency_total += reply.latency;
+        self.log.note(Record::LlmReply {
+            layer: layer.into(),
+            attempt,
+            content: reply.content.clone(),
+            reasoning: reply.reasoning.clone(),
+            latency_ms: reply.latency.as_millis() as u64,
+            prompt_tokens: reply.usage.prompt_tokens,
+            completion_tokens: reply.usage.completion_tokens,
+        });
+        let _ = self.updates.send(MissionUpdate::Call {
+            layer,
+            latency: reply.latency,
+            prompt_tokens: reply.usage.prompt_tokens,
+            completion_tokens: reply.usage.completion_tokens,
+        });
+    }
+}
+
+/// `reply` as echoed back in a repair round: in its lists of objects, an item equal to an
+/// earlier one but for its `task` is left out (the engine drops such repeats anyway). A 135M
+/// model that loops on one call writes it until the list is full, and echoed whole, its 680
+/// tokens pushed a 6-drone repair round past the embedded model's 4096-token window. A reply
+/// that is not a JSON object is echoed as it is.
+pub(super) fn without_repeated_items(reply: &str) -> String {
+    let Ok(serde_json::Value::Object(mut object)) = serde_json::from_str(reply) else {
+        return reply.to_owned();
+    };
+    for value in object.values_mut() {
+        let serde_json::Value::Array(items) = value else {
+            continue;
+        };
+        let mut seen: Vec<serde_json::Value> = Vec::new();
+        items.retain(|item| {
+            let mut key = item.clone();
+            if let Some(o) = key.as_object_mut() {
+                o.remove("task");
+            }
+            let new = !seen.contains(&key);
+            seen.push(key);
+            new
+        });
+    }
+    serde_json::to_string(&object).unwrap_or_else(|_| reply.to_owned())
+}
+
+/// The problems of a reply, each said once: the same refusal of the same call under other task
+/// ids ("T2 alfa start_tracking(car_1): …", "T3 alfa start_tracking(car_1): …") is one line.
+pub(super) fn distinct_problems(problems: Vec<String>) -> Vec<String> {
+    let mut seen: Vec<String> = Vec::new();
+    problems
+        .into_iter()
+        .filter(|p| {
+            let key = match p.split_once(' ') {
+                Some((first, rest))
+                    if first.len() > 1
+                        && first.starts_with(['T', 'A'])
+                        && first[1..].chars().all(|c| c.is_ascii_digit()) =>
+                {
+                    rest.to_owned()
+                }
+                _ => p.clone(),
+            };
+            let new = !seen.contains(&key);
+            seen.push(key);
+            new
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_repair_echo_leaves_out_repeated_items_and_problems_are_said_once() {
+        let reply = r#"{"reasoning": "r", "plan": [
+            {"task": "T1", "drone": "alfa", "action": "goto", "target": "car_1", "xyz": null},
+            {"task": "T2", "drone": "alfa", "action": "arm_takeoff", "target": "none", "xyz": null},
+            {"task": "T3", "drone": "alfa", "action": "arm_takeoff", "target": "none", "xyz": null},
+            {"task": "T4", "drone": "alfa", "action": "goto", "target": "car_2", "xyz": null}]}"#;
+        let echoed: serde_json::Value =
+            serde_json::from_str(&without_repeated_items(reply)).expect("JSON");
+        let tasks: Vec<&str> = echoed["plan"]
+            .as_array()
+            .expect("plan")
+            .iter()
+            .filter_map(|c| c["task"].as_str())
+            .collect();
+        assert_eq!(tasks, ["T1", "T2", "T4"]);
+        assert_eq!(echoed["reasoning"], "r");
+        assert_eq!(without_repeated_items("Sure!"), "Sure!");
+        let problems = distinct_problems(vec![
+            "T2 alfa start_tracking(car_1): car_1 is not a target".into(),
+            "T3 alfa start_tracking(car_1): car_1 is not a target".into(),
+            "T4 bravo start_tracking(car_1): car_1 is not a target".into(),
+            "the plan is empty".into(),
+            "the plan is empty".into(),
+        ]);
+        assert_eq!(
+            problems,
+            [
+                "T2 alfa start_tracking(car_1): car_1 is not a target",
+                "T4 bravo start_tracking(car_1): car_1 is not a target",
+                "the plan is empty"
+            ]
+        );
+    }
+}

@@ -1,0 +1,337 @@
+//! The Coordinator layer: the pilot's instruction (or an automatic replan) in, a checked plan out.
+
+use super::Mission;
+use super::caller::Checked;
+use super::checks::check_static;
+use super::plan_state::{ActivePlan, PlanTask};
+use crate::mission::grounding;
+use crate::mission::log::Record;
+use crate::mission::report::{MissionError, MissionUpdate};
+use std::collections::HashMap;
+use tacos_llm::ChatMessage;
+use tacos_prompts::render::{self, HistoryEntry, TaskStatus};
+use tacos_prompts::schema::{self, Output};
+use tacos_prompts::{ActionName, Call, CoordinatorReply, texts};
+use tacos_shared::DroneMode;
+
+impl Mission {
+    /// Runs the Coordinator for `instruction`; its plan replaces the current one (the pending
+    /// plan was in its prompt).
+    pub(super) async fn coordinate(&mut self, instruction: &str) -> Result<(), MissionError> {
+        let pending: Vec<(Call, TaskStatus)> = self
+            .plan_lines()
+            .into_iter()
+            .filter(|(_, s)| *s != TaskStatus::Done)
+            .collect();
+        let (drones, places) = self.enums();
+        let names: Vec<String> = drones.iter().chain(&places).cloned().collect();
+        let named = render::named_in(instruction, &names);
+        let pending_places: Vec<String> = pending
+            .iter()
+            .filter_map(|(c, _)| c.target_name().map(str::to_owned))
+            .collect();
+        let scope = grounding::places_in_scope(&places, &named, &pending_places);
+        // A plan for a drone that cannot fly it would wait for ever: the grammar offers only the
+        // available drones, and the reply check holds a server that ignores the schema to them.
+        let available = self.available_ids();
+        if available.is_empty() {
+            return Err(MissionError::NoDroneAvailable);
+        }
+        // A target the instruction asks to be followed must be tracked by the plan (or be
+        // followed already); a drone named beside it is suggested only if it can fly.
+        let follow: Vec<grounding::FollowAsked> =
+            grounding::follow_asked(instruction, &drones, &self.trackable())
+                .into_iter()
+                .map(|a| grounding::FollowAsked {
+                    drone: a.drone.filter(|d| available.contains(d)),
+                    ..a
+                })
+                .collect();
+        let followed = self.followed_targets();
+        let user = render::coordinator_request(
+            &render::swarm(&self.drone_lines()),
+            &self.world_text(),
+            &render::plan(&pending),
+            &render::history(&self.history),
+            instruction,
+            &named,
+        );
+        let messages = coordinator_messages(user);
+        let in_scope = |name: &String| scope.as_ref().is_none_or(|s| s.contains(name));
+        let trackable: Vec<String> = self.trackable().into_iter().filter(in_scope).collect();
+        let schema = schema::build(
+            Output::Coordinator,
+            &available,
+            scope.as_ref().unwrap_or(&places),
+            &trackable,
+        );
+        let first_schema = schema.clone();
+        self.tell(MissionUpdate::Thinking {
+            layer: "coordinator",
+        });
+        self.stats.coordinator_calls += 1;
+        let scenario = self.gate.scenario().clone();
+        let visible = self.visible_targets();
+        let checked = self
+            .caller
+            .ask(
+                &mut self.stats,
+                "coordinator",
+                messages,
+                Output::Coordinator,
+                schema,
+                self.cfg
+                    .coordinator_max_tokens
+                    .max(schema::token_budget(Output::Coordinator, drones.len())),
+                CoordinatorReply::parse,
+                |reply: &CoordinatorReply| {
+                    let mut rejections = Vec::new();
+                    let mut plan = Vec::new();
+                    for call in &reply.plan {
+                        let off = scope
+                            .as_ref()
+                            .and_then(|s| grounding::off_scope(call, &places, s));
+                        let checked = match off {
+                            Some(why) => Err(why),
+                            None if drones.contains(&call.drone)
+                                && !available.contains(&call.drone) =>
+                            {
+                                Err(format!(
+                                    "{} is unavailable; the drones available are: {}",
+                                    call.drone,
+                                    available.join(", ")
+                                ))
+                            }
+                            None => check_static(call, &scenario, &visible),
+                        };
+                        match checked {
+                            Ok(()) => plan.push(call.clone()),
+                            Err(why) => rejections.push(format!("{call}: {why}")),
+                        }
+                    }
+                    if reply.plan.is_empty() {
+                        rejections.push("the plan is empty".into());
+                    }
+                    let missing = grounding::untracked(&follow, &plan, &followed);
+                    // The repair round's grammar opens the plan with the missing tracking.
+                    let narrowed = (!missing.is_empty()).then(|| {
+                        let required: Vec<schema::RequiredCall> = missing
+                            .iter()
+                            .map(|a| schema::RequiredCall {
+                                drones: a
+                                    .drone
+                                    .clone()
+                                    .map_or_else(|| available.clone(), |d| vec![d]),
+                                action: "start_tracking",
+                                target: a.target.clone(),
+                            })
+                            .collect();
+                        schema::requiring(&first_schema, &required)
+                    });
+                    rejections.extend(missing.iter().map(grounding::FollowAsked::missing_text));
+                    Checked {
+                        accepted: (reply.reasoning.clone(), plan),
+                        rejections,
+                        narrowed,
+                    }
+                },
+            )
+            .await?;
+        let (reasoning, calls) = checked;
+        if calls.is_empty() {
+            // Every call of the last attempt was refused: the plan in force (if any) stays, and
+            // the refusals are in the log's repair requests.
+            return Err(MissionError::NoValidReply {
+                layer: "coordinator",
+                attempts: self.caller.max_repairs + 1,
+                reason: "no call of its plan passed the checks".into(),
+            });
+        }
+        let (calls, repeats) = without_repeated_work(calls);
+        for call in repeats {
+            let text = format!("{call}: repeats {}'s previous task: dropped", call.drone);
+            self.log.note(Record::Event { text: text.clone() });
+            self.tell(MissionUpdate::Event(text));
+        }
+        let calls = self.with_implied_takeoffs(calls);
+        self.log.note(Record::Plan {
+            reasoning: reasoning.clone(),
+            plan: serde_json::to_value(&calls).unwrap_or_default(),
+        });
+        self.tell(MissionUpdate::Plan {
+            reasoning: reasoning.clone(),
+            calls: calls.iter().map(|c| c.to_string()).collect(),
+        });
+        self.history.push(HistoryEntry::Plan {
+            reasoning: reasoning.clone(),
+            plan: calls.clone(),
+        });
+        // Tasks already running keep their status when the new plan repeats them.
+        let running: HashMap<(String, String), PlanTask> = self
+            .plan
+            .take()
+            .into_iter()
+            .flat_map(|p| p.tasks)
+            .filter(|t| t.status == TaskStatus::Running)
+            .map(|t| (same_work(&t.call), t))
+            .collect();
+        let tasks = calls
+            .into_iter()
+            .map(|call| match running.get(&same_work(&call)) {
+                Some(t) => PlanTask {
+                    call,
+                    status: TaskStatus::Running,
+                    sent: t.sent.clone(),
+                    failures: t.failures,
+                },
+                None => PlanTask {
+                    call,
+                    status: TaskStatus::NotStarted,
+                    sent: None,
+                    failures: 0,
+                },
+            })
+            .collect();
+        self.plan = Some(ActivePlan {
+            reasoning,
+            tasks,
+            memory: Vec::new(),
+            cycles: 0,
+            stuck_since: None,
+        });
+        Ok(())
+    }
+
+    /// The plan with a take-off added before the first goto or start_tracking of each drone that
+    /// is on the ground and has no take-off anywhere in the plan: the Coordinator's own rule ("a
+    /// drone on the ground must take off before goto"), which a small model forgets. Without it
+    /// such a task can never start. Each addition is logged; the gate still checks every action.
+    pub(super) fn with_implied_takeoffs(&mut self, calls: Vec<Call>) -> Vec<Call> {
+        let grounded: Vec<String> = {
+            let view = self.link.view();
+            let now = self.link.clock().instant();
+            view.drones()
+                .filter(|e| e.effective_mode(now) == DroneMode::Idle)
+                .map(|e| e.id.to_string())
+                .collect()
+        };
+        let mut next_id = calls
+            .iter()
+            .filter_map(|c| c.task.strip_prefix('T')?.parse::<u32>().ok())
+            .max()
+            .unwrap_or(0);
+        let mut out: Vec<Call> = Vec::with_capacity(calls.len());
+        for call in &calls {
+            let needs_air = matches!(call.action, ActionName::Goto | ActionName::StartTracking);
+            let takes_off = |c: &Call| c.drone == call.drone && c.action == ActionName::ArmTakeoff;
+            if needs_air
+                && grounded.contains(&call.drone)
+                && !calls.iter().any(takes_off)
+                && !out.iter().any(takes_off)
+            {
+                next_id += 1;
+                let takeoff = Call {
+                    task: format!("T{next_id}"),
+                    drone: call.drone.clone(),
+                    action: ActionName::ArmTakeoff,
+                    target: schema::NO_TARGET.to_owned(),
+                    xyz: None,
+                };
+                let text = format!(
+                    "{call}: {} is on the ground and the plan never takes it off: added {takeoff}",
+                    call.drone
+                );
+                self.log.note(Record::Event { text: text.clone() });
+                self.tell(MissionUpdate::Event(text));
+                out.push(takeoff);
+            }
+            out.push(call.clone());
+        }
+        out
+    }
+}
+
+/// The Coordinator's messages: its configuration prompt, the few-shot examples as turns, then
+/// the request.
+pub fn coordinator_messages(user: String) -> Vec<ChatMessage> {
+    let mut messages = vec![ChatMessage::system(texts::COORDINATOR)];
+    for example in texts::coordinator_examples().unwrap_or_default() {
+        // "Named in the instruction" as a real request shows it: the example plan's drones and
+        // places that its instruction names.
+        let names: Vec<String> = CoordinatorReply::parse(&example.reply.to_string())
+            .map(|r| {
+                r.plan
+                    .iter()
+                    .flat_map(|c| [Some(c.drone.clone()), c.target_name().map(str::to_owned)])
+                    .flatten()
+                    .collect()
+            })
+            .unwrap_or_default();
+        let named = render::named_section(&render::named_in(&example.instruction, &names));
+        messages.push(ChatMessage::user(format!(
+            "## Context\n{}\n## Instruction\n{}\n{named}",
+            example.context, example.instruction
+        )));
+        messages.push(ChatMessage::assistant(example.reply.to_string()));
+    }
+    messages.push(ChatMessage::user(user));
+    messages
+}
+
+/// The plan without calls that repeat their drone's previous call in the plan (the 135M model
+/// lists `alfa goto(villa)` six times in a row), and the calls dropped. Doing the same work
+/// twice in a row changes nothing, and each repeat would cost a Supervisor cycle. Work repeated
+/// after other work for that drone (out and back) is kept.
+pub(super) fn without_repeated_work(calls: Vec<Call>) -> (Vec<Call>, Vec<Call>) {
+    let mut kept: Vec<Call> = Vec::with_capacity(calls.len());
+    let mut dropped = Vec::new();
+    for call in calls {
+        let previous = kept.iter().rev().find(|c| c.drone == call.drone);
+        if previous.is_some_and(|p| same_work(p) == same_work(&call)) {
+            dropped.push(call);
+        } else {
+            kept.push(call);
+        }
+    }
+    (kept, dropped)
+}
+
+/// What a call asks of which drone, whatever its task id: a replan that repeats a running call
+/// keeps it running instead of starting it again.
+pub(super) fn same_work(call: &Call) -> (String, String) {
+    let text = call.to_string();
+    let without_task = text
+        .split_once(' ')
+        .map(|x| x.1.to_owned())
+        .unwrap_or_default();
+    (call.drone.clone(), without_task)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn work_repeated_in_a_row_is_one_task() {
+        let call = |task: &str, drone: &str, action: ActionName, target: &str| Call {
+            task: task.into(),
+            drone: drone.into(),
+            action,
+            target: target.into(),
+            xyz: None,
+        };
+        let plan = vec![
+            call("T1", "alfa", ActionName::Goto, "villa"),
+            call("T2", "bravo", ActionName::Goto, "villa"),
+            call("T3", "alfa", ActionName::Goto, "villa"),
+            call("T4", "alfa", ActionName::Goto, "small_park"),
+            call("T5", "alfa", ActionName::Goto, "villa"),
+            call("T6", "alfa", ActionName::Goto, "villa"),
+        ];
+        let (kept, dropped) = without_repeated_work(plan);
+        let tasks = |calls: &[Call]| calls.iter().map(|c| c.task.clone()).collect::<Vec<_>>();
+        // Bravo's goto between alfa's two does not separate them; small_park does (out and back).
+        assert_eq!(tasks(&kept), ["T1", "T2", "T4", "T5"]);
+        assert_eq!(tasks(&dropped), ["T3", "T6"]);
+    }
+}

@@ -1,0 +1,498 @@
+//! The Supervisor's and the monolithic model's cycles: what may start now, the model's choice,
+//! the live checks, and the sends.
+
+use super::Mission;
+use super::caller::Checked;
+use super::checks::check_live;
+use super::coordinator::same_work;
+use super::plan_state::PlanTask;
+use crate::mission::config::Mode;
+use crate::mission::log::Record;
+use crate::mission::report::{MissionError, MissionUpdate};
+use tacos_llm::ChatMessage;
+use tacos_prompts::offer::{Callable, callable_schema, startable_schema};
+use tacos_prompts::render::{self, TaskStatus};
+use tacos_prompts::schema::{self, Output};
+use tacos_prompts::{ActionName, Call, MonolithicReply, ReplyError, SupervisorReply, texts};
+use tacos_shared::action::Action;
+use tacos_shared::{DroneId, DroneMode};
+
+impl Mission {
+    /// One Supervisor (or monolithic) cycle.
+    pub async fn cycle(&mut self) -> Result<(), MissionError> {
+        match self.cfg.mode {
+            Mode::Mnl => self.monolithic_cycle().await,
+            Mode::Tacos | Mode::Wor => self.supervisor_cycle().await,
+        }
+    }
+
+    pub(super) async fn supervisor_cycle(&mut self) -> Result<(), MissionError> {
+        let Some(plan) = self.plan.as_ref() else {
+            return Ok(());
+        };
+        if plan.cycles >= self.cfg.max_cycles_per_plan {
+            if let Some(plan) = self.plan.take() {
+                self.finish_plan(plan, "abandoned after too many cycles");
+                self.tell(MissionUpdate::Error(format!(
+                    "the plan was not complete after {} Supervisor cycles",
+                    self.cfg.max_cycles_per_plan
+                )));
+            }
+            return Ok(());
+        }
+        // What could start now. When nothing can, the Supervisor has no decision to make: wait
+        // for the swarm (an outcome, a membership change or the cycle timeout wakes us again).
+        let startable = self.startable_calls();
+        if startable.is_empty() {
+            self.give_up_if_stuck();
+            return Ok(());
+        }
+        // With nothing of the plan running, waiting cannot be right: nothing would change.
+        let idle = !plan.tasks.iter().any(|t| t.status == TaskStatus::Running);
+        let reasoning = (self.cfg.mode == Mode::Tacos).then(|| plan.reasoning.clone());
+        let user = render::supervisor_request(
+            reasoning.as_deref(),
+            &render::plan(&self.plan_lines()),
+            &render::swarm(&self.drone_lines()),
+            &self.world_text(),
+            &plan.memory,
+        );
+        if let Some(plan) = self.plan.as_mut() {
+            plan.stuck_since = None;
+        }
+        let ask = CycleAsk {
+            layer: "supervisor",
+            output: Output::Supervisor,
+            messages: supervisor_messages(user),
+            schema: startable_schema(&startable, idle),
+            parse: |text| SupervisorReply::parse(text).map(CycleReply::from),
+            only: Some(startable),
+            tasks: self.plan_lines(),
+        };
+        let cycle = self
+            .ask_and_send(ask, |mission, call, drone, seq| {
+                let Some(plan) = mission.plan.as_mut() else {
+                    return;
+                };
+                plan.memory.push(format!("issued {call}"));
+                let sent = Some((drone, seq));
+                match plan.tasks.iter_mut().find(|t| t.call.task == call.task) {
+                    Some(t) => {
+                        t.call = call;
+                        t.status = TaskStatus::Running;
+                        t.sent = sent;
+                    }
+                    None => plan.tasks.push(PlanTask {
+                        call,
+                        status: TaskStatus::Running,
+                        sent,
+                        failures: 0,
+                    }),
+                }
+            })
+            .await?;
+        // The Supervisor's claim that the plan is complete is logged only: the plan is
+        // complete when its tasks are done (`poll_outcomes`).
+        if let Some(plan) = self.plan.as_mut() {
+            plan.cycles += 1;
+            let n = plan.cycles;
+            self.note_cycle(n, cycle);
+        }
+        Ok(())
+    }
+
+    pub(super) async fn monolithic_cycle(&mut self) -> Result<(), MissionError> {
+        if self.mnl.claimed_done {
+            // The model said its actions carry out the instructions: wait for their outcomes.
+            return Ok(());
+        }
+        if self.mnl.cycles >= self.cfg.max_cycles_per_plan {
+            self.mnl.active = false;
+            let text = format!(
+                "the monolithic model did not carry out the instructions in {} cycles",
+                self.mnl.cycles
+            );
+            self.log.note(Record::Event { text: text.clone() });
+            self.tell(MissionUpdate::Error(text));
+            return Ok(());
+        }
+        // As for the Supervisor: when no drone can take an action, there is nothing to decide.
+        let callable = self.callable_now();
+        if callable.is_empty() {
+            return Ok(());
+        }
+        let user = render::monolithic_request(
+            &self.mnl.instructions,
+            &render::swarm(&self.drone_lines()),
+            &self.world_text(),
+            &self.mnl.executed,
+        );
+        let (drones, places) = self.enums();
+        let trackable = self.trackable();
+        let ask = CycleAsk {
+            layer: "monolithic",
+            output: Output::Monolithic,
+            messages: vec![
+                ChatMessage::system(texts::MONOLITHIC),
+                ChatMessage::user(user),
+            ],
+            schema: callable_schema(&callable, &drones, &places, &trackable),
+            parse: |text| MonolithicReply::parse(text).map(CycleReply::from),
+            only: None,
+            tasks: self
+                .mnl
+                .tasks
+                .iter()
+                .map(|t| (t.call.clone(), t.status.clone()))
+                .collect(),
+        };
+        let cycle = self
+            .ask_and_send(ask, |mission, call, drone, seq| {
+                mission.mnl.tasks.push(PlanTask {
+                    call,
+                    status: TaskStatus::Running,
+                    sent: Some((drone, seq)),
+                    failures: 0,
+                });
+            })
+            .await?;
+        self.mnl.next_task += callable.len() as u32;
+        self.mnl.cycles += 1;
+        self.mnl.claimed_done = cycle.claim_stands();
+        self.note_cycle(self.mnl.cycles, cycle);
+        self.judge_monolithic();
+        Ok(())
+    }
+
+    /// The common part of a Supervisor and a monolithic cycle: ask the model (with the repair
+    /// loop), keep the calls that are among `only` (when given) and pass `check_live` and the
+    /// safety gate, send them, and hand each sent call to `issued` for the caller's bookkeeping.
+    pub(super) async fn ask_and_send(
+        &mut self,
+        ask: CycleAsk,
+        issued: fn(&mut Mission, Call, DroneId, u64),
+    ) -> Result<CycleOutcome, MissionError> {
+        self.tell(MissionUpdate::Thinking { layer: ask.layer });
+        self.stats.supervisor_calls += 1;
+        let max_tokens = self
+            .cfg
+            .supervisor_max_tokens
+            .max(schema::token_budget(ask.output, self.swarm_ids().len()));
+        let (reasoning, claim, all_passed, accepted, later) = {
+            let (gate, link) = (&self.gate, &self.link);
+            let visible = self.visible_targets();
+            let (only, tasks) = (&ask.only, &ask.tasks);
+            self.caller
+                .ask(
+                    &mut self.stats,
+                    ask.layer,
+                    ask.messages,
+                    ask.output,
+                    ask.schema,
+                    max_tokens,
+                    ask.parse,
+                    |reply: &CycleReply| {
+                        let (firsts, later) = first_call_per_drone(&reply.actions);
+                        let (calls, mut rejections) = match only {
+                            Some(startable) => match_startable(&firsts, startable),
+                            None => (firsts, Vec::new()),
+                        };
+                        let (accepted, live) = check_live(&calls, gate, link, &visible, tasks);
+                        rejections.extend(live);
+                        Checked {
+                            accepted: (
+                                reply.reasoning.clone(),
+                                reply.claim,
+                                rejections.is_empty() && later.is_empty(),
+                                accepted,
+                                later,
+                            ),
+                            rejections,
+                            narrowed: None,
+                        }
+                    },
+                )
+                .await?
+        };
+        if !later.is_empty() {
+            let text = format!(
+                "later steps in the same reply, left for a later cycle: {}",
+                later.join("; ")
+            );
+            self.log.note(Record::Event { text: text.clone() });
+            self.tell(MissionUpdate::Event(text));
+        }
+        let mut sent = Vec::new();
+        for (call, checked) in accepted {
+            let seq = self.send(&checked, Some(call.task.clone())).await?;
+            sent.push(call.to_string());
+            issued(self, call, checked.drone().clone(), seq);
+        }
+        Ok(CycleOutcome {
+            reasoning,
+            claim,
+            all_passed,
+            sent,
+        })
+    }
+
+    /// Counts a cycle, logs it with the model's claim, and reports it.
+    pub(super) fn note_cycle(&mut self, plan_cycle: u32, cycle: CycleOutcome) {
+        self.stats.cycles_total += 1;
+        self.log.note(Record::SupervisorCycle {
+            plan_cycle,
+            actions: cycle.sent.clone(),
+            plan_complete: cycle.claim,
+        });
+        self.tell(MissionUpdate::Cycle {
+            plan_cycle,
+            reasoning: cycle.reasoning,
+            actions: cycle.sent,
+        });
+    }
+
+    /// The monolithic model's instructions are carried out when its claim stands and every
+    /// action it issued for them has finished (a failure has withdrawn the claim already).
+    pub(super) fn judge_monolithic(&mut self) {
+        let m = &self.mnl;
+        if !(m.active && m.claimed_done) || m.tasks.iter().any(|t| t.status == TaskStatus::Running)
+        {
+            return;
+        }
+        self.mnl.active = false;
+        let cycles = self.mnl.cycles;
+        self.stats.cycles_per_plan.push(cycles);
+        self.log.note(Record::PlanComplete { cycles });
+        self.tell(MissionUpdate::PlanComplete { cycles });
+    }
+
+    /// What the monolithic model may call now: for each drone that can take an action, a fresh
+    /// task id and the actions its mode allows whose effect does not already hold. Points and
+    /// targets are checked per call afterwards, by `check_live` and the safety gate.
+    pub(super) fn callable_now(&self) -> Vec<Callable> {
+        let swarm = self.swarm_ids();
+        let pending = self.drones_with_pending_actions();
+        let view = self.link.view();
+        let now = self.link.clock().instant();
+        let mut out = Vec::new();
+        for drone in swarm {
+            let Some(entry) = DroneId::new(&drone).ok().and_then(|id| view.get(&id)) else {
+                continue;
+            };
+            if !entry.ready(now) || pending.contains(&entry.id) {
+                continue;
+            }
+            let mode = entry.effective_mode(now);
+            let actions: Vec<ActionName> = ALL_ACTIONS
+                .into_iter()
+                .filter(|a| {
+                    !effect_holds(*a, mode)
+                        && tacos_shared::action::mode_forbids(&mode_probe(*a), mode).is_none()
+                })
+                .collect();
+            if actions.is_empty() {
+                continue;
+            }
+            out.push(Callable {
+                task: format!("A{}", self.mnl.next_task + 1 + out.len() as u32),
+                drone,
+                actions,
+            });
+        }
+        out
+    }
+}
+
+/// One cycle's question to its model: the Supervisor's or the monolithic model's.
+pub(super) struct CycleAsk {
+    pub(super) layer: &'static str,
+    pub(super) output: Output,
+    pub(super) messages: Vec<ChatMessage>,
+    pub(super) schema: serde_json::Value,
+    pub(super) parse: fn(&str) -> Result<CycleReply, ReplyError>,
+    /// The calls the reply may choose from (the Supervisor's startable calls); `None`: any call
+    /// that passes the live checks (the monolithic model, which has no plan).
+    pub(super) only: Option<Vec<Call>>,
+    /// The tasks issued so far, so a running or finished task is not issued again.
+    pub(super) tasks: Vec<(Call, TaskStatus)>,
+}
+
+/// A Supervisor or monolithic reply: reasoning, calls to issue now, and the model's claim that
+/// the work is complete (`plan_complete` or `done`).
+pub(super) struct CycleReply {
+    pub(super) reasoning: String,
+    pub(super) actions: Vec<Call>,
+    pub(super) claim: bool,
+}
+
+impl From<SupervisorReply> for CycleReply {
+    fn from(r: SupervisorReply) -> Self {
+        CycleReply {
+            reasoning: r.reasoning,
+            actions: r.actions,
+            claim: r.plan_complete,
+        }
+    }
+}
+
+impl From<MonolithicReply> for CycleReply {
+    fn from(r: MonolithicReply) -> Self {
+        CycleReply {
+            reasoning: r.reasoning,
+            actions: r.actions,
+            claim: r.done,
+        }
+    }
+}
+
+/// What a cycle did.
+pub(super) struct CycleOutcome {
+    pub(super) reasoning: String,
+    /// The model claimed the work complete.
+    pub(super) claim: bool,
+    /// Every call of the accepted reply passed the checks and was issued (none was a later
+    /// step left for a later cycle).
+    pub(super) all_passed: bool,
+    pub(super) sent: Vec<String>,
+}
+
+impl CycleOutcome {
+    /// A claim of completion counts only from a reply whose every call passed and was issued:
+    /// a reply that names a rejected call or a later step and says "done" meant that call to be
+    /// part of the work.
+    pub(super) fn claim_stands(&self) -> bool {
+        self.claim && self.all_passed
+    }
+}
+
+pub(super) const ALL_ACTIONS: [ActionName; 6] = [
+    ActionName::ArmTakeoff,
+    ActionName::Goto,
+    ActionName::StartTracking,
+    ActionName::StopTracking,
+    ActionName::Land,
+    ActionName::Hold,
+];
+
+/// An action of this kind, for asking whether a mode allows it (the argument does not matter
+/// to the mode rules; the real argument is checked by the safety gate).
+pub(super) fn mode_probe(name: ActionName) -> Action {
+    match name {
+        ActionName::ArmTakeoff => Action::ArmTakeoff,
+        ActionName::Goto => Action::Goto {
+            target: tacos_shared::Vec3::default(),
+        },
+        ActionName::StartTracking => Action::StartTracking {
+            target: String::new(),
+        },
+        ActionName::StopTracking => Action::StopTracking,
+        ActionName::Land => Action::Land,
+        ActionName::Hold => Action::Hold,
+    }
+}
+
+/// The action's effect already holds for an idle drone in `mode`: take-off when airborne,
+/// landing or hold on the ground, stop-tracking when not tracking. Sending it would only be
+/// refused by the drone or do nothing.
+pub(super) fn effect_holds(action: ActionName, mode: DroneMode) -> bool {
+    match action {
+        ActionName::ArmTakeoff => mode.is_airborne(),
+        ActionName::Land | ActionName::Hold => mode == DroneMode::Idle,
+        ActionName::StopTracking => mode != DroneMode::Tracking,
+        ActionName::Goto | ActionName::StartTracking => false,
+    }
+}
+
+/// Each drone's first call in a reply; the calls after it for the same drone are its next
+/// steps (one action per drone per cycle), which a later cycle issues if they still apply. A
+/// small model lists a drone's whole route at once, often under one task id: sending that back
+/// costs a model call of minutes and changes nothing. Returns the first calls and the later
+/// steps that are other work (a repeat of the first call is just dropped).
+pub(super) fn first_call_per_drone(calls: &[Call]) -> (Vec<Call>, Vec<String>) {
+    let mut firsts: Vec<Call> = Vec::new();
+    let mut later = Vec::new();
+    for call in calls {
+        match firsts.iter().find(|c| c.drone == call.drone) {
+            None => firsts.push(call.clone()),
+            Some(first) if same_work(first) == same_work(call) => {}
+            Some(_) => later.push(call.to_string()),
+        }
+    }
+    (firsts, later)
+}
+
+/// Keeps the proposed calls that are one of the startable calls (task, drone, action and target
+/// as the plan has them; the point of a goto comes from the plan), and says why the others are not.
+pub(super) fn match_startable(proposed: &[Call], startable: &[Call]) -> (Vec<Call>, Vec<String>) {
+    let mut calls = Vec::new();
+    let mut rejections = Vec::new();
+    for call in proposed {
+        let found = startable.iter().find(|c| {
+            c.task == call.task
+                && c.drone == call.drone
+                && c.action == call.action
+                && c.target_name() == call.target_name()
+        });
+        match found {
+            Some(c) => calls.push(c.clone()),
+            None => {
+                let options: Vec<String> = startable.iter().map(|c| c.to_string()).collect();
+                rejections.push(format!(
+                    "{call}: not a task that can start now (startable: {})",
+                    options.join("; ")
+                ));
+            }
+        }
+    }
+    (calls, rejections)
+}
+
+/// The Supervisor's messages: its configuration prompt, the few-shot cycles, then the request.
+pub fn supervisor_messages(user: String) -> Vec<ChatMessage> {
+    let mut messages = vec![ChatMessage::system(texts::SUPERVISOR)];
+    for example in texts::supervisor_examples().unwrap_or_default() {
+        messages.push(ChatMessage::user(example.context));
+        messages.push(ChatMessage::assistant(example.reply.to_string()));
+    }
+    messages.push(ChatMessage::user(user));
+    messages
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_effect_that_holds_is_not_offered_again() {
+        assert!(effect_holds(ActionName::ArmTakeoff, DroneMode::Flying));
+        assert!(!effect_holds(ActionName::ArmTakeoff, DroneMode::Idle));
+        assert!(effect_holds(ActionName::Land, DroneMode::Idle));
+        assert!(!effect_holds(ActionName::Land, DroneMode::Flying));
+        assert!(effect_holds(ActionName::StopTracking, DroneMode::Flying));
+        assert!(!effect_holds(ActionName::StopTracking, DroneMode::Tracking));
+        assert!(!effect_holds(ActionName::Goto, DroneMode::Flying));
+    }
+
+    #[test]
+    fn a_reply_gives_each_drone_its_first_call_and_names_the_later_steps() {
+        let call = |task: &str, drone: &str, target: &str| Call {
+            task: task.into(),
+            drone: drone.into(),
+            action: ActionName::Goto,
+            target: target.into(),
+            xyz: None,
+        };
+        // The 135M model's monolithic reply at 12 drones: one task id, alfa's whole route.
+        let reply = vec![
+            call("A1", "alfa", "car_1"),
+            call("A1", "alfa", "car_2"),
+            call("A2", "bravo", "car_4"),
+            call("A3", "alfa", "car_1"),
+            call("A1", "alfa", "car_3"),
+        ];
+        let (firsts, later) = first_call_per_drone(&reply);
+        assert_eq!(firsts, vec![reply[0].clone(), reply[2].clone()]);
+        // The repeat of alfa's first call (under another id) is no later step.
+        assert_eq!(later, ["A1 alfa goto(car_2)", "A1 alfa goto(car_3)"]);
+    }
+}

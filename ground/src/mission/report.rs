@@ -1,0 +1,97 @@
+//! What the mission engine reports: its errors, its updates to whoever shows the mission
+//! (terminal, script runner, evaluation), and its counters.
+
+use std::time::Duration;
+use tacos_llm::LlmError;
+
+#[derive(Debug, thiserror::Error)]
+pub enum MissionError {
+    #[error("{layer}: the model server failed: {error}")]
+    Llm {
+        layer: &'static str,
+        error: LlmError,
+    },
+    #[error("{layer}: no acceptable reply after {attempts} attempts; last problem: {reason}")]
+    NoValidReply {
+        layer: &'static str,
+        attempts: u32,
+        reason: String,
+    },
+    #[error("no drone is available to carry out a plan")]
+    NoDroneAvailable,
+    #[error("not sending {action} to {drone}: the pilot gave a direct command meanwhile")]
+    Overridden { drone: String, action: String },
+    #[error("sending {action} to {drone} failed: {reason}")]
+    Send {
+        drone: String,
+        action: String,
+        reason: String,
+    },
+}
+
+/// What the engine reports to whoever shows the mission (terminal, script runner, eval).
+#[derive(Debug, Clone, PartialEq)]
+pub enum MissionUpdate {
+    Thinking {
+        layer: &'static str,
+    },
+    Plan {
+        reasoning: String,
+        calls: Vec<String>,
+    },
+    Cycle {
+        plan_cycle: u32,
+        reasoning: String,
+        actions: Vec<String>,
+    },
+    Rejected {
+        call: String,
+        reason: String,
+    },
+    Sent {
+        drone: String,
+        action: String,
+        seq: u64,
+    },
+    Outcome {
+        drone: String,
+        action: String,
+        outcome: String,
+    },
+    Event(String),
+    PlanComplete {
+        cycles: u32,
+    },
+    Error(String),
+    Call {
+        layer: &'static str,
+        latency: Duration,
+        prompt_tokens: u32,
+        completion_tokens: u32,
+    },
+}
+
+/// Counters for the evaluation harness.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct MissionStats {
+    pub model_calls: u32,
+    pub coordinator_calls: u32,
+    pub supervisor_calls: u32,
+    /// Supervisor (or monolithic) cycles of each finished plan, in order.
+    pub cycles_per_plan: Vec<u32>,
+    pub cycles_total: u32,
+    pub actions_sent: u32,
+    pub gate_rejections: u32,
+    pub prompt_tokens: u64,
+    pub completion_tokens: u64,
+    pub call_latency_total: Duration,
+}
+
+/// The statistics of a mission task whose input has been closed: it ends after any model call
+/// in flight; a task that does not end within 5 s, or panicked, reports none.
+pub async fn stats_when_done(task: tokio::task::JoinHandle<MissionStats>) -> MissionStats {
+    match tokio::time::timeout(std::time::Duration::from_secs(5), task).await {
+        Ok(Ok(stats)) => stats,
+        _ => MissionStats::default(),
+    }
+}
