@@ -92,12 +92,34 @@ pub fn build(output: Output, drones: &[String], targets: &[String], trackable: &
     // of tokens. A plan gets up to three calls per drone, a cycle one per drone.
     let n = drones.len().max(1);
     if let Some(plan) = schema.pointer_mut("/properties/plan") {
-        plan["maxItems"] = Value::from((3 * n).clamp(3, 40));
+        plan["maxItems"] = Value::from((3 * n).clamp(3, PLAN_MAX_CALLS));
     }
     if let Some(actions) = schema.pointer_mut("/properties/actions") {
         actions["maxItems"] = Value::from(n.min(20));
     }
     schema
+}
+
+/// The most calls a plan may hold, whatever the swarm's size: the list must stay bounded for the
+/// reply's token budget.
+pub const PLAN_MAX_CALLS: usize = 40;
+
+/// The bound on a Coordinator plan's length in `schema` (0 when it has none).
+pub fn plan_max_calls(schema: &Value) -> usize {
+    schema
+        .pointer("/properties/plan/maxItems")
+        .and_then(Value::as_u64)
+        .map_or(0, |n| n as usize)
+}
+
+/// The Coordinator schema `schema` with its plan bounded by [`PLAN_MAX_CALLS`] only, not by three
+/// calls per drone (the small-model aid `plan-length-cap` off).
+pub fn without_plan_cap(schema: &Value) -> Value {
+    let mut out = schema.clone();
+    if let Some(plan) = out.pointer_mut("/properties/plan") {
+        plan["maxItems"] = Value::from(PLAN_MAX_CALLS);
+    }
+    out
 }
 
 /// A call that a Coordinator plan must contain: `action` on `target`, by one of `drones`.
@@ -151,11 +173,16 @@ pub fn requiring(schema: &Value, required: &[RequiredCall]) -> Value {
 pub fn token_budget(output: Output, drones: usize) -> u32 {
     let n = drones.max(1) as u32;
     let (reasoning, items) = match output {
-        Output::Coordinator => (300, (3 * n).clamp(3, 40)),
+        Output::Coordinator => (300, (3 * n).clamp(3, PLAN_MAX_CALLS as u32)),
         Output::Supervisor => (200, n.min(20)),
         Output::Monolithic => (400, n.min(20)),
     };
     reasoning + 40 + 40 * items
+}
+
+/// The most tokens a Coordinator reply can take with a plan of up to `calls` calls.
+pub fn coordinator_token_budget(calls: usize) -> u32 {
+    300 + 40 + 40 * calls as u32
 }
 
 #[cfg(test)]

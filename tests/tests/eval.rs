@@ -9,8 +9,8 @@ use std::time::Duration;
 use tacos_ground::eval::TaskSpec;
 use tacos_ground::eval::results::Status;
 use tacos_ground::eval::run::{RunPlan, run_once};
-use tacos_ground::mission::Mode;
 use tacos_ground::mission::log::{self, Record};
+use tacos_ground::mission::{Mode, ModelAids};
 use tacos_llm::{ChatRequest, LlmError};
 use tacos_shared::scenario::Scenario;
 use tacos_shared::world::LandmarkKind;
@@ -104,6 +104,7 @@ fn plan(places: Vec<String>, tag: &str) -> anyhow::Result<RunPlan> {
         temperature: 0.0,
         time_limit: Duration::from_secs(240),
         backend: Arc::new(PolicyBackend::new(policy(places))),
+        aids: ModelAids::small(),
         log_path: std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm(tag))),
         cycle_timeout: Duration::from_secs(3),
         sim_speed: 1.0,

@@ -10,7 +10,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 use tacos_ground::launch::Role;
 use tacos_ground::mission::log::{self, MissionLog, Record};
-use tacos_ground::mission::{Mission, MissionConfig, MissionUpdate, Mode};
+use tacos_ground::mission::{Aid, Mission, MissionConfig, MissionUpdate, Mode, ModelAids};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{ChatRequest, LlmError, Role as ChatRole};
 use tacos_shared::DroneId;
@@ -446,11 +446,28 @@ async fn run_with_backend(
     std::path::PathBuf,
     u32,
 )> {
+    run_with_aids(run, tag, backend, say, ModelAids::small()).await
+}
+
+/// [`run_with_backend`] with the small-model aids given.
+async fn run_with_aids(
+    run: &Running,
+    tag: &str,
+    backend: impl tacos_llm::LlmBackend + 'static,
+    say: &str,
+    aids: ModelAids,
+) -> anyhow::Result<(
+    mpsc::UnboundedReceiver<MissionUpdate>,
+    mpsc::Sender<String>,
+    std::path::PathBuf,
+    u32,
+)> {
     let log_path = std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm(tag)));
     let backend = Arc::new(backend);
     let (tx, updates) = mpsc::unbounded_channel();
     let cfg = MissionConfig {
         cycle_timeout: Duration::from_secs(3),
+        aids,
         ..MissionConfig::default()
     };
     let max = cfg.max_task_failures;
@@ -818,9 +835,45 @@ async fn a_grounded_drone_sent_somewhere_gets_the_take_off_its_plan_forgot() -> 
         let lines = log::read(&log_path)?;
         let sent = sent_tasks(&lines);
         assert_eq!(sent.iter().filter(|(_, d)| d == "alfa").map(|(t, _)| t.as_str()).collect::<Vec<_>>(), ["T3", "T1"], "{sent:?}");
-        assert!(lines.iter().any(|l| matches!(&l.record, Record::Event { text } if text.contains("added T3 alfa arm_takeoff()"))));
+        assert!(lines.iter().any(|l| matches!(&l.record, Record::AidFired { aid: Aid::ImpliedTakeoffs, detail } if detail.contains("added T3 alfa arm_takeoff()"))));
         // Bravo had its own take-off: nothing was added for it.
         assert_eq!(sent.iter().filter(|(_, d)| d == "bravo").count(), 1, "{sent:?}");
+        assert!(lines.iter().any(|l| matches!(&l.record, Record::MissionStart { aids, .. } if *aids == ModelAids::small())));
+        anyhow::Ok(())
+    })
+    .await
+}
+
+/// The same forgotten take-off with the small-model aids off (`--aids none`): the engine adds
+/// nothing; the rule the aid stands in for refuses the goto, naming the missing take-off, and
+/// the Coordinator's repaired plan is the one flown.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn with_the_aids_off_a_forgotten_take_off_is_refused_by_name_and_the_repair_flies()
+-> anyhow::Result<()> {
+    stopping_after(start("noaids").await?, async |run| {
+        let supervisor = offered_policy(json!([]), false);
+        let policy = move |request: &ChatRequest| {
+            if !request.messages[0].content.starts_with("You are the Coordinator") {
+                return supervisor(request);
+            }
+            let told = request_text(request).contains("add `alfa arm_takeoff` before it")
+                || request.messages.iter().any(|m| m.content.contains("add `alfa arm_takeoff` before it"));
+            let mut plan = vec![call("T1", "alfa", "goto", "car_11"), call("T2", "bravo", "arm_takeoff", "none")];
+            if told {
+                plan.insert(0, call("T3", "alfa", "arm_takeoff", "none"));
+            }
+            Ok(json!({ "reasoning": "As the pilot said.", "plan": plan }).to_string())
+        };
+        let (mut updates, lines, log_path, _) = run_with_aids(run, "noaidslog", PolicyBackend::new(policy), "alfa, to car_11", ModelAids::none()).await?;
+        plan_complete(&mut updates, Duration::from_secs(90)).await?;
+        drop(lines);
+        let lines = log::read(&log_path)?;
+        let rejected: Vec<&String> = lines.iter().filter_map(|l| match &l.record { Record::GateRejected { call, .. } => Some(call), _ => None }).collect();
+        assert_eq!(rejected, ["T1 alfa goto(car_11): alfa is on the ground and the plan never takes it off: add `alfa arm_takeoff` before it"]);
+        let sent = sent_tasks(&lines);
+        assert_eq!(sent.iter().filter(|(_, d)| d == "alfa").map(|(t, _)| t.as_str()).collect::<Vec<_>>(), ["T3", "T1"], "{sent:?}");
+        assert!(!lines.iter().any(|l| matches!(&l.record, Record::AidFired { .. })), "an aid fired with the aids off");
+        assert!(lines.iter().any(|l| matches!(&l.record, Record::MissionStart { aids, .. } if *aids == ModelAids::none())));
         anyhow::Ok(())
     })
     .await
@@ -925,6 +978,7 @@ async fn a_plan_off_the_places_the_pilot_named_is_sent_back() -> anyhow::Result<
         let goto = schemas[0]["properties"]["plan"]["items"]["anyOf"][1].clone();
         assert_eq!(goto["properties"]["action"]["enum"], json!(["goto"]));
         assert_eq!(goto["properties"]["target"]["enum"], json!(["none", "car_11"]));
+        assert!(records.iter().any(|l| matches!(&l.record, Record::AidFired { aid: Aid::PlaceScope, .. })));
         anyhow::Ok(())
     })
     .await
@@ -1022,6 +1076,12 @@ async fn a_chase_is_held_to_the_pilot_and_handed_on_when_its_tracker_dies() -> a
         .await?;
         drop(lines);
         let lines = log::read(&log_path)?;
+        for aid in [Aid::FollowWords, Aid::RepairGrammar] {
+            assert!(
+                lines.iter().any(|l| matches!(&l.record, Record::AidFired { aid: fired, .. } if *fired == aid)),
+                "{aid} did not fire"
+            );
+        }
         let asked_back = lines.iter().any(|l| {
             matches!(&l.record, Record::LlmRequest { layer, messages, .. } if layer == "coordinator"
                 && messages.as_array().is_some_and(|ms| ms.iter().any(|m| m["content"].as_str().is_some_and(|c| {
@@ -1086,6 +1146,10 @@ async fn a_repair_round_that_fails_leaves_what_passed_before() -> anyhow::Result
         assert!(
             lines.iter().any(|l| matches!(&l.record, Record::LlmError { attempt: 2, error, .. } if error.contains("window"))),
             "the repair round's failure is not in the log"
+        );
+        assert!(
+            lines.iter().any(|l| matches!(&l.record, Record::AidFired { aid: Aid::KeepPartialPlan, .. })),
+            "the aid that kept the take-off is not in the log"
         );
         anyhow::Ok(())
     })

@@ -5,7 +5,7 @@ use super::LlmArgs;
 use crate::demo::{DemoOptions, DemoPlan, run_demo};
 use crate::launch::AutopilotArgs;
 use crate::mission::log::{Tally, last_mission, read};
-use crate::mission::{MissionConfig, Mode};
+use crate::mission::{MissionConfig, Mode, ModelAids};
 use crate::pilot::SessionOptions;
 use crate::script::{Script, ScriptOptions};
 use anyhow::Context;
@@ -54,6 +54,14 @@ pub struct DemoArgs {
     pub mode: Mode,
     #[command(flatten)]
     pub llm: LlmArgs,
+    /// The small-model aids: `small` (all on: what the 135M embedded model needs, and the
+    /// default), `none` (the engine's principled rules only), or a comma-separated list of
+    /// aids to turn on, `-name` turning one off after a preset (`small,-implied-takeoffs`).
+    /// Aids: place-scope, follow-words, repair-grammar, implied-takeoffs, plan-length-cap,
+    /// compact-repair-echo, keep-partial-plan. The mission log records which were on and
+    /// each time one fired.
+    #[arg(long, default_value = "small")]
+    pub aids: ModelAids,
     /// The mission log (JSON lines); default: missions-out/<time>-<mode>.jsonl
     #[arg(long)]
     pub log: Option<PathBuf>,
@@ -107,6 +115,7 @@ impl DemoArgs {
         );
         let mission = MissionConfig {
             mode: self.mode,
+            aids: self.aids,
             ..MissionConfig::default()
         };
         let plan = match script {

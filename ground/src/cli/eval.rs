@@ -2,7 +2,7 @@
 
 use super::LlmArgs;
 use crate::eval::{EvalOptions, TaskSpec, evaluate};
-use crate::mission::{MissionConfig, Mode};
+use crate::mission::{MissionConfig, Mode, ModelAids};
 use anyhow::bail;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -51,6 +51,10 @@ pub struct EvalArgs {
     pub sim_speed: f64,
     #[command(flatten)]
     pub llm: LlmArgs,
+    /// The small-model aids of every run: `small` (all on), `none`, or aids by name
+    /// (see `tacos-ground demo --help`). Runs with other aids are refused in the same OUT.
+    #[arg(long, default_value = "small")]
+    pub aids: ModelAids,
 }
 
 impl EvalArgs {
@@ -79,6 +83,7 @@ impl EvalArgs {
             cycle_timeout: MissionConfig::default().cycle_timeout,
             sim_speed: self.sim_speed,
             backend: self.llm.backend()?,
+            aids: self.aids,
             verbose: true,
         };
         let summary = evaluate(opts.clone(), super::ctrl_c()).await?;

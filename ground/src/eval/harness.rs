@@ -6,7 +6,7 @@ use super::results::{self, RunRecord, RunsFile, Status};
 use super::run::{RunPlan, run_once};
 use super::task::TaskSpec;
 use super::{EvalError, chart};
-use crate::mission::Mode;
+use crate::mission::{Mode, ModelAids};
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -34,6 +34,8 @@ pub struct EvalOptions {
     /// Simulated seconds per wall second while no model call is in flight.
     pub sim_speed: f64,
     pub backend: Arc<dyn LlmBackend>,
+    /// The small-model aids of every run.
+    pub aids: ModelAids,
     /// Print progress on standard output.
     pub verbose: bool,
 }
@@ -132,7 +134,13 @@ pub async fn evaluate(
     let runs_path = opts.out.join("runs.jsonl");
     let mut records = results::read_runs(&runs_path)?;
     let backend = opts.backend.describe();
-    let done = results::done_runs(&runs_path, &records, &opts.task.name, &backend)?;
+    let done = results::done_runs(
+        &runs_path,
+        &records,
+        &opts.task.name,
+        &backend,
+        &opts.aids.to_string(),
+    )?;
     // Errors are run again; their records are kept in the file but not in the table.
     records.retain(|r| r.status != Status::Error);
     let mut file = RunsFile::open(&runs_path)?;
@@ -182,6 +190,7 @@ pub async fn evaluate(
             temperature: opts.temperature,
             time_limit,
             backend: opts.backend.clone(),
+            aids: opts.aids,
             log_path: opts.out.join("logs").join(format!(
                 "{}-{}-n{drones}-r{run}.jsonl",
                 opts.task.name,

@@ -29,6 +29,10 @@ pub struct RunRecord {
     /// The seed given to every model request of the run.
     pub seed: u64,
     pub backend: String,
+    /// The small-model aids that were on (`mission::aids`); runs recorded before they were
+    /// switches had them all.
+    #[serde(default = "all_aids")]
+    pub aids: String,
     pub status: Status,
     pub reason: String,
     /// Wall-clock seconds the run took, set-up and shut-down included.
@@ -62,6 +66,10 @@ fn real_time() -> f64 {
     1.0
 }
 
+fn all_aids() -> String {
+    crate::mission::ModelAids::small().to_string()
+}
+
 impl RunRecord {
     pub fn key(&self) -> RunKey {
         RunKey {
@@ -84,14 +92,16 @@ pub enum ResultsError {
     #[error("{path}: {reason}")]
     Io { path: String, reason: String },
     #[error(
-        "{path} holds runs of task {task:?} with {backend:?}; this evaluation is {want_task:?} with {want_backend:?}: use another --out"
+        "{path} holds runs of task {task:?} with {backend:?} (aids {aids}); this evaluation is {want_task:?} with {want_backend:?} (aids {want_aids}): use another --out"
     )]
     Mismatch {
         path: String,
         task: String,
         backend: String,
+        aids: String,
         want_task: String,
         want_backend: String,
+        want_aids: String,
     },
 }
 
@@ -143,23 +153,26 @@ pub fn read_runs(path: &Path) -> Result<Vec<RunRecord>, ResultsError> {
 }
 
 /// The runs already carried out (success or failure; errors are run again). Records of another
-/// task or model are refused: mixing them would make the table meaningless.
+/// task, model or aids are refused: mixing them would make the table meaningless.
 pub fn done_runs(
     path: &Path,
     records: &[RunRecord],
     task: &str,
     backend: &str,
+    aids: &str,
 ) -> Result<HashSet<RunKey>, ResultsError> {
     if let Some(other) = records
         .iter()
-        .find(|r| r.task != task || r.backend != backend)
+        .find(|r| r.task != task || r.backend != backend || r.aids != aids)
     {
         return Err(ResultsError::Mismatch {
             path: path.display().to_string(),
             task: other.task.clone(),
             backend: other.backend.clone(),
+            aids: other.aids.clone(),
             want_task: task.to_owned(),
             want_backend: backend.to_owned(),
+            want_aids: aids.to_owned(),
         });
     }
     Ok(records
@@ -372,6 +385,7 @@ mod tests {
             run,
             seed: 1,
             backend: "m".into(),
+            aids: "small".into(),
             status,
             reason: String::new(),
             elapsed_s: 1.0,
@@ -476,7 +490,8 @@ mod tests {
         drop(f);
         let records = read_runs(&path).expect("read");
         assert_eq!(records.len(), 2);
-        let done = done_runs(&path, &records, "find-suspect", "m").expect("same evaluation");
+        let done =
+            done_runs(&path, &records, "find-suspect", "m", "small").expect("same evaluation");
         let key = |run| RunKey {
             mode: "tacos".into(),
             drones: 6,
@@ -484,7 +499,7 @@ mod tests {
         };
         assert!(done.contains(&key(0)) && !done.contains(&key(1)));
         assert!(matches!(
-            done_runs(&path, &records, "find-suspect", "another model"),
+            done_runs(&path, &records, "find-suspect", "another model", "small"),
             Err(ResultsError::Mismatch { .. })
         ));
         // Resuming appends after the last whole record.
@@ -493,7 +508,8 @@ mod tests {
             .expect("append");
         let records = read_runs(&path).expect("read again");
         assert_eq!(records.len(), 3);
-        let done = done_runs(&path, &records, "find-suspect", "m").expect("same evaluation");
+        let done =
+            done_runs(&path, &records, "find-suspect", "m", "small").expect("same evaluation");
         assert!(done.contains(&key(1)));
         let _ = std::fs::remove_dir_all(&dir);
     }

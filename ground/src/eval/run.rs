@@ -10,7 +10,7 @@ use crate::direct::run_actions;
 use crate::launch::{Role, Stack, StackConfig};
 use crate::link::GroundLink;
 use crate::mission::log::{self, MissionLog};
-use crate::mission::{Mission, MissionConfig, MissionUpdate, Mode};
+use crate::mission::{Mission, MissionConfig, MissionUpdate, Mode, ModelAids};
 use crate::safety::SafetyGate;
 use crate::task_guard::AbortOnDrop;
 use std::path::PathBuf;
@@ -37,6 +37,7 @@ pub struct RunPlan {
     pub temperature: f32,
     pub time_limit: Duration,
     pub backend: Arc<dyn LlmBackend>,
+    pub aids: ModelAids,
     pub log_path: PathBuf,
     /// How long the mission may go without any news while no drone is busy before the run is
     /// judged stalled (the Supervisor runs at least every `cycle_timeout` while a plan runs).
@@ -82,6 +83,7 @@ pub async fn run_once(plan: RunPlan, start_lock: Arc<Mutex<()>>) -> RunRecord {
         run: plan.run,
         seed: plan.seed,
         backend: plan.backend.describe(),
+        aids: plan.aids.to_string(),
         status: Status::Error,
         reason: String::new(),
         elapsed_s: 0.0,
@@ -235,6 +237,7 @@ async fn fly(
     let config = MissionConfig {
         mode: plan.mode,
         seed: Some(plan.seed),
+        aids: plan.aids,
         temperature: plan.temperature,
         cycle_timeout: plan.cycle_timeout,
         ..MissionConfig::default()

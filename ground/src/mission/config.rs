@@ -1,5 +1,6 @@
-//! How a mission runs: the ablation mode and the engine's bounds.
+//! How a mission runs: the ablation mode, the small-model aids and the engine's bounds.
 
+use super::aids::ModelAids;
 use std::time::Duration;
 
 /// The ablation modes of the paper.
@@ -38,6 +39,8 @@ impl std::str::FromStr for Mode {
 #[derive(Debug, Clone)]
 pub struct MissionConfig {
     pub mode: Mode,
+    /// The small-model aids that are on (`mission::aids`).
+    pub aids: ModelAids,
     /// How many times a rejected or unparsable reply goes back to its model.
     pub max_repairs: u32,
     /// A Supervisor cycle runs at the latest this long after the previous one while a plan runs.
@@ -57,6 +60,7 @@ impl Default for MissionConfig {
     fn default() -> Self {
         MissionConfig {
             mode: Mode::Tacos,
+            aids: ModelAids::small(),
             max_repairs: 2,
             cycle_timeout: Duration::from_secs(10),
             max_cycles_per_plan: 30,

@@ -12,6 +12,7 @@ mod prompt_state;
 pub use coordinator::coordinator_messages;
 pub use cycles::supervisor_messages;
 
+use super::aids::Aid;
 use super::config::{MissionConfig, Mode};
 use super::directives::{self, Directive};
 use super::input::MissionInputs;
@@ -102,6 +103,7 @@ impl Mission {
             backend: backend.describe(),
             scenario: gate.scenario().name.clone(),
             drones,
+            aids: cfg.aids,
         });
         let caller = Caller {
             backend,
@@ -109,6 +111,7 @@ impl Mission {
             log: log.clone(),
             updates: updates.clone(),
             max_repairs: cfg.max_repairs,
+            aids: cfg.aids,
             temperature: cfg.temperature,
             seed: cfg.seed,
         };
@@ -144,6 +147,12 @@ impl Mission {
 
     fn tell(&self, update: MissionUpdate) {
         let _ = self.updates.send(update);
+    }
+
+    /// Logs that a small-model aid changed what the engine did.
+    fn aid_fired(&self, aid: Aid, detail: String) {
+        tracing::debug!(%aid, %detail, "small-model aid fired");
+        self.log.note(Record::AidFired { aid, detail });
     }
 
     /// Runs the mission until `inputs` closes: pilot lines in, cycles on every change.

@@ -5,6 +5,7 @@
 //! a power cut loses at most some positions and model traffic. A reused path gets the new
 //! mission after the old one, from its own `mission_start` line.
 
+use super::aids::{Aid, ModelAids};
 use crate::jsonl;
 use crate::safety::{CheckedAction, DroneSeen};
 use serde::{Deserialize, Serialize};
@@ -22,6 +23,9 @@ pub enum Record {
         backend: String,
         scenario: String,
         drones: Vec<String>,
+        /// The small-model aids that were on; logs from before they were switches had them all.
+        #[serde(default)]
+        aids: ModelAids,
     },
     Pilot {
         text: String,
@@ -89,6 +93,11 @@ pub enum Record {
     },
     Event {
         text: String,
+    },
+    /// A small-model aid changed what the engine did (`mission::aids`).
+    AidFired {
+        aid: Aid,
+        detail: String,
     },
     /// Where a drone was (world ENU), for plots; logged at a low rate.
     Position {
@@ -274,6 +283,8 @@ pub struct Tally {
     pub direct_actions: usize,
     /// Calls of the models' replies that the checks refused.
     pub rejections: usize,
+    /// Times a small-model aid changed what the engine did.
+    pub aids_fired: usize,
 }
 
 impl Tally {
@@ -286,6 +297,7 @@ impl Tally {
                 Record::ActionSent { task: Some(_), .. } => t.model_actions += 1,
                 Record::ActionSent { task: None, .. } => t.direct_actions += 1,
                 Record::GateRejected { .. } => t.rejections += 1,
+                Record::AidFired { .. } => t.aids_fired += 1,
                 _ => {}
             }
         }
@@ -297,12 +309,13 @@ impl std::fmt::Display for Tally {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "{} model calls, {} supervisor cycles, {} actions sent by the models, {} by direct commands, {} calls refused by the checks",
+            "{} model calls, {} supervisor cycles, {} actions sent by the models, {} by direct commands, {} calls refused by the checks, {} small-model aids fired",
             self.model_calls,
             self.supervisor_cycles,
             self.model_actions,
             self.direct_actions,
-            self.rejections
+            self.rejections,
+            self.aids_fired
         )
     }
 }
@@ -328,9 +341,10 @@ pub fn timeline(lines: &[Line]) -> String {
                 backend,
                 scenario,
                 drones,
+                aids,
             } => {
                 format!(
-                    "mission start: mode {mode}, {backend}, map {scenario}, drones {}",
+                    "mission start: mode {mode}, {backend}, map {scenario}, drones {}, aids {aids}",
                     drones.join(", ")
                 )
             }
@@ -382,6 +396,7 @@ pub fn timeline(lines: &[Line]) -> String {
             }
             Record::Replan { reason } => format!("replan: {reason}"),
             Record::Event { text } => format!("event: {text}"),
+            Record::AidFired { aid, detail } => format!("aid {aid}: {detail}"),
             Record::Position { .. } => continue,
             Record::MissionEnd { outcome } => format!("mission end: {outcome}"),
         };
@@ -404,6 +419,7 @@ mod tests {
             backend: backend.into(),
             scenario: "city".into(),
             drones: vec!["alfa".into()],
+            aids: ModelAids::small(),
         };
         let first = MissionLog::create(&path).expect("create");
         first.write(start("first")).expect("write");

@@ -7,6 +7,7 @@
 //! commands (`directives`) never wait for a model: `input` carries them out beside the engine.
 //! Everything is written to the mission `log`.
 
+pub mod aids;
 pub mod config;
 pub mod directives;
 pub mod engine;
@@ -17,6 +18,7 @@ pub mod report;
 pub mod resolve;
 pub mod untrusted;
 
+pub use aids::{Aid, ModelAids};
 pub use config::{MissionConfig, Mode};
 pub use engine::{Mission, coordinator_messages, supervisor_messages};
 pub use input::{InputClosed, MissionInputs, PilotInput};

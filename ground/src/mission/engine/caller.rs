@@ -2,6 +2,7 @@
 //! a rejected reply back with the reasons.
 
 use crate::link::GroundLink;
+use crate::mission::aids::{Aid, ModelAids};
 use crate::mission::log::{MissionLog, Record};
 use crate::mission::report::{MissionError, MissionStats, MissionUpdate};
 use std::sync::Arc;
@@ -18,6 +19,8 @@ pub(super) struct Caller {
     pub(super) log: Arc<MissionLog>,
     pub(super) updates: mpsc::UnboundedSender<MissionUpdate>,
     pub(super) max_repairs: u32,
+    /// `compact-repair-echo` and `keep-partial-plan` act here.
+    pub(super) aids: ModelAids,
     pub(super) temperature: f32,
     pub(super) seed: Option<u64>,
 }
@@ -33,7 +36,9 @@ pub(super) struct Checked<U> {
 
 impl Caller {
     /// Asks a model, parses and checks its reply, and sends rejected replies back with the
-    /// reasons up to `max_repairs` times. After the last attempt only what passed is returned.
+    /// reasons up to `max_repairs` times. After the last attempt what passed is returned, except
+    /// for a reply that must pass `whole` (a plan: its calls belong together), which then fails
+    /// unless the `keep-partial-plan` aid is on.
     #[allow(clippy::too_many_arguments)]
     pub(super) async fn ask<T, U>(
         &self,
@@ -44,6 +49,7 @@ impl Caller {
         mut schema: serde_json::Value,
         max_tokens: u32,
         parse: fn(&str) -> Result<T, ReplyError>,
+        whole: bool,
         mut check: impl FnMut(&T) -> Checked<U>,
     ) -> Result<U, MissionError> {
         let attempts = self.max_repairs + 1;
@@ -90,7 +96,7 @@ impl Caller {
                         attempt,
                         error: error.to_string(),
                     });
-                    if let Some(passed) = passed_before {
+                    if let Some(passed) = self.keep_partial(layer, passed_before, &error) {
                         return Ok(passed);
                     }
                     return Err(MissionError::Llm { layer, error });
@@ -113,8 +119,28 @@ impl Caller {
                             reason: format!("{layer} reply"),
                         });
                     }
-                    if checked.rejections.is_empty() || attempt == attempts {
+                    if checked.rejections.is_empty() {
                         return Ok(checked.accepted);
+                    }
+                    if attempt == attempts {
+                        if !whole {
+                            return Ok(checked.accepted);
+                        }
+                        let refused = distinct_problems(checked.rejections).join("; ");
+                        if self.aids.is_on(Aid::KeepPartialPlan) {
+                            self.log.note(Record::AidFired {
+                                aid: Aid::KeepPartialPlan,
+                                detail: format!(
+                                    "{layer}: kept what passed of the last reply; refused: {refused}"
+                                ),
+                            });
+                            return Ok(checked.accepted);
+                        }
+                        return Err(MissionError::NoValidReply {
+                            layer,
+                            attempts,
+                            reason: refused,
+                        });
                     }
                     if let Some(narrowed) = checked.narrowed {
                         schema = narrowed;
@@ -125,15 +151,27 @@ impl Caller {
             };
             let problems = distinct_problems(problems);
             last_problem = problems.join("; ");
-            messages.push(ChatMessage::assistant(without_repeated_items(
-                &reply.content,
-            )));
+            let echo = if self.aids.is_on(Aid::CompactRepairEcho) {
+                let (echo, left_out) = without_repeated_items(&reply.content);
+                if left_out > 0 {
+                    self.log.note(Record::AidFired {
+                        aid: Aid::CompactRepairEcho,
+                        detail: format!(
+                            "{layer}: {left_out} repeated items left out of the echoed reply"
+                        ),
+                    });
+                }
+                echo
+            } else {
+                reply.content.clone()
+            };
+            messages.push(ChatMessage::assistant(echo));
             messages.push(ChatMessage::user(format!(
                 "Your reply was rejected:\n- {}\nAnswer again with the corrected JSON object only.",
                 problems.join("\n- ")
             )));
         }
-        if let Some(passed) = passed_before {
+        if let Some(passed) = self.keep_partial(layer, passed_before, &last_problem) {
             return Ok(passed);
         }
         Err(MissionError::NoValidReply {
@@ -141,6 +179,24 @@ impl Caller {
             attempts,
             reason: last_problem,
         })
+    }
+
+    /// What passed in the round before a repair round that failed (`why`), kept when the
+    /// `keep-partial-plan` aid is on.
+    fn keep_partial<U>(
+        &self,
+        layer: &str,
+        passed_before: Option<U>,
+        why: &dyn std::fmt::Display,
+    ) -> Option<U> {
+        let passed = passed_before.filter(|_| self.aids.is_on(Aid::KeepPartialPlan))?;
+        self.log.note(Record::AidFired {
+            aid: Aid::KeepPartialPlan,
+            detail: format!(
+                "{layer}: the repair round failed ({why}); what passed the round before stays"
+            ),
+        });
+        Some(passed)
     }
 
     pub(super) fn account(
@@ -175,11 +231,12 @@ impl Caller {
 /// earlier one but for its `task` is left out (the engine drops such repeats anyway). A 135M
 /// model that loops on one call writes it until the list is full, and echoed whole, its 680
 /// tokens pushed a 6-drone repair round past the embedded model's 4096-token window. A reply
-/// that is not a JSON object is echoed as it is.
-pub(super) fn without_repeated_items(reply: &str) -> String {
+/// that is not a JSON object is echoed as it is. Also returns how many items were left out.
+pub(super) fn without_repeated_items(reply: &str) -> (String, usize) {
     let Ok(serde_json::Value::Object(mut object)) = serde_json::from_str(reply) else {
-        return reply.to_owned();
+        return (reply.to_owned(), 0);
     };
+    let mut left_out = 0;
     for value in object.values_mut() {
         let serde_json::Value::Array(items) = value else {
             continue;
@@ -192,10 +249,14 @@ pub(super) fn without_repeated_items(reply: &str) -> String {
             }
             let new = !seen.contains(&key);
             seen.push(key);
+            left_out += usize::from(!new);
             new
         });
     }
-    serde_json::to_string(&object).unwrap_or_else(|_| reply.to_owned())
+    match serde_json::to_string(&object) {
+        Ok(text) => (text, left_out),
+        Err(_) => (reply.to_owned(), 0),
+    }
 }
 
 /// The problems of a reply, each said once: the same refusal of the same call under other task
@@ -234,7 +295,7 @@ mod tests {
             {"task": "T3", "drone": "alfa", "action": "arm_takeoff", "target": "none", "xyz": null},
             {"task": "T4", "drone": "alfa", "action": "goto", "target": "car_2", "xyz": null}]}"#;
         let echoed: serde_json::Value =
-            serde_json::from_str(&without_repeated_items(reply)).expect("JSON");
+            serde_json::from_str(&without_repeated_items(reply).0).expect("JSON");
         let tasks: Vec<&str> = echoed["plan"]
             .as_array()
             .expect("plan")
@@ -243,7 +304,8 @@ mod tests {
             .collect();
         assert_eq!(tasks, ["T1", "T2", "T4"]);
         assert_eq!(echoed["reasoning"], "r");
-        assert_eq!(without_repeated_items("Sure!"), "Sure!");
+        assert_eq!(without_repeated_items(reply).1, 1);
+        assert_eq!(without_repeated_items("Sure!"), ("Sure!".to_owned(), 0));
         let problems = distinct_problems(vec![
             "T2 alfa start_tracking(car_1): car_1 is not a target".into(),
             "T3 alfa start_tracking(car_1): car_1 is not a target".into(),

@@ -4,6 +4,7 @@ use super::Mission;
 use super::caller::Checked;
 use super::checks::check_static;
 use super::plan_state::{ActivePlan, PlanTask};
+use crate::mission::aids::Aid;
 use crate::mission::grounding;
 use crate::mission::log::Record;
 use crate::mission::report::{MissionError, MissionUpdate};
@@ -12,7 +13,6 @@ use tacos_llm::ChatMessage;
 use tacos_prompts::render::{self, HistoryEntry, TaskStatus};
 use tacos_prompts::schema::{self, Output};
 use tacos_prompts::{ActionName, Call, CoordinatorReply, texts};
-use tacos_shared::DroneMode;
 
 impl Mission {
     /// Runs the Coordinator for `instruction`; its plan replaces the current one (the pending
@@ -30,7 +30,20 @@ impl Mission {
             .iter()
             .filter_map(|(c, _)| c.target_name().map(str::to_owned))
             .collect();
-        let scope = grounding::places_in_scope(&places, &named, &pending_places);
+        let aids = self.cfg.aids;
+        let scope = grounding::places_in_scope(&places, &named, &pending_places)
+            .filter(|_| aids.is_on(Aid::PlaceScope));
+        if let Some(scope) = scope.as_ref().filter(|s| s.len() < places.len()) {
+            self.aid_fired(
+                Aid::PlaceScope,
+                format!(
+                    "the plan may name {} of the map's {} places: {}",
+                    scope.len(),
+                    places.len(),
+                    scope.join(", ")
+                ),
+            );
+        }
         // A plan for a drone that cannot fly it would wait for ever: the grammar offers only the
         // available drones, and the reply check holds a server that ignores the schema to them.
         let available = self.available_ids();
@@ -39,14 +52,28 @@ impl Mission {
         }
         // A target the instruction asks to be followed must be tracked by the plan (or be
         // followed already); a drone named beside it is suggested only if it can fly.
-        let follow: Vec<grounding::FollowAsked> =
+        let follow: Vec<grounding::FollowAsked> = if aids.is_on(Aid::FollowWords) {
             grounding::follow_asked(instruction, &drones, &self.trackable())
                 .into_iter()
                 .map(|a| grounding::FollowAsked {
                     drone: a.drone.filter(|d| available.contains(d)),
                     ..a
                 })
-                .collect();
+                .collect()
+        } else {
+            Vec::new()
+        };
+        if !follow.is_empty() {
+            let targets: Vec<&str> = follow.iter().map(|a| a.target.as_str()).collect();
+            self.aid_fired(
+                Aid::FollowWords,
+                format!(
+                    "the instruction asks that {} be followed: the plan must track it",
+                    targets.join(", ")
+                ),
+            );
+        }
+        let grounded = self.grounded_ids();
         let followed = self.followed_targets();
         let user = render::coordinator_request(
             &render::swarm(&self.drone_lines()),
@@ -59,13 +86,22 @@ impl Mission {
         let messages = coordinator_messages(user);
         let in_scope = |name: &String| scope.as_ref().is_none_or(|s| s.contains(name));
         let trackable: Vec<String> = self.trackable().into_iter().filter(in_scope).collect();
-        let schema = schema::build(
+        let mut schema = schema::build(
             Output::Coordinator,
             &available,
             scope.as_ref().unwrap_or(&places),
             &trackable,
         );
+        let plan_cap = schema::plan_max_calls(&schema);
+        let token_budget = if aids.is_on(Aid::PlanLengthCap) {
+            schema::token_budget(Output::Coordinator, drones.len())
+        } else {
+            schema = schema::without_plan_cap(&schema);
+            schema::coordinator_token_budget(schema::PLAN_MAX_CALLS)
+        };
         let first_schema = schema.clone();
+        let log = self.log.clone();
+        let fire = |aid: Aid, detail: String| log.note(Record::AidFired { aid, detail });
         self.tell(MissionUpdate::Thinking {
             layer: "coordinator",
         });
@@ -80,10 +116,9 @@ impl Mission {
                 messages,
                 Output::Coordinator,
                 schema,
-                self.cfg
-                    .coordinator_max_tokens
-                    .max(schema::token_budget(Output::Coordinator, drones.len())),
+                self.cfg.coordinator_max_tokens.max(token_budget),
                 CoordinatorReply::parse,
+                true,
                 |reply: &CoordinatorReply| {
                     let mut rejections = Vec::new();
                     let mut plan = Vec::new();
@@ -112,9 +147,30 @@ impl Mission {
                     if reply.plan.is_empty() {
                         rejections.push("the plan is empty".into());
                     }
+                    if aids.is_on(Aid::PlanLengthCap)
+                        && plan_cap < schema::PLAN_MAX_CALLS
+                        && reply.plan.len() >= plan_cap
+                    {
+                        fire(
+                            Aid::PlanLengthCap,
+                            format!("the plan filled its cap of {plan_cap} calls (three per drone)"),
+                        );
+                    }
+                    if !aids.is_on(Aid::ImpliedTakeoffs) {
+                        // The rule the aid stands in for: a drone on the ground cannot fly a
+                        // goto or a chase that no take-off precedes.
+                        for i in missing_takeoffs(&plan, &grounded).into_iter().rev() {
+                            let call = plan.remove(i);
+                            rejections.push(format!(
+                                "{call}: {} is on the ground and the plan never takes it off: \
+                                 add `{} arm_takeoff` before it",
+                                call.drone, call.drone
+                            ));
+                        }
+                    }
                     let missing = grounding::untracked(&follow, &plan, &followed);
                     // The repair round's grammar opens the plan with the missing tracking.
-                    let narrowed = (!missing.is_empty()).then(|| {
+                    let narrowed = (!missing.is_empty() && aids.is_on(Aid::RepairGrammar)).then(|| {
                         let required: Vec<schema::RequiredCall> = missing
                             .iter()
                             .map(|a| schema::RequiredCall {
@@ -126,6 +182,15 @@ impl Mission {
                                 target: a.target.clone(),
                             })
                             .collect();
+                        let targets: Vec<&str> =
+                            required.iter().map(|r| r.target.as_str()).collect();
+                        fire(
+                            Aid::RepairGrammar,
+                            format!(
+                                "the repair round's grammar opens the plan with start_tracking of {}",
+                                targets.join(", ")
+                            ),
+                        );
                         schema::requiring(&first_schema, &required)
                     });
                     rejections.extend(missing.iter().map(grounding::FollowAsked::missing_text));
@@ -153,7 +218,11 @@ impl Mission {
             self.log.note(Record::Event { text: text.clone() });
             self.tell(MissionUpdate::Event(text));
         }
-        let calls = self.with_implied_takeoffs(calls);
+        let calls = if aids.is_on(Aid::ImpliedTakeoffs) {
+            self.with_implied_takeoffs(calls, &grounded)
+        } else {
+            calls
+        };
         self.log.note(Record::Plan {
             reasoning: reasoning.clone(),
             plan: serde_json::to_value(&calls).unwrap_or_default(),
@@ -206,29 +275,20 @@ impl Mission {
     /// is on the ground and has no take-off anywhere in the plan: the Coordinator's own rule ("a
     /// drone on the ground must take off before goto"), which a small model forgets. Without it
     /// such a task can never start. Each addition is logged; the gate still checks every action.
-    pub(super) fn with_implied_takeoffs(&mut self, calls: Vec<Call>) -> Vec<Call> {
-        let grounded: Vec<String> = {
-            let view = self.link.view();
-            let now = self.link.clock().instant();
-            view.drones()
-                .filter(|e| e.effective_mode(now) == DroneMode::Idle)
-                .map(|e| e.id.to_string())
-                .collect()
-        };
+    pub(super) fn with_implied_takeoffs(
+        &mut self,
+        calls: Vec<Call>,
+        grounded: &[String],
+    ) -> Vec<Call> {
+        let missing = missing_takeoffs(&calls, grounded);
         let mut next_id = calls
             .iter()
             .filter_map(|c| c.task.strip_prefix('T')?.parse::<u32>().ok())
             .max()
             .unwrap_or(0);
         let mut out: Vec<Call> = Vec::with_capacity(calls.len());
-        for call in &calls {
-            let needs_air = matches!(call.action, ActionName::Goto | ActionName::StartTracking);
-            let takes_off = |c: &Call| c.drone == call.drone && c.action == ActionName::ArmTakeoff;
-            if needs_air
-                && grounded.contains(&call.drone)
-                && !calls.iter().any(takes_off)
-                && !out.iter().any(takes_off)
-            {
+        for (i, call) in calls.iter().enumerate() {
+            if missing.contains(&i) {
                 next_id += 1;
                 let takeoff = Call {
                     task: format!("T{next_id}"),
@@ -241,7 +301,7 @@ impl Mission {
                     "{call}: {} is on the ground and the plan never takes it off: added {takeoff}",
                     call.drone
                 );
-                self.log.note(Record::Event { text: text.clone() });
+                self.aid_fired(Aid::ImpliedTakeoffs, text.clone());
                 self.tell(MissionUpdate::Event(text));
                 out.push(takeoff);
             }
@@ -249,6 +309,21 @@ impl Mission {
         }
         out
     }
+}
+
+/// The positions in `calls` of the first goto or start_tracking of each drone in `grounded`
+/// whose plan has no take-off anywhere: such a call could never start.
+fn missing_takeoffs(calls: &[Call], grounded: &[String]) -> Vec<usize> {
+    let mut out: Vec<usize> = Vec::new();
+    for (i, call) in calls.iter().enumerate() {
+        let needs_air = matches!(call.action, ActionName::Goto | ActionName::StartTracking);
+        let takes_off = |c: &Call| c.drone == call.drone && c.action == ActionName::ArmTakeoff;
+        let first = !out.iter().any(|&j| calls[j].drone == call.drone);
+        if needs_air && first && grounded.contains(&call.drone) && !calls.iter().any(takes_off) {
+            out.push(i);
+        }
+    }
+    out
 }
 
 /// The Coordinator's messages: its configuration prompt, the few-shot examples as turns, then

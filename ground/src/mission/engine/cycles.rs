@@ -191,6 +191,7 @@ impl Mission {
                     ask.schema,
                     max_tokens,
                     ask.parse,
+                    false,
                     |reply: &CycleReply| {
                         let (firsts, later) = first_call_per_drone(&reply.actions);
                         let (calls, mut rejections) = match only {

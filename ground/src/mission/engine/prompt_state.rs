@@ -10,6 +10,16 @@ use tacos_shared::messages::{ActionState, TargetObservation};
 use tacos_shared::{DroneId, DroneMode};
 
 impl Mission {
+    /// The drones resting on the ground now (idle, disarmed).
+    pub(super) fn grounded_ids(&self) -> Vec<String> {
+        let view = self.link.view();
+        let now = self.link.clock().instant();
+        view.drones()
+            .filter(|e| e.effective_mode(now) == DroneMode::Idle)
+            .map(|e| e.id.to_string())
+            .collect()
+    }
+
     /// The targets seen now that the scenario has: a name from the network reaches a prompt
     /// only when it is one of the map's (`untrusted`).
     pub(super) fn visible_targets(&self) -> Vec<TargetObservation> {
