@@ -1155,3 +1155,32 @@ async fn a_repair_round_that_fails_leaves_what_passed_before() -> anyhow::Result
     })
     .await
 }
+
+/// "zulu, take off" in a swarm without zulu: the pilot is told there is no zulu and which
+/// drones there are, before any model is asked, and nothing is sent. (A capable model answered
+/// "Zulu is already flying" and planned take-offs for the others.)
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_instruction_to_a_drone_the_swarm_lacks_is_refused_with_the_swarm_s_drones()
+-> anyhow::Result<()> {
+    stopping_after(start("zulu").await?, async |run| {
+        let plan = json!([call("T1", "alfa", "arm_takeoff", "none")]);
+        let (mut updates, lines, log_path, _) =
+            run_offered(run, "zululog", plan, false, "zulu, take off").await?;
+        let error = given_up(&mut updates, Duration::from_secs(20)).await?;
+        assert_eq!(
+            error,
+            "there is no drone zulu in this swarm (its drones: alfa, bravo, charlie); nothing was sent: address one of those"
+        );
+        drop(lines);
+        let lines = log::read(&log_path)?;
+        assert!(
+            !lines
+                .iter()
+                .any(|l| matches!(&l.record, Record::LlmRequest { .. })),
+            "a model was asked"
+        );
+        assert!(sent_tasks(&lines).is_empty());
+        anyhow::Ok(())
+    })
+    .await
+}

@@ -12,6 +12,7 @@ mod prompt_state;
 pub use coordinator::coordinator_messages;
 pub use cycles::supervisor_messages;
 
+use super::addressed;
 use super::aids::Aid;
 use super::config::{MissionConfig, Mode};
 use super::directives::{self, Directive};
@@ -267,6 +268,28 @@ impl Mission {
         self.log.note(Record::Pilot {
             text: text.to_owned(),
         });
+        let slots: Vec<String> = self
+            .gate
+            .scenario()
+            .drones
+            .iter()
+            .map(|d| d.id.to_string())
+            .collect();
+        let scenario = self.gate.scenario();
+        let places: Vec<String> = (scenario.world.landmarks.iter().map(|l| l.name.clone()))
+            .chain(scenario.targets.iter().map(|t| t.name.clone()))
+            .collect();
+        let unknown = addressed::unknown_drones(text, &drones, &slots, &places);
+        if !unknown.is_empty() {
+            let refusal = MissionError::UnknownDrones {
+                names: unknown,
+                swarm: drones,
+            };
+            self.log.note(Record::Event {
+                text: format!("instruction refused: {refusal}"),
+            });
+            return Err(refusal);
+        }
         match self.cfg.mode {
             Mode::Mnl => {
                 self.mnl.instructions.push(text.to_owned());

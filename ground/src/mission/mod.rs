@@ -7,6 +7,7 @@
 //! commands (`directives`) never wait for a model: `input` carries them out beside the engine.
 //! Everything is written to the mission `log`.
 
+pub mod addressed;
 pub mod aids;
 pub mod config;
 pub mod directives;

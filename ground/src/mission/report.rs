@@ -19,6 +19,16 @@ pub enum MissionError {
     },
     #[error("no drone is available to carry out a plan")]
     NoDroneAvailable,
+    /// Found before any model call (`mission::addressed`).
+    #[error(
+        "there is no drone {} in this swarm (its drones: {}); nothing was sent: address one of those",
+        names.join(" or "),
+        swarm.join(", ")
+    )]
+    UnknownDrones {
+        names: Vec<String>,
+        swarm: Vec<String>,
+    },
     #[error("not sending {action} to {drone}: the pilot gave a direct command meanwhile")]
     Overridden { drone: String, action: String },
     #[error("sending {action} to {drone} failed: {reason}")]
