@@ -91,17 +91,12 @@ pub struct RunKey {
 pub enum ResultsError {
     #[error("{path}: {reason}")]
     Io { path: String, reason: String },
-    #[error(
-        "{path} holds runs of task {task:?} with {backend:?} (aids {aids}); this evaluation is {want_task:?} with {want_backend:?} (aids {want_aids}): use another --out"
-    )]
+    #[error("{path} holds runs of {held}; this evaluation is {wanted}: use another --out")]
     Mismatch {
         path: String,
-        task: String,
-        backend: String,
-        aids: String,
-        want_task: String,
-        want_backend: String,
-        want_aids: String,
+        /// What the file's runs are: task, model and aids.
+        held: String,
+        wanted: String,
     },
 }
 
@@ -165,14 +160,13 @@ pub fn done_runs(
         .iter()
         .find(|r| r.task != task || r.backend != backend || r.aids != aids)
     {
+        let what = |task: &str, backend: &str, aids: &str| {
+            format!("task {task:?} with {backend:?} (aids {aids})")
+        };
         return Err(ResultsError::Mismatch {
             path: path.display().to_string(),
-            task: other.task.clone(),
-            backend: other.backend.clone(),
-            aids: other.aids.clone(),
-            want_task: task.to_owned(),
-            want_backend: backend.to_owned(),
-            want_aids: aids.to_owned(),
+            held: what(&other.task, &other.backend, &other.aids),
+            wanted: what(task, backend, aids),
         });
     }
     Ok(records
