@@ -422,6 +422,19 @@ impl Scenario {
     pub fn drone(&self, id: &DroneId) -> Option<&DroneSlot> {
         self.drones.iter().find(|d| &d.id == id)
     }
+
+    /// Every drone slot's id, in the map's order.
+    pub fn slot_ids(&self) -> Vec<String> {
+        self.drones.iter().map(|d| d.id.to_string()).collect()
+    }
+
+    /// The names a goto or a chase may give: the landmarks', then the targets'.
+    pub fn place_names(&self) -> Vec<String> {
+        let landmarks = self.world.landmarks.iter().map(|l| l.name.clone());
+        landmarks
+            .chain(self.targets.iter().map(|t| t.name.clone()))
+            .collect()
+    }
 }
 
 #[cfg(test)]

@@ -268,18 +268,9 @@ impl Mission {
         self.log.note(Record::Pilot {
             text: text.to_owned(),
         });
-        let slots: Vec<String> = self
-            .gate
-            .scenario()
-            .drones
-            .iter()
-            .map(|d| d.id.to_string())
-            .collect();
         let scenario = self.gate.scenario();
-        let places: Vec<String> = (scenario.world.landmarks.iter().map(|l| l.name.clone()))
-            .chain(scenario.targets.iter().map(|t| t.name.clone()))
-            .collect();
-        let unknown = addressed::unknown_drones(text, &drones, &slots, &places);
+        let unknown =
+            addressed::unknown_drones(text, &drones, &scenario.slot_ids(), &scenario.place_names());
         if !unknown.is_empty() {
             let refusal = MissionError::UnknownDrones {
                 names: unknown,

@@ -68,14 +68,7 @@ impl PilotInput {
 
     /// A direct command, if `text` is one for this swarm.
     pub fn directive(&self, text: &str) -> Option<Directive> {
-        let drones: Vec<String> = self
-            .gate
-            .scenario()
-            .drones
-            .iter()
-            .map(|d| d.id.to_string())
-            .collect();
-        directives::parse(text, &drones)
+        directives::parse(text, &self.gate.scenario().slot_ids())
     }
 
     /// Submits one line: a direct command is carried out before this returns; anything else
