@@ -3,7 +3,7 @@
 
 use crate::link::GroundLink;
 use crate::mission::log::MissionLog;
-use crate::mission::{Mission, MissionConfig, MissionStats, MissionUpdate, PilotInput};
+use crate::mission::{EventTopic, Mission, MissionConfig, MissionStats, MissionUpdate, PilotInput};
 use crate::safety::SafetyGate;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -59,16 +59,17 @@ pub fn describe(update: &MissionUpdate) -> String {
                 actions.join("; ")
             )
         }
-        MissionUpdate::Rejected { call, reason } => {
-            format!("safety gate rejected {call} ({reason})")
+        MissionUpdate::Rejected { layer, refusal } => {
+            format!("the checks refused a call of the {layer}'s reply: {refusal}")
         }
         MissionUpdate::Sent { drone, action, seq } => format!("sent #{seq} {action} to {drone}"),
         MissionUpdate::Outcome {
             drone,
             action,
             outcome,
+            ..
         } => format!("{drone}: {action} {outcome}"),
-        MissionUpdate::Event(text) => format!("event: {text}"),
+        MissionUpdate::Event { text, .. } => format!("event: {text}"),
         MissionUpdate::PlanComplete { cycles } => {
             format!("plan complete after {cycles} supervisor cycles")
         }
@@ -137,7 +138,10 @@ pub async fn run_session(
                         MissionUpdate::PlanComplete { .. } => break Ok(()),
                         MissionUpdate::Error(reason) => break Err(reason),
                         // A direct command is carried out at once; nothing more to wait for.
-                        MissionUpdate::Event(text) if text.starts_with("direct command") => {
+                        MissionUpdate::Event {
+                            topic: EventTopic::Direct,
+                            ..
+                        } => {
                             break Ok(());
                         }
                         _ => {}

@@ -7,7 +7,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 use tacos_ground::direct::run_actions;
 use tacos_ground::mission::log::{self, MissionLog, Record};
-use tacos_ground::mission::{Mission, MissionConfig, MissionUpdate, PilotInput};
+use tacos_ground::mission::{EventTopic, Mission, MissionConfig, MissionUpdate, PilotInput};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{BoxFuture, ChatReply, ChatRequest, LlmBackend, LlmError, Usage};
 use tacos_shared::action::Action;
@@ -157,8 +157,10 @@ async fn land_all_is_sent_while_a_model_call_is_pending_and_the_late_reply_is_no
         backend.release.notify_one();
         let ended = within("the plan to end", Duration::from_secs(30), async {
             while let Some(u) = updates.recv().await {
-                if let MissionUpdate::Event(text) = &u
-                    && text.starts_with("plan ended")
+                if let MissionUpdate::Event {
+                    topic: EventTopic::PlanEnded,
+                    text,
+                } = &u
                 {
                     return text.clone();
                 }

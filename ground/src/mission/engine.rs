@@ -18,7 +18,7 @@ use super::config::{MissionConfig, Mode};
 use super::directives::{self, Directive};
 use super::input::MissionInputs;
 use super::log::{MissionLog, Record};
-use super::report::{MissionError, MissionStats, MissionUpdate};
+use super::report::{EventTopic, MissionError, MissionStats, MissionUpdate};
 use super::untrusted;
 use crate::link::GroundLink;
 use crate::safety::{CheckedAction, SafetyGate};
@@ -148,6 +148,12 @@ impl Mission {
 
     fn tell(&self, update: MissionUpdate) {
         let _ = self.updates.send(update);
+    }
+
+    /// Logs an event and tells the pilot.
+    fn event(&self, topic: EventTopic, text: String) {
+        self.log.note(Record::Event { text: text.clone() });
+        self.tell(MissionUpdate::Event { topic, text });
     }
 
     /// Logs that a small-model aid changed what the engine did.
@@ -340,9 +346,10 @@ impl Mission {
             text: text.to_owned(),
             outcome: outcome.clone(),
         });
-        self.tell(MissionUpdate::Event(format!(
-            "direct command {text:?}: {outcome}"
-        )));
+        self.tell(MissionUpdate::Event {
+            topic: EventTopic::Direct,
+            text: format!("direct command {text:?}: {outcome}"),
+        });
         // A direct command overrides whatever the models were doing.
         if let Some(plan) = self.plan.take() {
             self.finish_plan(plan, "interrupted by a direct command");
@@ -351,13 +358,12 @@ impl Mission {
     }
 
     async fn membership_changed(&mut self, change: SwarmChange) -> Result<(), MissionError> {
-        let text = match &change {
-            SwarmChange::Joined(d) => format!("{d} joined the swarm"),
-            SwarmChange::Left(d) => format!("{d} became unavailable"),
+        let (topic, text) = match &change {
+            SwarmChange::Joined(d) => (EventTopic::Joined, format!("{d} joined the swarm")),
+            SwarmChange::Left(d) => (EventTopic::Failure, format!("{d} became unavailable")),
             SwarmChange::Status(_) => return Ok(()),
         };
-        self.log.note(Record::Event { text: text.clone() });
-        self.tell(MissionUpdate::Event(text.clone()));
+        self.event(topic, text.clone());
         // What the lost drone leaves undone, named in the replan's instruction so the
         // Coordinator hands exactly that on (a done start_tracking is still work while the
         // drone follows: without this, the chase would end with its tracker).
@@ -410,8 +416,11 @@ impl Mission {
         };
         let text = event.to_string();
         self.events.push(text.clone());
-        self.log.note(Record::Event { text: text.clone() });
-        self.tell(MissionUpdate::Event(text.clone()));
+        let topic = match &event {
+            WorldEvent::Detection { .. } => EventTopic::Detection,
+            WorldEvent::FaultInjected { .. } => EventTopic::Failure,
+        };
+        self.event(topic, text.clone());
         match self.cfg.mode {
             Mode::Mnl => self.mnl.executed.push(format!("event: {text}")),
             _ => self.history.push(HistoryEntry::Event(text)),

@@ -7,7 +7,7 @@
 
 use super::directives::{self, Directive};
 use super::log::{MissionLog, Record};
-use super::report::MissionUpdate;
+use super::report::{EventTopic, MissionUpdate};
 use crate::link::GroundLink;
 use crate::safety::SafetyGate;
 use std::sync::Arc;
@@ -160,9 +160,10 @@ impl PilotInput {
         // Every send of the command and the command itself on the disk with one sync (20 syncs
         // one by one held `land all` for 70 ms here).
         self.log.note_all(records);
-        let _ = self.updates.send(MissionUpdate::Event(format!(
-            "direct command {text:?}: {outcome}"
-        )));
+        let _ = self.updates.send(MissionUpdate::Event {
+            topic: EventTopic::Direct,
+            text: format!("direct command {text:?}: {outcome}"),
+        });
     }
 
     /// Logs the outcome of a direct command's action when it comes (the engine only follows
@@ -170,11 +171,11 @@ impl PilotInput {
     fn follow_outcome(&self, drone: DroneId, action: String, seq: u64) {
         let (link, log, updates) = (self.link.clone(), self.log.clone(), self.updates.clone());
         tokio::spawn(async move {
-            let outcome = match link.wait_outcome(&drone, seq, OUTCOME_WAIT).await {
-                Ok(ActionState::Done) => "done".to_owned(),
-                Ok(ActionState::Failed(why)) => format!("failed: {why}"),
-                Ok(ActionState::Running { .. }) => "still running".to_owned(),
-                Err(e) => format!("unknown: {e}"),
+            let (outcome, failed) = match link.wait_outcome(&drone, seq, OUTCOME_WAIT).await {
+                Ok(ActionState::Done) => ("done".to_owned(), false),
+                Ok(ActionState::Failed(why)) => (format!("failed: {why}"), true),
+                Ok(ActionState::Running { .. }) => ("still running".to_owned(), true),
+                Err(e) => (format!("unknown: {e}"), true),
             };
             log.note(Record::ActionOutcome {
                 drone: drone.to_string(),
@@ -191,6 +192,7 @@ impl PilotInput {
                 drone: drone.to_string(),
                 action,
                 outcome,
+                failed,
             });
         });
     }

@@ -370,7 +370,12 @@ pub fn timeline(lines: &[Line]) -> String {
                 layer,
                 call,
                 reason,
-            } => format!("safety gate rejected {call} from {layer}: {reason}"),
+            } if reason.is_empty() => format!("refused the {layer}'s {call}"),
+            Record::GateRejected {
+                layer,
+                call,
+                reason,
+            } => format!("refused the {layer}'s {call}: {reason}"),
             Record::ActionSent {
                 drone, seq, action, ..
             } => format!("sent #{seq} {action} to {drone}"),

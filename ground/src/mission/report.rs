@@ -39,6 +39,23 @@ pub enum MissionError {
     },
 }
 
+/// What an engine event is about: whoever shows it sorts it by this, never by its text.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum EventTopic {
+    /// A direct command was carried out (its outcome per drone in the text).
+    Direct,
+    /// A target was seen.
+    Detection,
+    /// A drone became unavailable, or a fault was injected.
+    Failure,
+    /// A drone joined the swarm.
+    Joined,
+    /// The plan ended without completing (interrupted, abandoned).
+    PlanEnded,
+    /// The engine's bookkeeping: repeats dropped, later steps left, a take-off added.
+    Note,
+}
+
 /// What the engine reports to whoever shows the mission (terminal, script runner, eval).
 #[derive(Debug, Clone, PartialEq)]
 pub enum MissionUpdate {
@@ -54,9 +71,11 @@ pub enum MissionUpdate {
         reasoning: String,
         actions: Vec<String>,
     },
+    /// A call of a model's reply that the checks refused ("T2 alfa goto(x): why"); the reply
+    /// goes back to `layer` with the reasons unless it was the last attempt.
     Rejected {
-        call: String,
-        reason: String,
+        layer: &'static str,
+        refusal: String,
     },
     Sent {
         drone: String,
@@ -66,9 +85,15 @@ pub enum MissionUpdate {
     Outcome {
         drone: String,
         action: String,
+        /// "done", "failed: …", …, as the log has it.
         outcome: String,
+        /// It did not end done: it failed, or its end is unknown.
+        failed: bool,
     },
-    Event(String),
+    Event {
+        topic: EventTopic,
+        text: String,
+    },
     PlanComplete {
         cycles: u32,
     },

@@ -4,7 +4,7 @@
 //! Pure: every method takes the time it should assume, so the panes can be rendered and tested
 //! from a fixed state.
 
-use crate::mission::MissionUpdate;
+use crate::mission::{EventTopic, MissionUpdate};
 use crate::swarm::SwarmView;
 use crossterm::event::{KeyCode, KeyEvent, KeyEventKind, KeyModifiers};
 use std::collections::{BTreeMap, VecDeque};
@@ -413,16 +413,14 @@ impl TerminalState {
                     actions: actions.clone(),
                 });
             }
-            MissionUpdate::Rejected { call, reason } => {
+            MissionUpdate::Rejected { layer, refusal } => {
                 self.log(
                     EventKind::Rejected,
-                    format!("gate rejected {call} ({reason})"),
+                    format!("refused the {layer}'s {refusal}"),
                 );
                 // The reply goes back to its model with the reasons: a new call is in flight
                 // (until the plan or cycle shows it was the last attempt).
-                if let Some(layer) = reason.strip_suffix(" reply") {
-                    self.status.thinking = Some((layer.to_owned(), self.now));
-                }
+                self.status.thinking = Some(((*layer).to_owned(), self.now));
             }
             MissionUpdate::Sent { drone, action, seq } => {
                 self.log(
@@ -434,20 +432,20 @@ impl TerminalState {
                 drone,
                 action,
                 outcome,
+                failed,
             } => {
-                let kind = if outcome.starts_with("failed") {
+                let kind = if *failed {
                     EventKind::Failure
                 } else {
                     EventKind::Done
                 };
                 self.log(kind, format!("{drone}: {action} {outcome}"));
             }
-            MissionUpdate::Event(text) => {
-                let kind = classify_event(text);
-                if text.starts_with("plan ended") {
+            MissionUpdate::Event { topic, text } => {
+                if *topic == EventTopic::PlanEnded {
                     self.plan_active = false;
                 }
-                self.log(kind, text.clone());
+                self.log(event_kind(*topic), text.clone());
             }
             MissionUpdate::PlanComplete { cycles } => {
                 self.plan_active = false;
@@ -615,17 +613,13 @@ impl TerminalState {
     }
 }
 
-/// The kind of an engine event, from its text.
-fn classify_event(text: &str) -> EventKind {
-    if text.starts_with("direct command") {
-        EventKind::Direct
-    } else if text.contains(" seen at ") || text.contains(" seen by ") {
-        EventKind::Detection
-    } else if text.contains("became unavailable") || text.starts_with("fault injected") {
-        EventKind::Failure
-    } else if text.starts_with("plan ended") {
-        EventKind::Replan
-    } else {
-        EventKind::Info
+/// How an engine event is shown.
+fn event_kind(topic: EventTopic) -> EventKind {
+    match topic {
+        EventTopic::Direct => EventKind::Direct,
+        EventTopic::Detection => EventKind::Detection,
+        EventTopic::Failure => EventKind::Failure,
+        EventTopic::PlanEnded => EventKind::Replan,
+        EventTopic::Joined | EventTopic::Note => EventKind::Info,
     }
 }

@@ -4,7 +4,7 @@
 
 use super::panes::{self, DRONE_MARKER};
 use super::state::{ChatEntry, Command, EventKind, Focus, TRAIL_SPAN, TRAIL_STEP, TerminalState};
-use crate::mission::MissionUpdate;
+use crate::mission::{EventTopic, MissionUpdate};
 use crate::swarm::SwarmView;
 use crossterm::event::{KeyCode, KeyEvent, KeyModifiers};
 use ratatui::Terminal;
@@ -143,11 +143,15 @@ fn fixed_state() -> TerminalState {
                 drone: "alfa".into(),
                 action: "t1 alfa arm_takeoff()".into(),
                 outcome: "done".into(),
+                failed: false,
             },
         ),
         (
             7.6,
-            MissionUpdate::Event("charlie became unavailable".into()),
+            MissionUpdate::Event {
+                topic: EventTopic::Failure,
+                text: "charlie became unavailable".into(),
+            },
         ),
         (
             7.6,
@@ -167,8 +171,8 @@ fn fixed_state() -> TerminalState {
         (
             8.4,
             MissionUpdate::Rejected {
-                call: "t3 charlie arm_takeoff(): charlie is unavailable".into(),
-                reason: "supervisor reply".into(),
+                layer: "supervisor",
+                refusal: "t3 charlie arm_takeoff(): charlie is unavailable".into(),
             },
         ),
         (
@@ -442,7 +446,7 @@ fn events_pane() {
     assert_screen(&buf, EVENTS);
     let (x, y) = find(&buf, "charlie became unavailable").expect("failure");
     assert_eq!(buf[(x, y)].fg, Color::Red);
-    let (x, y) = find(&buf, "gate rejected").expect("rejection");
+    let (x, y) = find(&buf, "refused the").expect("rejection");
     assert_eq!(buf[(x, y)].fg, Color::LightRed);
 }
 
@@ -662,11 +666,17 @@ fn updates_land_in_order() {
     assert_eq!(state.events.len(), before);
     // Detections and direct commands are told apart.
     state.apply_update(
-        &MissionUpdate::Event("dog seen at small_park by alfa".into()),
+        &MissionUpdate::Event {
+            topic: EventTopic::Detection,
+            text: "dog seen at small_park by alfa".into(),
+        },
         now,
     );
     state.apply_update(
-        &MissionUpdate::Event("direct command \"land all\": alfa: sent #12".into()),
+        &MissionUpdate::Event {
+            topic: EventTopic::Direct,
+            text: "direct command \"land all\": alfa: sent #12".into(),
+        },
         now,
     );
     state.apply_update(
@@ -716,8 +726,8 @@ fn thinking_timer() {
     assert_eq!(state.thinking_for(), None);
     state.apply_update(
         &MissionUpdate::Rejected {
-            call: "t1 zulu land()".into(),
-            reason: "coordinator reply".into(),
+            layer: "coordinator",
+            refusal: "t1 zulu land()".into(),
         },
         at(t0, 4.3),
     );
@@ -880,8 +890,8 @@ const EVENTS: &[&str] = &[
     "│   4.9s sent #12345 arm_takeoff() to alfa                 │",
     "│   7.5s alfa: t1 alfa arm_takeoff() done                  │",
     "│   7.6s charlie became unavailable                        │",
-    "│   8.4s gate rejected t3 charlie arm_takeoff(): charlie is│",
-    "│        unavailable (supervisor reply)                    │",
+    "│   8.4s refused the supervisor's t3 charlie arm_takeoff():│",
+    "│        charlie is unavailable                            │",
     "│   8.8s sent #12346 goto(-2.5, 2.5, 1.0) to alfa          │",
     "│                                                          │",
     "│                                                          │",
@@ -917,8 +927,8 @@ const SCREEN: &[&str] = &[
     "│ ⢸                   ⡇                                ⡇ ││   4.9s sent #12345 arm_takeoff() to alfa                   │",
     "│ ⢸                   ⡇                                ⡇ ││   7.5s alfa: t1 alfa arm_takeoff() done                    │",
     "│ ⢸                   ⡇                                ⡇ ││   7.6s charlie became unavailable                          │",
-    "│ ⢸                   ⡇                                ⡇ ││   8.4s gate rejected t3 charlie arm_takeoff(): charlie is  │",
-    "│ ⢸                   ⡇         #business_district     ⡇ ││        unavailable (supervisor reply)                      │",
+    "│ ⢸                   ⡇                                ⡇ ││   8.4s refused the supervisor's t3 charlie arm_takeoff():  │",
+    "│ ⢸                   ⡇         #business_district     ⡇ ││        charlie is unavailable                              │",
     "│ ⢸                   ⡇                                ⡇ ││   8.8s sent #12346 goto(-2.5, 2.5, 1.0) to alfa            │",
     "│ ⢸                   ⡇                                ⡇ ││                                                            │",
     "│ ⢸                   ⠃     ●bravo                     ⡇ ││                                                            │",

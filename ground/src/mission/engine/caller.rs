@@ -115,8 +115,8 @@ impl Caller {
                             reason: String::new(),
                         });
                         let _ = self.updates.send(MissionUpdate::Rejected {
-                            call: r.clone(),
-                            reason: format!("{layer} reply"),
+                            layer,
+                            refusal: r.clone(),
                         });
                     }
                     if checked.rejections.is_empty() {

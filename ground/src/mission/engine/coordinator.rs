@@ -7,7 +7,7 @@ use super::plan_state::{ActivePlan, PlanTask};
 use crate::mission::aids::Aid;
 use crate::mission::grounding;
 use crate::mission::log::Record;
-use crate::mission::report::{MissionError, MissionUpdate};
+use crate::mission::report::{EventTopic, MissionError, MissionUpdate};
 use std::collections::HashMap;
 use tacos_llm::ChatMessage;
 use tacos_prompts::render::{self, HistoryEntry, TaskStatus};
@@ -215,8 +215,7 @@ impl Mission {
         let (calls, repeats) = without_repeated_work(calls);
         for call in repeats {
             let text = format!("{call}: repeats {}'s previous task: dropped", call.drone);
-            self.log.note(Record::Event { text: text.clone() });
-            self.tell(MissionUpdate::Event(text));
+            self.event(EventTopic::Note, text);
         }
         let calls = if aids.is_on(Aid::ImpliedTakeoffs) {
             self.with_implied_takeoffs(calls, &grounded)
@@ -302,7 +301,10 @@ impl Mission {
                     call.drone
                 );
                 self.aid_fired(Aid::ImpliedTakeoffs, text.clone());
-                self.tell(MissionUpdate::Event(text));
+                self.tell(MissionUpdate::Event {
+                    topic: EventTopic::Note,
+                    text,
+                });
                 out.push(takeoff);
             }
             out.push(call.clone());

@@ -8,7 +8,7 @@ use super::coordinator::same_work;
 use super::plan_state::PlanTask;
 use crate::mission::config::Mode;
 use crate::mission::log::Record;
-use crate::mission::report::{MissionError, MissionUpdate};
+use crate::mission::report::{EventTopic, MissionError, MissionUpdate};
 use tacos_llm::ChatMessage;
 use tacos_prompts::offer::{Callable, callable_schema, startable_schema};
 use tacos_prompts::render::{self, TaskStatus};
@@ -220,8 +220,7 @@ impl Mission {
                 "later steps in the same reply, left for a later cycle: {}",
                 later.join("; ")
             );
-            self.log.note(Record::Event { text: text.clone() });
-            self.tell(MissionUpdate::Event(text));
+            self.event(EventTopic::Note, text);
         }
         let mut sent = Vec::new();
         for (call, checked) in accepted {

@@ -6,7 +6,7 @@ use super::Mission;
 use super::cycles::effect_holds;
 use crate::mission::config::Mode;
 use crate::mission::log::Record;
-use crate::mission::report::MissionUpdate;
+use crate::mission::report::{EventTopic, MissionUpdate};
 use crate::mission::resolve::{claimed_points, position_of, resolve};
 use std::time::{Duration, Instant};
 use tacos_prompts::render::{HistoryEntry, TaskStatus};
@@ -57,6 +57,14 @@ pub(super) struct Monolithic {
     pub(super) claimed_done: bool,
     pub(super) active: bool,
     pub(super) cycles: u32,
+}
+
+/// A task that ended in this poll, as the pilot is told.
+pub(super) struct Finished {
+    drone: String,
+    action: String,
+    outcome: String,
+    failed: bool,
 }
 
 impl Mission {
@@ -124,7 +132,7 @@ impl Mission {
 
     /// Looks for finished actions; true when any task changed state.
     pub(super) fn poll_outcomes(&mut self) -> bool {
-        let mut finished: Vec<(String, String, String)> = Vec::new();
+        let mut finished: Vec<Finished> = Vec::new();
         {
             let view = self.link.view();
             let tasks = self
@@ -169,12 +177,17 @@ impl Mission {
                         TaskStatus::Failed(why) => format!("failed: {why}"),
                         _ => String::new(),
                     };
-                    finished.push((drone.to_string(), task.call.to_string(), outcome));
                     self.log.note(Record::ActionOutcome {
                         drone: drone.to_string(),
                         task: Some(task.call.task.clone()),
                         seq: *seq,
-                        outcome: finished.last().map(|f| f.2.clone()).unwrap_or_default(),
+                        outcome: outcome.clone(),
+                    });
+                    finished.push(Finished {
+                        drone: drone.to_string(),
+                        action: task.call.to_string(),
+                        outcome,
+                        failed: matches!(status, TaskStatus::Failed(_)),
                     });
                     if matches!(status, TaskStatus::Failed(_)) {
                         task.failures += 1;
@@ -185,16 +198,23 @@ impl Mission {
         }
         // After the outcomes: a task that just finished may make the next one's effect hold.
         self.mark_satisfied_tasks(&mut finished);
-        for (drone, action, outcome) in &finished {
+        for Finished {
+            drone,
+            action,
+            outcome,
+            failed,
+        } in &finished
+        {
             self.tell(MissionUpdate::Outcome {
                 drone: drone.clone(),
                 action: action.clone(),
                 outcome: outcome.clone(),
+                failed: *failed,
             });
             match self.cfg.mode {
                 Mode::Mnl => {
                     self.mnl.executed.push(format!("{action}: {outcome}"));
-                    if outcome != "done" {
+                    if *failed || outcome != "done" {
                         self.mnl.claimed_done = false;
                     }
                 }
@@ -299,7 +319,7 @@ impl Mission {
     /// is airborne and idle in the air, a landing or hold for a drone resting on the ground, a
     /// goto for a drone hovering at its point.
     /// Plans from models repeat such calls; sending them would only be refused by the drone.
-    pub(super) fn mark_satisfied_tasks(&mut self, finished: &mut Vec<(String, String, String)>) {
+    pub(super) fn mark_satisfied_tasks(&mut self, finished: &mut Vec<Finished>) {
         let visible = self.visible_targets();
         let Some(plan) = self.plan.as_mut() else {
             return;
@@ -351,7 +371,12 @@ impl Mission {
                 self.log.note(Record::Event {
                     text: format!("{}: {what}", task.call),
                 });
-                finished.push((task.call.drone.clone(), task.call.to_string(), what));
+                finished.push(Finished {
+                    drone: task.call.drone.clone(),
+                    action: task.call.to_string(),
+                    outcome: what,
+                    failed: false,
+                });
             }
         }
     }
@@ -372,10 +397,7 @@ impl Mission {
                 cycles: plan.cycles,
             });
         } else {
-            self.log.note(Record::Event {
-                text: format!("plan ended: {how}"),
-            });
-            self.tell(MissionUpdate::Event(format!("plan ended: {how}")));
+            self.event(EventTopic::PlanEnded, format!("plan ended: {how}"));
         }
     }
 
