@@ -771,7 +771,12 @@ async fn a_plan_that_cannot_go_on_is_given_up() -> anyhow::Result<()> {
             lost_at.elapsed()
         );
         let last = errors.last().cloned().unwrap_or_default();
-        assert!(last.contains("T2 bravo goto(car_1)"), "{errors:?}");
+        // What waits, why it cannot start, and what would help.
+        assert!(
+            last.contains("waiting: T2 bravo goto(car_1) (bravo is unavailable)")
+                && last.contains("Give the work to another drone or place, or land"),
+            "{errors:?}"
+        );
         // The replan was refused: it gave the work to bravo again.
         assert!(
             errors.iter().any(|e| e.contains("coordinator")),

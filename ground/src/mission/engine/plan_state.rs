@@ -8,11 +8,13 @@ use crate::mission::config::Mode;
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionUpdate};
 use crate::mission::resolve::{claimed_points, position_of, resolve};
+use crate::safety::SafetyGate;
+use crate::swarm::SwarmView;
 use std::time::{Duration, Instant};
 use tacos_prompts::render::{HistoryEntry, TaskStatus};
 use tacos_prompts::{ActionName, Call};
 use tacos_shared::action::Action;
-use tacos_shared::messages::{ActionState, FailureReason};
+use tacos_shared::messages::{ActionState, FailureReason, TargetObservation};
 use tacos_shared::{DroneId, DroneMode};
 
 #[derive(Debug, Clone)]
@@ -264,12 +266,6 @@ impl Mission {
         let view = self.link.view();
         let now = self.link.clock().instant();
         let visible = self.visible_targets();
-        let ready = |drone: &str| {
-            DroneId::new(drone)
-                .ok()
-                .and_then(|id| view.get(&id))
-                .is_some_and(|e| e.ready(now) && !pending.contains(&e.id))
-        };
         let mut out = Vec::new();
         // No order is imposed here: the plan's temporal dependencies are the Supervisor's to
         // infer (the paper's division of labour); the drone's mode rules what is possible.
@@ -279,27 +275,49 @@ impl Mission {
                 TaskStatus::Failed(_) => swarm.clone(),
                 _ => continue,
             };
-            for drone in drones.into_iter().filter(|d| ready(d)) {
+            for drone in drones {
                 let call = Call {
-                    drone: drone.clone(),
+                    drone,
                     ..task.call.clone()
                 };
-                let claimed = claimed_points(&view, &drone, now);
-                let Ok(action) = resolve(
-                    &call,
-                    self.gate.scenario(),
-                    &visible,
-                    &claimed,
-                    position_of(&view, &drone),
-                ) else {
-                    continue;
+                let start = Start {
+                    view: &view,
+                    gate: &self.gate,
+                    now,
+                    visible: &visible,
+                    pending: &pending,
                 };
-                if self.gate.check(&view, &drone, &action, now).is_ok() {
+                if start.blocker(&call).is_none() {
                     out.push(call);
                 }
             }
         }
         out
+    }
+
+    /// Why each of the plan's unfinished tasks cannot start now, as the pilot reads it.
+    fn blockers(&self) -> Vec<String> {
+        let Some(plan) = self.plan.as_ref() else {
+            return Vec::new();
+        };
+        let pending = self.drones_with_pending_actions();
+        let view = self.link.view();
+        let visible = self.visible_targets();
+        let start = Start {
+            view: &view,
+            gate: &self.gate,
+            now: self.link.clock().instant(),
+            visible: &visible,
+            pending: &pending,
+        };
+        plan.tasks
+            .iter()
+            .filter(|t| t.status != TaskStatus::Done)
+            .map(|t| match start.blocker(&t.call) {
+                Some(why) => format!("{} ({why})", t.call),
+                None => t.call.to_string(),
+            })
+            .collect()
     }
 
     /// Drones with an action the engine sent and has not yet seen finish. A drone's status lags
@@ -431,14 +449,10 @@ impl Mission {
         if now.duration_since(since) < STUCK_AFTER {
             return;
         }
-        let waiting: Vec<String> = plan
-            .tasks
-            .iter()
-            .filter(|t| t.status != TaskStatus::Done)
-            .map(|t| t.call.to_string())
-            .collect();
+        let waiting = self.blockers();
         let why = format!(
-            "nothing has run or could start for {} s; waiting: {}",
+            "nothing has run or could start for {} s; waiting: {}. Give the work to another \
+             drone or place, or land",
             STUCK_AFTER.as_secs(),
             waiting.join(", ")
         );
@@ -448,5 +462,46 @@ impl Mission {
                 "the plan was given up: {why}"
             )));
         }
+    }
+}
+
+/// What decides whether a call can start now: the swarm as seen, the gate, the targets seen and
+/// the drones with an action under way.
+struct Start<'a> {
+    view: &'a SwarmView,
+    gate: &'a SafetyGate,
+    now: Instant,
+    visible: &'a [TargetObservation],
+    pending: &'a [DroneId],
+}
+
+impl Start<'_> {
+    /// Why `call` cannot start now on its drone; `None` when it can.
+    fn blocker(&self, call: &Call) -> Option<String> {
+        let drone = &call.drone;
+        let Some(entry) = DroneId::new(drone).ok().and_then(|id| self.view.get(&id)) else {
+            return Some(format!("{drone} is not in the swarm"));
+        };
+        if entry.effective_mode(self.now) == DroneMode::Unavailable {
+            return Some(format!("{drone} is unavailable"));
+        }
+        if entry.busy() || self.pending.contains(&entry.id) {
+            return Some(format!("{drone} is busy with another action"));
+        }
+        let claimed = claimed_points(self.view, drone, self.now);
+        let action = match resolve(
+            call,
+            self.gate.scenario(),
+            self.visible,
+            &claimed,
+            position_of(self.view, drone),
+        ) {
+            Ok(action) => action,
+            Err(why) => return Some(why),
+        };
+        self.gate
+            .check(self.view, drone, &action, self.now)
+            .err()
+            .map(|r| r.to_string())
     }
 }
