@@ -2,7 +2,7 @@
 //!
 //! Pure state; `link` feeds it. Times are passed in so the view can be tested without clocks.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::time::Instant;
 use tacos_shared::messages::DroneStatus;
 use tacos_shared::{DroneId, DroneMode};
@@ -21,7 +21,18 @@ pub struct DroneEntry {
     pub gone_at: Option<Instant>,
 }
 
+/// A status that a mission can use: the autopilot is linked and the drone not unavailable.
+fn usable(status: &DroneStatus) -> bool {
+    status.autopilot_link && status.mode != DroneMode::Unavailable
+}
+
 impl DroneEntry {
+    /// In the swarm as the membership changes count it: its token present and its last
+    /// report usable (a drone heard only by its token counts too).
+    pub fn present(&self) -> bool {
+        self.alive && self.status.as_ref().is_none_or(usable)
+    }
+
     /// Seconds since the last status, if any arrived.
     pub fn link_age(&self, now: Instant) -> Option<f64> {
         self.last_status_at
@@ -58,6 +69,14 @@ pub enum SwarmChange {
     Status(DroneId),
 }
 
+/// The membership changes that take `known` to `now`: for a watcher that missed some (a lagging
+/// channel), the difference is what it must act on.
+pub fn membership_diff(known: &BTreeSet<DroneId>, now: &BTreeSet<DroneId>) -> Vec<SwarmChange> {
+    let left = known.difference(now).cloned().map(SwarmChange::Left);
+    let joined = now.difference(known).cloned().map(SwarmChange::Joined);
+    left.chain(joined).collect()
+}
+
 #[derive(Debug, Default, Clone)]
 pub struct SwarmView {
     drones: BTreeMap<DroneId, DroneEntry>,
@@ -80,7 +99,6 @@ impl SwarmView {
     pub fn apply_status(&mut self, status: DroneStatus, now: Instant) -> SwarmChange {
         let id = status.drone.clone();
         let entry = self.entry(&id);
-        let usable = |s: &DroneStatus| s.autopilot_link && s.mode != DroneMode::Unavailable;
         let before = entry.status.as_ref().map(usable);
         let after = usable(&status);
         // A status can arrive just before the liveliness token; it proves the drone is there.
@@ -123,6 +141,15 @@ impl SwarmView {
         self.drones.values()
     }
 
+    /// The drones present now ([`DroneEntry::present`]).
+    pub fn present_ids(&self) -> BTreeSet<DroneId> {
+        self.drones
+            .values()
+            .filter(|e| e.present())
+            .map(|e| e.id.clone())
+            .collect()
+    }
+
     pub fn alive_ids(&self) -> Vec<DroneId> {
         self.drones
             .values()
@@ -153,6 +180,35 @@ mod tests {
             ground: None,
             refused: None,
         }
+    }
+
+    #[test]
+    fn a_watcher_that_missed_changes_gets_them_from_the_view() {
+        let t0 = Instant::now();
+        let mut view = SwarmView::default();
+        let [alfa, bravo, charlie] =
+            ["alfa", "bravo", "charlie"].map(|d| DroneId::new(d).expect("valid"));
+        for id in [&alfa, &bravo] {
+            view.apply_liveliness(id, true, t0);
+            view.apply_status(status(id.as_str()), t0);
+        }
+        let known = view.present_ids();
+        // Missed: bravo's autopilot died, charlie joined, alfa's token went and came back.
+        view.apply_status(
+            DroneStatus {
+                mode: DroneMode::Unavailable,
+                autopilot_link: false,
+                ..status("bravo")
+            },
+            t0,
+        );
+        view.apply_liveliness(&charlie, true, t0);
+        view.apply_liveliness(&alfa, false, t0);
+        view.apply_liveliness(&alfa, true, t0);
+        assert_eq!(
+            membership_diff(&known, &view.present_ids()),
+            [SwarmChange::Left(bravo), SwarmChange::Joined(charlie)]
+        );
     }
 
     #[test]

@@ -22,14 +22,16 @@ use super::report::{EventTopic, MissionError, MissionStats, MissionUpdate};
 use super::untrusted;
 use crate::link::GroundLink;
 use crate::safety::{CheckedAction, SafetyGate};
-use crate::swarm::SwarmChange;
+use crate::swarm::{SwarmChange, membership_diff};
 use crate::task_guard::AbortOnDrop;
 use caller::Caller;
 use plan_state::{ActivePlan, Monolithic};
+use std::collections::BTreeSet;
 use std::sync::Arc;
 use std::time::Duration;
 use tacos_llm::LlmBackend;
 use tacos_prompts::render::{HistoryEntry, TaskStatus};
+use tacos_shared::DroneId;
 use tacos_shared::action::Action;
 use tacos_shared::messages::{TargetObservation, WorldEvent};
 use tokio::sync::{mpsc, watch};
@@ -50,6 +52,9 @@ pub struct Mission {
     /// Counts the direct commands `PilotInput` carried out; a change the engine has not yet
     /// seen means a model's proposal is older than the pilot's command (see `mission::input`).
     overrides: watch::Receiver<u64>,
+    /// The drones present as the membership changes the engine took in say; after changes
+    /// were missed (a lagging channel) the difference to the view is taken in instead.
+    present: BTreeSet<DroneId>,
 }
 
 /// Logs where every live drone is, twice a second, for `tacos-ground plot`, until aborted.
@@ -131,6 +136,7 @@ impl Mission {
             stats: MissionStats::default(),
             // No sender: never changes until `run_with` brings the pilot's.
             overrides: watch::channel(0).1,
+            present: BTreeSet::new(),
         })
     }
 
@@ -181,6 +187,7 @@ impl Mission {
         self.overrides = wake.clone();
         let mut wake_open = true;
         let mut membership = self.link.membership();
+        self.present = self.link.view().present_ids();
         let mut events = match self.link.watch_events().await {
             Ok(rx) => rx,
             Err(e) => {
@@ -222,7 +229,17 @@ impl Mission {
                         }
                         cycle_due = self.busy();
                     }
-                    Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => {}
+                    Err(tokio::sync::broadcast::error::RecvError::Lagged(missed)) => {
+                        // Changes went by while a model thought: the view says where they led.
+                        tracing::warn!(missed, "membership changes missed; taken from the view");
+                        let now_present = self.link.view().present_ids();
+                        for change in membership_diff(&self.present, &now_present) {
+                            if let Err(e) = self.membership_changed(change).await {
+                                self.tell(MissionUpdate::Error(e.to_string()));
+                            }
+                        }
+                        cycle_due = self.busy();
+                    }
                     Err(tokio::sync::broadcast::error::RecvError::Closed) => break,
                 },
                 event = events.recv() => if let Some(event) = event && self.world_event(event) {
@@ -358,6 +375,11 @@ impl Mission {
     }
 
     async fn membership_changed(&mut self, change: SwarmChange) -> Result<(), MissionError> {
+        match &change {
+            SwarmChange::Joined(d) => self.present.insert(d.clone()),
+            SwarmChange::Left(d) => self.present.remove(d),
+            SwarmChange::Status(_) => false,
+        };
         let (topic, text) = match &change {
             SwarmChange::Joined(d) => (EventTopic::Joined, format!("{d} joined the swarm")),
             SwarmChange::Left(d) => (EventTopic::Failure, format!("{d} became unavailable")),
