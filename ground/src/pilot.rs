@@ -59,8 +59,8 @@ pub fn describe(update: &MissionUpdate) -> String {
                 actions.join("; ")
             )
         }
-        MissionUpdate::Rejected { layer, refusal } => {
-            format!("the checks refused a call of the {layer}'s reply: {refusal}")
+        MissionUpdate::Rejected { layer, refusal, by } => {
+            format!("{by} refused a call of the {layer}'s reply: {refusal}")
         }
         MissionUpdate::Sent { drone, action, seq } => format!("sent #{seq} {action} to {drone}"),
         MissionUpdate::Outcome {

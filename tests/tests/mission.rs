@@ -9,7 +9,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 use tacos_ground::launch::Role;
-use tacos_ground::mission::log::{self, MissionLog, Record};
+use tacos_ground::mission::log::{self, MissionLog, Record, RefusedBy};
 use tacos_ground::mission::{Aid, Mission, MissionConfig, MissionUpdate, Mode, ModelAids};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{ChatRequest, LlmError, Role as ChatRole};
@@ -372,7 +372,9 @@ async fn the_monolithic_model_is_held_to_its_actions_not_its_claim() -> anyhow::
         assert!(offered.iter().all(|a| a["properties"]["action"]["enum"] == json!(["arm_takeoff"])), "{offered:?}");
         // The goto before take-off never left the ground; every drone's take-off did.
         let sent = sent_tasks(&lines);
-        assert!(lines.iter().any(|l| matches!(&l.record, Record::GateRejected { call, .. } if call.contains("alfa goto(car_11)"))));
+        // Refused by the safety gate itself (a goto for a drone on the ground), and counted so.
+        assert!(lines.iter().any(|l| matches!(&l.record, Record::GateRejected { call, by: RefusedBy::SafetyGate, .. } if call.contains("alfa goto(car_11)"))));
+        assert!(log::Tally::of(&lines).gate_refusals >= 1);
         assert!(!lines.iter().any(|l| matches!(&l.record, Record::ActionSent { action, .. } if action.starts_with("goto"))), "{sent:?}");
         let mut drones: Vec<&str> = sent.iter().map(|(_, d)| d.as_str()).collect();
         drones.sort();

@@ -57,10 +57,15 @@ pub enum Record {
         reasoning: String,
         plan: serde_json::Value,
     },
+    /// A call of a model's reply was refused (the record's name is historical: most refusals
+    /// are the engine's checks', `by` says whose).
     GateRejected {
         layer: String,
         call: String,
         reason: String,
+        /// Logs from before it was recorded: the checks.
+        #[serde(default)]
+        by: RefusedBy,
     },
     ActionSent {
         drone: String,
@@ -110,6 +115,26 @@ pub enum Record {
     MissionEnd {
         outcome: String,
     },
+}
+
+/// Who refused a model's call.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RefusedBy {
+    /// The engine's checks: the reply's form, the plan's rules, the live state (busy, done).
+    #[default]
+    Checks,
+    /// The safety gate, on the action the call resolved to.
+    SafetyGate,
+}
+
+impl std::fmt::Display for RefusedBy {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            RefusedBy::Checks => "the checks",
+            RefusedBy::SafetyGate => "the safety gate",
+        })
+    }
 }
 
 /// The typed half of [`Record::ActionSent`].
@@ -281,8 +306,10 @@ pub struct Tally {
     pub model_actions: usize,
     /// Actions sent for the pilot's direct commands.
     pub direct_actions: usize,
-    /// Calls of the models' replies that the checks refused.
+    /// Calls of the models' replies that the engine's checks refused.
     pub rejections: usize,
+    /// … and that the safety gate refused.
+    pub gate_refusals: usize,
     /// Times a small-model aid changed what the engine did.
     pub aids_fired: usize,
 }
@@ -296,7 +323,14 @@ impl Tally {
                 Record::SupervisorCycle { .. } => t.supervisor_cycles += 1,
                 Record::ActionSent { task: Some(_), .. } => t.model_actions += 1,
                 Record::ActionSent { task: None, .. } => t.direct_actions += 1,
-                Record::GateRejected { .. } => t.rejections += 1,
+                Record::GateRejected {
+                    by: RefusedBy::Checks,
+                    ..
+                } => t.rejections += 1,
+                Record::GateRejected {
+                    by: RefusedBy::SafetyGate,
+                    ..
+                } => t.gate_refusals += 1,
                 Record::AidFired { .. } => t.aids_fired += 1,
                 _ => {}
             }
@@ -309,12 +343,13 @@ impl std::fmt::Display for Tally {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "{} model calls, {} supervisor cycles, {} actions sent by the models, {} by direct commands, {} calls refused by the checks, {} small-model aids fired",
+            "{} model calls, {} supervisor cycles, {} actions sent by the models, {} by direct commands, {} calls refused by the checks and {} by the safety gate, {} small-model aids fired",
             self.model_calls,
             self.supervisor_cycles,
             self.model_actions,
             self.direct_actions,
             self.rejections,
+            self.gate_refusals,
             self.aids_fired
         )
     }
@@ -370,12 +405,14 @@ pub fn timeline(lines: &[Line]) -> String {
                 layer,
                 call,
                 reason,
-            } if reason.is_empty() => format!("refused the {layer}'s {call}"),
+                by,
+            } if reason.is_empty() => format!("{by} refused the {layer}'s {call}"),
             Record::GateRejected {
                 layer,
                 call,
                 reason,
-            } => format!("refused the {layer}'s {call}: {reason}"),
+                by,
+            } => format!("{by} refused the {layer}'s {call}: {reason}"),
             Record::ActionSent {
                 drone, seq, action, ..
             } => format!("sent #{seq} {action} to {drone}"),
@@ -413,6 +450,30 @@ pub fn timeline(lines: &[Line]) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn refusals_are_counted_by_who_refused() {
+        let line = |t: f64, record: Record| Line { t, record };
+        let refused = |by| Record::GateRejected {
+            layer: "supervisor".into(),
+            call: "T1 alfa goto(car_1): why".into(),
+            reason: String::new(),
+            by,
+        };
+        // A record from before `by` was written reads as the checks'.
+        let old: Line = serde_json::from_str(
+            r#"{"t": 3.0, "kind": "gate_rejected", "layer": "coordinator", "call": "T2 bravo land()", "reason": ""}"#,
+        )
+        .expect("an old record reads");
+        let lines = [
+            line(1.0, refused(RefusedBy::Checks)),
+            line(2.0, refused(RefusedBy::SafetyGate)),
+            old,
+        ];
+        let tally = Tally::of(&lines);
+        assert_eq!((tally.rejections, tally.gate_refusals), (2, 1));
+        assert!(timeline(&lines).contains("the safety gate refused the supervisor's T1 alfa"));
+    }
 
     #[test]
     fn a_reused_path_after_a_crash_reads_as_two_missions() {

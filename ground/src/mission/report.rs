@@ -1,6 +1,7 @@
 //! What the mission engine reports: its errors, its updates to whoever shows the mission
 //! (terminal, script runner, evaluation), and its counters.
 
+use super::log::RefusedBy;
 use std::time::Duration;
 use tacos_llm::LlmError;
 
@@ -76,6 +77,7 @@ pub enum MissionUpdate {
     Rejected {
         layer: &'static str,
         refusal: String,
+        by: RefusedBy,
     },
     Sent {
         drone: String,

@@ -4,6 +4,7 @@
 //! Pure: every method takes the time it should assume, so the panes can be rendered and tested
 //! from a fixed state.
 
+use crate::mission::log::RefusedBy;
 use crate::mission::{EventTopic, MissionUpdate};
 use crate::swarm::SwarmView;
 use crossterm::event::{KeyCode, KeyEvent, KeyEventKind, KeyModifiers};
@@ -413,11 +414,12 @@ impl TerminalState {
                     actions: actions.clone(),
                 });
             }
-            MissionUpdate::Rejected { layer, refusal } => {
-                self.log(
-                    EventKind::Rejected,
-                    format!("refused the {layer}'s {refusal}"),
-                );
+            MissionUpdate::Rejected { layer, refusal, by } => {
+                let whose = match by {
+                    RefusedBy::Checks => "refused the",
+                    RefusedBy::SafetyGate => "the safety gate refused the",
+                };
+                self.log(EventKind::Rejected, format!("{whose} {layer}'s {refusal}"));
                 // The reply goes back to its model with the reasons: a new call is in flight
                 // (until the plan or cycle shows it was the last attempt).
                 self.status.thinking = Some(((*layer).to_owned(), self.now));

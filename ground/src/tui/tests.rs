@@ -4,6 +4,7 @@
 
 use super::panes::{self, DRONE_MARKER};
 use super::state::{ChatEntry, Command, EventKind, Focus, TRAIL_SPAN, TRAIL_STEP, TerminalState};
+use crate::mission::log::RefusedBy;
 use crate::mission::{EventTopic, MissionUpdate};
 use crate::swarm::SwarmView;
 use crossterm::event::{KeyCode, KeyEvent, KeyModifiers};
@@ -173,6 +174,7 @@ fn fixed_state() -> TerminalState {
             MissionUpdate::Rejected {
                 layer: "supervisor",
                 refusal: "t3 charlie arm_takeoff(): charlie is unavailable".into(),
+                by: RefusedBy::Checks,
             },
         ),
         (
@@ -728,6 +730,7 @@ fn thinking_timer() {
         &MissionUpdate::Rejected {
             layer: "coordinator",
             refusal: "t1 zulu land()".into(),
+            by: RefusedBy::Checks,
         },
         at(t0, 4.3),
     );

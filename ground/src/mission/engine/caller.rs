@@ -3,7 +3,7 @@
 
 use crate::link::GroundLink;
 use crate::mission::aids::{Aid, ModelAids};
-use crate::mission::log::{MissionLog, Record};
+use crate::mission::log::{MissionLog, Record, RefusedBy};
 use crate::mission::report::{MissionError, MissionStats, MissionUpdate};
 use std::sync::Arc;
 use tacos_llm::{ChatMessage, ChatReply, ChatRequest, LlmBackend, LlmError, ResponseSchema};
@@ -29,6 +29,8 @@ pub(super) struct Caller {
 pub(super) struct Checked<U> {
     pub(super) accepted: U,
     pub(super) rejections: Vec<String>,
+    /// The calls the safety gate refused, with its reasons (counted apart from the checks').
+    pub(super) gate_refusals: Vec<String>,
     /// The schema for the repair round, when the reply missed something the grammar can hold
     /// the next one to; `None`: the same schema again.
     pub(super) narrowed: Option<serde_json::Value>,
@@ -106,19 +108,27 @@ impl Caller {
             let problems = match parse(&reply.content) {
                 Err(e) => vec![e.to_string()],
                 Ok(parsed) => {
-                    let checked = check(&parsed);
-                    for r in &checked.rejections {
+                    let mut checked = check(&parsed);
+                    let by_checks = checked.rejections.iter().map(|r| (RefusedBy::Checks, r));
+                    let by_gate = checked
+                        .gate_refusals
+                        .iter()
+                        .map(|r| (RefusedBy::SafetyGate, r));
+                    for (by, r) in by_checks.chain(by_gate) {
                         stats.gate_rejections += 1;
                         self.log.note(Record::GateRejected {
                             layer: layer.into(),
                             call: r.clone(),
                             reason: String::new(),
+                            by,
                         });
                         let _ = self.updates.send(MissionUpdate::Rejected {
                             layer,
                             refusal: r.clone(),
+                            by,
                         });
                     }
+                    checked.rejections.append(&mut checked.gate_refusals);
                     if checked.rejections.is_empty() {
                         return Ok(checked.accepted);
                     }

@@ -32,16 +32,18 @@ pub(super) fn check_static(
 
 /// Checks calls against the live swarm: resolvable, through the safety gate, to drones that are
 /// not busy, one drone per task id, and not repeating a task that is running or done. The calls
-/// come one per drone (`first_call_per_drone`).
+/// come one per drone (`first_call_per_drone`). Returns the accepted calls, the checks'
+/// refusals and the gate's.
 pub(super) fn check_live(
     calls: &[Call],
     gate: &SafetyGate,
     link: &GroundLink,
     visible: &[TargetObservation],
     tasks: &[(Call, TaskStatus)],
-) -> (Vec<(Call, CheckedAction)>, Vec<String>) {
+) -> (Vec<(Call, CheckedAction)>, Vec<String>, Vec<String>) {
     let mut accepted: Vec<(Call, CheckedAction)> = Vec::new();
     let mut rejections = Vec::new();
+    let mut gate_refusals = Vec::new();
     let view = link.view();
     let now = link.clock().instant();
     let order = nearest_first(calls, gate.scenario(), visible, |d| position_of(&view, d));
@@ -100,8 +102,8 @@ pub(super) fn check_live(
         };
         match gate.check(&view, &call.drone, &action, now) {
             Ok(checked) => accepted.push((call.clone(), checked)),
-            Err(r) => rejections.push(format!("{call}: {r}")),
+            Err(r) => gate_refusals.push(format!("{call}: {r}")),
         }
     }
-    (accepted, rejections)
+    (accepted, rejections, gate_refusals)
 }

@@ -197,6 +197,8 @@ impl Mission {
                     Checked {
                         accepted: (reply.reasoning.clone(), plan),
                         rejections,
+                        // A plan's calls are not actions yet: the gate judges them when sent.
+                        gate_refusals: Vec::new(),
                         narrowed,
                     }
                 },

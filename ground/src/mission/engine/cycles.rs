@@ -198,17 +198,21 @@ impl Mission {
                             Some(startable) => match_startable(&firsts, startable),
                             None => (firsts, Vec::new()),
                         };
-                        let (accepted, live) = check_live(&calls, gate, link, &visible, tasks);
+                        let (accepted, live, gate_refusals) =
+                            check_live(&calls, gate, link, &visible, tasks);
                         rejections.extend(live);
                         Checked {
                             accepted: (
                                 reply.reasoning.clone(),
                                 reply.claim,
-                                rejections.is_empty() && later.is_empty(),
+                                rejections.is_empty()
+                                    && gate_refusals.is_empty()
+                                    && later.is_empty(),
                                 accepted,
                                 later,
                             ),
                             rejections,
+                            gate_refusals,
                             narrowed: None,
                         }
                     },
