@@ -288,9 +288,11 @@ async fn a_failing_step_ends_the_run_non_zero_naming_its_line() -> anyhow::Resul
     Ok(())
 }
 
-/// The stand-in plans nothing for a drone the map lacks; every repair round is refused too, so
-/// the mission gives the instruction up: the waiting step ends then, with the mission's reason,
-/// not when its 600 s run out.
+/// The stand-in plans nothing for an instruction that names none of the swarm's drones; every
+/// repair round is refused too, so the mission gives the instruction up: the waiting step ends
+/// then, with the mission's reason, not when its 600 s run out. (An instruction addressed to a
+/// drone the swarm lacks, "zulu, go to car_11", is refused before any model call:
+/// `mission.rs`.)
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_step_waiting_on_an_instruction_the_mission_gave_up_fails_at_once() -> anyhow::Result<()>
 {
@@ -298,7 +300,7 @@ async fn a_step_waiting_on_an_instruction_the_mission_gave_up_fails_at_once() ->
     let script = temp("gaveup", "txt");
     std::fs::write(
         &script,
-        "say zulu, go to car_11\nwait until plan complete within 600\nsay land all\n",
+        "say somebody go to car_11\nwait until plan complete within 600\nsay land all\n",
     )?;
     let log_path = temp("gaveup", "jsonl");
     let started = std::time::Instant::now();

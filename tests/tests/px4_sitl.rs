@@ -110,13 +110,15 @@ async fn conformance_steps(sim: &mut SimSwarm) -> anyhow::Result<Vec<Observation
     // The writer dies mid-air, in a settled hover (a kill during the last metre of the climb
     // would measure the climb's own braking, not the hold): no setpoints, so the autopilot's
     // offboard-loss failsafe holds it.
+    // (On PX4 under CI load the hover after the take-off was seen still 0.8 m above the
+    // take-off altitude and drifting at 0.4 m/s after 15 s: hence these bounds.)
     truth_until(
         &mut truth,
-        Duration::from_secs(15),
+        Duration::from_secs(20),
         "alfa hovering at take-off altitude",
         |t| {
             vehicle(t, &alfa).is_some_and(|v| {
-                v.armed && (v.position.z - home.z - alt).abs() < 0.5 && v.velocity.norm() < 0.3
+                v.armed && (v.position.z - home.z - alt).abs() < 1.0 && v.velocity.norm() < 0.5
             })
         },
     )
@@ -128,16 +130,17 @@ async fn conformance_steps(sim: &mut SimSwarm) -> anyhow::Result<Vec<Observation
     let exit = sim.stack.crash(Role::Writer, Some(&alfa)).await;
     anyhow::ensure!(exit.is_some(), "alfa's writer was not running");
     // The failsafe engages after the offboard-loss timeout (COM_OF_LOSS_T, 1 s): the vehicle
-    // brakes from whatever the last setpoint asked (0.9 m seen on PX4 from a settled hover), then
-    // holds. Held = armed, in Hold, within 3 m of where the writer died, and still over the
-    // 2 s after that.
+    // brakes from whatever the last setpoint asked (0.9–1.1 m in 3 s seen on PX4, still moving
+    // 0.2 m/s then), then holds, its estimate wandering up to 0.17 m/s in SIH. Held = armed, in
+    // Hold, within 3 m of where the writer died, and still (under 1 m, i.e. 0.5 m/s: a vehicle
+    // flying on would move metres) over the 2 s after the first 4.
     let position_now = |truth: &Truth| {
         truth
             .borrow()
             .as_ref()
             .and_then(|t| vehicle(t, &alfa).map(|v| (v.position, v.armed, v.custom_mode)))
     };
-    tokio::time::sleep(Duration::from_secs(3)).await;
+    tokio::time::sleep(Duration::from_secs(4)).await;
     let settled = position_now(&truth);
     tokio::time::sleep(Duration::from_secs(2)).await;
     let after = position_now(&truth);
@@ -145,14 +148,14 @@ async fn conformance_steps(sim: &mut SimSwarm) -> anyhow::Result<Vec<Observation
         (Some(b), Some((s, _, _)), Some((a, armed, custom_mode))) => {
             let mode = Px4Mode::from_custom_mode(custom_mode);
             eprintln!(
-                "writer killed: moved {:.2} m in 3 s, then {:.2} m in 2 s ({b:?} to {s:?} to {a:?})",
+                "writer killed: moved {:.2} m in 4 s, then {:.2} m in 2 s ({b:?} to {s:?} to {a:?})",
                 (s - b).norm(),
                 (a - s).norm(),
             );
             format!(
                 "armed {armed}, mode {mode:?}, within 3 m: {}, then still: {}",
                 (a - b).norm() < 3.0,
-                (a - s).norm() < 0.5
+                (a - s).norm() < 1.0
             )
         }
         _ => "no truth".into(),
