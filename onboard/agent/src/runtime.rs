@@ -230,6 +230,8 @@ async fn run_inner(
                             }
                             Beat::Adopted { previous } => {
                                 info!(ground = beat.ground, ?previous, "following ground station");
+                                // A late refusal names an action of the ground followed before.
+                                refused = None;
                                 publish_now = true;
                             }
                             Beat::Followed => {}
