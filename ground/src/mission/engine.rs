@@ -13,7 +13,6 @@ pub use coordinator::coordinator_messages;
 pub use cycles::supervisor_messages;
 
 use super::addressed;
-use super::aids::Aid;
 use super::config::{MissionConfig, Mode};
 use super::directives::{self, Directive};
 use super::input::MissionInputs;
@@ -160,12 +159,6 @@ impl Mission {
     fn event(&self, topic: EventTopic, text: String) {
         self.log.note(Record::Event { text: text.clone() });
         self.tell(MissionUpdate::Event { topic, text });
-    }
-
-    /// Logs that a small-model aid changed what the engine did.
-    fn aid_fired(&self, aid: Aid, detail: String) {
-        tracing::debug!(%aid, %detail, "small-model aid fired");
-        self.log.note(Record::AidFired { aid, detail });
     }
 
     /// Runs the mission until `inputs` closes: pilot lines in, cycles on every change.

@@ -240,6 +240,12 @@ impl MissionLog {
 
     /// Appends one record (synced to the disk when it is one a mission is rebuilt from). A
     /// failing disk is reported, never a panic.
+    /// Records that a small-model aid changed what the engine did (`mission::aids`).
+    pub fn aid_fired(&self, aid: Aid, detail: String) {
+        tracing::debug!(%aid, %detail, "small-model aid fired");
+        self.note(Record::AidFired { aid, detail });
+    }
+
     pub fn write(&self, record: Record) -> Result<(), LogError> {
         self.write_all(vec![record])
     }
@@ -406,13 +412,14 @@ pub fn timeline(lines: &[Line]) -> String {
                 call,
                 reason,
                 by,
-            } if reason.is_empty() => format!("{by} refused the {layer}'s {call}"),
-            Record::GateRejected {
-                layer,
-                call,
-                reason,
-                by,
-            } => format!("{by} refused the {layer}'s {call}: {reason}"),
+            } => {
+                let why = if reason.is_empty() {
+                    String::new()
+                } else {
+                    format!(": {reason}")
+                };
+                format!("{by} refused the {layer}'s {call}{why}")
+            }
             Record::ActionSent {
                 drone, seq, action, ..
             } => format!("sent #{seq} {action} to {drone}"),

@@ -138,12 +138,10 @@ impl Caller {
                         }
                         let refused = distinct_problems(checked.rejections).join("; ");
                         if self.aids.is_on(Aid::KeepPartialPlan) {
-                            self.log.note(Record::AidFired {
-                                aid: Aid::KeepPartialPlan,
-                                detail: format!(
-                                    "{layer}: kept what passed of the last reply; refused: {refused}"
-                                ),
-                            });
+                            let detail = format!(
+                                "{layer}: kept what passed of the last reply; refused: {refused}"
+                            );
+                            self.log.aid_fired(Aid::KeepPartialPlan, detail);
                             return Ok(checked.accepted);
                         }
                         return Err(MissionError::NoValidReply {
@@ -164,12 +162,10 @@ impl Caller {
             let echo = if self.aids.is_on(Aid::CompactRepairEcho) {
                 let (echo, left_out) = without_repeated_items(&reply.content);
                 if left_out > 0 {
-                    self.log.note(Record::AidFired {
-                        aid: Aid::CompactRepairEcho,
-                        detail: format!(
-                            "{layer}: {left_out} repeated items left out of the echoed reply"
-                        ),
-                    });
+                    self.log.aid_fired(
+                        Aid::CompactRepairEcho,
+                        format!("{layer}: {left_out} repeated items left out of the echoed reply"),
+                    );
                 }
                 echo
             } else {
@@ -200,12 +196,10 @@ impl Caller {
         why: &dyn std::fmt::Display,
     ) -> Option<U> {
         let passed = passed_before.filter(|_| self.aids.is_on(Aid::KeepPartialPlan))?;
-        self.log.note(Record::AidFired {
-            aid: Aid::KeepPartialPlan,
-            detail: format!(
-                "{layer}: the repair round failed ({why}); what passed the round before stays"
-            ),
-        });
+        self.log.aid_fired(
+            Aid::KeepPartialPlan,
+            format!("{layer}: the repair round failed ({why}); what passed the round before stays"),
+        );
         Some(passed)
     }
 

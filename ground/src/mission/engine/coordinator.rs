@@ -34,7 +34,7 @@ impl Mission {
         let scope = grounding::places_in_scope(&places, &named, &pending_places)
             .filter(|_| aids.is_on(Aid::PlaceScope));
         if let Some(scope) = scope.as_ref().filter(|s| s.len() < places.len()) {
-            self.aid_fired(
+            self.log.aid_fired(
                 Aid::PlaceScope,
                 format!(
                     "the plan may name {} of the map's {} places: {}",
@@ -65,7 +65,7 @@ impl Mission {
         };
         if !follow.is_empty() {
             let targets: Vec<&str> = follow.iter().map(|a| a.target.as_str()).collect();
-            self.aid_fired(
+            self.log.aid_fired(
                 Aid::FollowWords,
                 format!(
                     "the instruction asks that {} be followed: the plan must track it",
@@ -101,7 +101,6 @@ impl Mission {
         };
         let first_schema = schema.clone();
         let log = self.log.clone();
-        let fire = |aid: Aid, detail: String| log.note(Record::AidFired { aid, detail });
         self.tell(MissionUpdate::Thinking {
             layer: "coordinator",
         });
@@ -151,7 +150,7 @@ impl Mission {
                         && plan_cap < schema::PLAN_MAX_CALLS
                         && reply.plan.len() >= plan_cap
                     {
-                        fire(
+                        log.aid_fired(
                             Aid::PlanLengthCap,
                             format!("the plan filled its cap of {plan_cap} calls (three per drone)"),
                         );
@@ -184,7 +183,7 @@ impl Mission {
                             .collect();
                         let targets: Vec<&str> =
                             required.iter().map(|r| r.target.as_str()).collect();
-                        fire(
+                        log.aid_fired(
                             Aid::RepairGrammar,
                             format!(
                                 "the repair round's grammar opens the plan with start_tracking of {}",
@@ -302,7 +301,7 @@ impl Mission {
                     "{call}: {} is on the ground and the plan never takes it off: added {takeoff}",
                     call.drone
                 );
-                self.aid_fired(Aid::ImpliedTakeoffs, text.clone());
+                self.log.aid_fired(Aid::ImpliedTakeoffs, text.clone());
                 self.tell(MissionUpdate::Event {
                     topic: EventTopic::Note,
                     text,

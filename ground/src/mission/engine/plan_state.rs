@@ -266,6 +266,13 @@ impl Mission {
         let view = self.link.view();
         let now = self.link.clock().instant();
         let visible = self.visible_targets();
+        let start = Start {
+            view: &view,
+            gate: &self.gate,
+            now,
+            visible: &visible,
+            pending: &pending,
+        };
         let mut out = Vec::new();
         // No order is imposed here: the plan's temporal dependencies are the Supervisor's to
         // infer (the paper's division of labour); the drone's mode rules what is possible.
@@ -279,13 +286,6 @@ impl Mission {
                 let call = Call {
                     drone,
                     ..task.call.clone()
-                };
-                let start = Start {
-                    view: &view,
-                    gate: &self.gate,
-                    now,
-                    visible: &visible,
-                    pending: &pending,
                 };
                 if start.blocker(&call).is_none() {
                     out.push(call);
