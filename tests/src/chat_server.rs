@@ -4,6 +4,13 @@
 //! `messages` (400 when malformed), the configured model name (404 for another), a chat
 //! completion with `usage` on success, and `{"error": {...}}` bodies on errors. The reply text
 //! comes from a policy that reads the request; it may answer with an error status instead.
+//!
+//! Error bodies have llama.cpp's shape, as its server answers (`tests/tests/real_llm_server.rs`):
+//! `{"error": {"code": <status>, "message": …, "type": …}}` with its type for the status
+//! (`invalid_request_error` for 400, `not_found_error` for 404, `unavailable_error` for 503,
+//! `server_error` otherwise). Unlike llama.cpp, which serves whatever model name a request gives,
+//! the stand-in refuses another name, as Ollama, vLLM and OpenAI do: it checks what the ground
+//! sends.
 
 use serde_json::{Value, json};
 use std::sync::{Arc, Mutex};
@@ -71,13 +78,10 @@ where
     let (head, body) = read_request(&mut stream).await?;
     let request_line = head.lines().next().unwrap_or_default().to_owned();
     let (status, reply) = if !request_line.starts_with("POST /v1/chat/completions ") {
-        (404, error_body("not found", "invalid_request_error"))
+        (404, error_body(404, "File Not Found"))
     } else {
         match serde_json::from_slice::<Value>(&body) {
-            Err(e) => (
-                400,
-                error_body(&format!("invalid JSON: {e}"), "invalid_request_error"),
-            ),
+            Err(e) => (400, error_body(400, &format!("invalid JSON: {e}"))),
             Ok(request) => {
                 let answer = if request["model"] != served {
                     Err((404, format!("model {} not found", request["model"])))
@@ -93,7 +97,7 @@ where
                 }
                 match answer {
                     Ok(content) => (200, completion(&request, served, &content)),
-                    Err((status, message)) => (status, error_body(&message, "server_error")),
+                    Err((status, message)) => (status, error_body(status, &message)),
                 }
             }
         }
@@ -115,8 +119,18 @@ where
     stream.shutdown().await
 }
 
-fn error_body(message: &str, kind: &str) -> Value {
-    json!({ "error": { "message": message, "type": kind, "code": null } })
+/// An error body as llama.cpp's server writes it: the status as `code`, and its type for it.
+fn error_body(status: u16, message: &str) -> Value {
+    let kind = match status {
+        400 => "invalid_request_error",
+        401 => "authentication_error",
+        403 => "permission_error",
+        404 => "not_found_error",
+        501 => "not_supported_error",
+        503 => "unavailable_error",
+        _ => "server_error",
+    };
+    json!({ "error": { "code": status, "message": message, "type": kind } })
 }
 
 fn completion(request: &Value, model: &str, content: &str) -> Value {

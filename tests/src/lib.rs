@@ -12,6 +12,7 @@ use tokio::sync::watch;
 
 pub mod chat_server;
 pub mod deploy;
+pub mod llama_server;
 pub mod netns;
 pub mod prompt_text;
 

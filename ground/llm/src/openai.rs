@@ -18,6 +18,13 @@
 //! `Retry-After` (in seconds) when it sends one; a `Retry-After` longer than
 //! [`OpenAiConfig::max_backoff`] ends the call at once (a drone mission does not wait minutes for
 //! a rate limit). Other 4xx are not retried. A 2xx reply that does not parse is not retried either.
+//! A prompt longer than the server's context is a 400 (llama.cpp: "request (N tokens) exceeds the
+//! available context size (M tokens), try increasing it"), so [`LlmError::Http`] in the server's
+//! words, at once.
+//!
+//! `finish_reason: "length"` is [`LlmError::Truncated`] when the reply used the request's whole
+//! token limit; short of it (the server's context filled up during the reply, as llama.cpp and vLLM
+//! report it) it is [`LlmError::Generation`], saying so.
 //!
 //! The chain of thought is read from whichever of `message.reasoning` (OpenAI-style, Ollama ≥ 0.12
 //! for gpt-oss), `message.reasoning_content` (vLLM, llama.cpp with `--reasoning-format`) or
@@ -475,8 +482,9 @@ impl OpenAiBackend {
         {
             return Err(LlmError::Refused(refusal));
         }
+        let usage = wire.usage.unwrap_or_default();
         match choice.finish_reason.as_deref() {
-            Some("length") => return Err(LlmError::Truncated(request.max_tokens)),
+            Some("length") => return Err(cut_off(request.max_tokens, &usage)),
             Some("content_filter") => {
                 return Err(LlmError::Refused(
                     "stopped by the server's content filter".into(),
@@ -491,7 +499,6 @@ impl OpenAiBackend {
             }));
         }
 
-        let usage = wire.usage.unwrap_or_default();
         Ok(ChatReply {
             content: answer,
             reasoning,
@@ -636,6 +643,30 @@ fn snippet(body: &[u8]) -> String {
         Some((cut, _)) => format!("{}… ({} bytes)", &text[..cut], body.len()),
         None if text.is_empty() => "(empty body)".into(),
         None => text.to_string(),
+    }
+}
+
+/// The error for a reply that ended with `finish_reason: "length"`.
+///
+/// When the reply used the request's whole limit, it was cut at that limit:
+/// [`LlmError::Truncated`], which a caller may answer by asking for a shorter reply. When it
+/// stopped short of the limit, something else ended it: the server's context filled up (llama.cpp
+/// and vLLM report that as `length` too, with the prompt and the reply filling the context) or the
+/// server caps replies below the request's limit. Asking for a shorter answer with a longer prompt
+/// cannot help then, and "cut off at the token limit (N tokens)" would send the pilot after the
+/// wrong number, so it is a [`LlmError::Generation`] that says what happened.
+fn cut_off(max_tokens: u32, usage: &WireUsage) -> LlmError {
+    match usage.completion_tokens {
+        Some(reply) if reply < u64::from(max_tokens) => {
+            let prompt = usage.prompt_tokens.unwrap_or(0);
+            LlmError::Generation(format!(
+                "the server cut the reply off at {reply} tokens, short of the request's limit of \
+                 {max_tokens}: its context is full (prompt {prompt} + reply {reply} = {} tokens; \
+                 give the server a larger context or shorten the prompt) or it caps replies lower",
+                prompt.saturating_add(reply)
+            ))
+        }
+        _ => LlmError::Truncated(max_tokens),
     }
 }
 
@@ -942,6 +973,35 @@ mod tests {
         let samples: Vec<f64> = (0..100).map(|_| backend.next_jitter()).collect();
         assert!(samples.iter().all(|u| (0.0..1.0).contains(u)));
         assert!(samples.windows(2).any(|w| w[0] != w[1]));
+    }
+
+    #[test]
+    fn a_length_finish_short_of_the_limit_is_a_full_context_not_the_token_limit() {
+        let usage = |prompt, reply| WireUsage {
+            prompt_tokens: Some(prompt),
+            completion_tokens: Some(reply),
+        };
+        // The limit reached: truncated at it (what llama.cpp answers with max_tokens 5).
+        assert_eq!(cut_off(5, &usage(36, 5)), LlmError::Truncated(5));
+        // No usage: nothing says otherwise.
+        assert_eq!(
+            cut_off(400, &WireUsage::default()),
+            LlmError::Truncated(400)
+        );
+        // llama.cpp with n_ctx 512, a 486-token prompt and max_tokens 400: 26 tokens, "length".
+        match cut_off(400, &usage(486, 26)) {
+            LlmError::Generation(message) => {
+                for part in [
+                    "26 tokens",
+                    "limit of 400",
+                    "context is full",
+                    "486 + reply 26 = 512",
+                ] {
+                    assert!(message.contains(part), "{part:?} not in {message}");
+                }
+            }
+            other => panic!("expected Generation, got {other:?}"),
+        }
     }
 
     #[test]

@@ -383,13 +383,28 @@ async fn unreachable_server_is_connect_after_retries() {
 
 #[tokio::test]
 async fn length_finish_is_truncated() {
-    let server = ReplayServer::start([Canned::json(
-        200,
-        openai_reply(r#"{"reasoning":"alfa is"#, "length"),
-    )])
-    .await;
+    let mut body = openai_reply(r#"{"reasoning":"alfa is"#, "length");
+    body["usage"]["completion_tokens"] = json!(512);
+    let server = ReplayServer::start([Canned::json(200, body)]).await;
     let err = backend(config(&server)).chat(&request()).await;
     assert_eq!(err, Err(LlmError::Truncated(512)));
+    assert_eq!(server.request_count(), 1);
+}
+
+/// llama.cpp's answer when the reply ran into the end of the context (n_ctx 512): `length` with
+/// fewer tokens than the request's limit. Not "cut off at the token limit (512 tokens)".
+#[tokio::test]
+async fn length_finish_short_of_the_limit_is_a_full_context() {
+    let mut body = openai_reply(r#"{"reasoning":"alfa is"#, "length");
+    body["usage"] = json!({"completion_tokens": 26, "prompt_tokens": 486, "total_tokens": 512});
+    let server = ReplayServer::start([Canned::json(200, body)]).await;
+    let err = backend(config(&server)).chat(&request()).await;
+    match err {
+        Err(LlmError::Generation(message)) => {
+            assert!(message.contains("context is full"), "{message}")
+        }
+        other => panic!("expected Generation, got {other:?}"),
+    }
     assert_eq!(server.request_count(), 1);
 }
 
