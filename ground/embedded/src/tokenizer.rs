@@ -1,9 +1,13 @@
 //! The tokenizer, built from the GGUF metadata alone (no `tokenizer.json`, no network), and its
 //! byte-level view for llguidance.
 //!
-//! SmolLM2 uses a GPT-2 style byte-level BPE (`tokenizer.ggml.model = gpt2`) whose pre-tokenizer
-//! (`tokenizer.ggml.pre = smollm`) splits digits one by one before the GPT-2 regex: the same
-//! `Sequence[Digits(individual), ByteLevel]` as the model's `tokenizer.json` on the Hub.
+//! Both models use a GPT-2 style byte-level BPE (`tokenizer.ggml.model = gpt2`); they differ in
+//! the pre-tokenizer (`tokenizer.ggml.pre`), rebuilt here as the models' `tokenizer.json` on the
+//! Hub has it:
+//! - `smollm` (SmolLM2): digits split one by one, then the GPT-2 regex:
+//!   `Sequence[Digits(individual), ByteLevel]`;
+//! - `qwen2` (Qwen2.5): NFC normalisation, then Qwen2's split regex (single digits, letters with
+//!   one leading non-letter, …), then the byte-level mapping without its own regex.
 
 use std::str::FromStr;
 
@@ -13,11 +17,16 @@ use serde_json::{Map, json};
 use tokenizers::Tokenizer;
 use toktrie_hf_tokenizers::ByteTokenizer;
 
+use crate::catalogue::EmbeddedModel;
 use crate::template::Segment;
 
 /// GGUF token types (llama.cpp `llama_token_type`).
 const TOKEN_TYPE_CONTROL: i32 = 3;
 const TOKEN_TYPE_USER_DEFINED: i32 = 4;
+const TOKEN_TYPE_UNUSED: i32 = 5;
+
+/// Qwen2's pre-tokenizer split (its `tokenizer.json`; llama.cpp's `LLAMA_VOCAB_PRE_TYPE_QWEN2`).
+const QWEN2_SPLIT: &str = r"(?i:'s|'t|'re|'ve|'m|'ll|'d)|[^\r\n\p{L}\p{N}]?\p{L}+|\p{N}| ?[^\s\p{L}\p{N}]+[\r\n]*|\s*[\r\n]+|\s+(?!\S)|\s+";
 
 /// The tokenizer of the loaded model.
 pub struct ModelTokenizer {
@@ -27,6 +36,8 @@ pub struct ModelTokenizer {
     pub im_start: u32,
     pub im_end: u32,
     pub end_of_text: u32,
+    /// Tokens `0..real_vocab` are the vocabulary; logits beyond are padding rows.
+    pub real_vocab: usize,
     pub tok_env: TokEnv,
 }
 
@@ -67,12 +78,27 @@ pub fn tokenizer_json(ct: &Content) -> Result<serde_json::Value, String> {
     let byte_level = json!({
         "type": "ByteLevel", "add_prefix_space": false, "trim_offsets": true, "use_regex": true
     });
-    let pre_tokenizer = match pre.as_str() {
-        "smollm" => json!({
-            "type": "Sequence",
-            "pretokenizers": [{"type": "Digits", "individual_digits": true}, byte_level]
-        }),
-        "gpt2" | "default" => byte_level,
+    let (normalizer, pre_tokenizer) = match pre.as_str() {
+        "smollm" => (
+            json!(null),
+            json!({
+                "type": "Sequence",
+                "pretokenizers": [{"type": "Digits", "individual_digits": true}, byte_level]
+            }),
+        ),
+        "qwen2" => (
+            json!({"type": "NFC"}),
+            json!({
+                "type": "Sequence",
+                "pretokenizers": [
+                    {"type": "Split", "pattern": {"Regex": QWEN2_SPLIT},
+                     "behavior": "Isolated", "invert": false},
+                    {"type": "ByteLevel", "add_prefix_space": false, "trim_offsets": false,
+                     "use_regex": false}
+                ]
+            }),
+        ),
+        "gpt2" | "default" => (json!(null), byte_level),
         other => return Err(format!("unsupported pre-tokenizer `{other}`")),
     };
     let tokens = md_strings(ct, "tokenizer.ggml.tokens")?;
@@ -101,7 +127,7 @@ pub fn tokenizer_json(ct: &Content) -> Result<serde_json::Value, String> {
         "truncation": null,
         "padding": null,
         "added_tokens": added,
-        "normalizer": null,
+        "normalizer": normalizer,
         "pre_tokenizer": pre_tokenizer,
         "post_processor": null,
         "decoder": {"type": "ByteLevel", "add_prefix_space": true, "trim_offsets": true, "use_regex": true},
@@ -113,10 +139,29 @@ pub fn tokenizer_json(ct: &Content) -> Result<serde_json::Value, String> {
     }))
 }
 
+/// How many tokens are real: the list without its trailing unused or `[PAD…]` entries (GGUF
+/// files may pad the vocabulary to the output matrix's size).
+fn real_vocab(ct: &Content) -> Result<usize, String> {
+    let tokens = md_strings(ct, "tokenizer.ggml.tokens")?;
+    let types = md_i32s(ct, "tokenizer.ggml.token_type")?;
+    let mut n = tokens.len();
+    while n > 0
+        && (types.get(n - 1) == Some(&TOKEN_TYPE_UNUSED) || tokens[n - 1].starts_with("[PAD"))
+    {
+        n -= 1;
+    }
+    Ok(n)
+}
+
 impl ModelTokenizer {
     /// Builds the tokenizer from the GGUF metadata; `n_vocab` is the model's output size.
-    pub fn from_gguf(ct: &Content, n_vocab: usize) -> Result<ModelTokenizer, String> {
+    pub fn from_gguf(
+        ct: &Content,
+        model: EmbeddedModel,
+        n_vocab: usize,
+    ) -> Result<ModelTokenizer, String> {
         let spec = tokenizer_json(ct)?;
+        let real_vocab = real_vocab(ct)?;
         let hf = Tokenizer::from_str(&spec.to_string()).map_err(|e| format!("tokenizer: {e}"))?;
         let id = |t: &str| {
             hf.token_to_id(t)
@@ -135,7 +180,7 @@ impl ModelTokenizer {
         text.set_encode_special_tokens(true);
 
         let mut bt = ByteTokenizer::from_tokenizer(hf).map_err(|e| format!("toktrie: {e}"))?;
-        bt.hf_model = "SmolLM2-135M-Instruct".to_string();
+        bt.hf_model = model.display_name().to_string();
         // The chat turn ends with <|im_end|>; <|endoftext|> also ends a generation.
         bt.set_eos_tokens(&[im_end, end_of_text]);
         let tok_env = bt
@@ -146,6 +191,7 @@ impl ModelTokenizer {
             im_start,
             im_end,
             end_of_text,
+            real_vocab,
             tok_env,
         })
     }

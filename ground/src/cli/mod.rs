@@ -16,7 +16,7 @@ pub use swarm::SwarmArgs;
 use anyhow::Context;
 use std::sync::Arc;
 use std::time::Duration;
-use tacos_embedded::{EmbeddedBackend, EmbeddedOptions};
+use tacos_embedded::{EmbeddedBackend, EmbeddedModel, EmbeddedOptions};
 use tacos_llm::{LlmBackend, OpenAiBackend, OpenAiConfig};
 
 /// Which language model to use: a server, or the embedded model by default.
@@ -32,6 +32,17 @@ pub struct LlmArgs {
     /// Seconds to wait for one model reply.
     #[arg(long, default_value_t = 120.0)]
     pub llm_timeout: f64,
+    /// The embedded model, used without --llm-url: qwen2.5-coder-1.5b (plans; ~2.5 GB of
+    /// memory), qwen2.5-coder-0.5b (faster, weaker plans) or smollm2-135m (fast, plans badly).
+    /// Fetched on first use (see ground/embedded/models/PROVENANCE.md).
+    #[arg(long, env = "TACOS_EMBEDDED_MODEL", default_value_t = EmbeddedModel::default(),
+          value_parser = embedded_model)]
+    pub embedded_model: EmbeddedModel,
+}
+
+/// `--embedded-model`: a catalogued model's name.
+fn embedded_model(text: &str) -> Result<EmbeddedModel, String> {
+    text.parse()
 }
 
 impl LlmArgs {
@@ -56,7 +67,10 @@ impl LlmArgs {
                 Ok(Arc::new(OpenAiBackend::new(config)?))
             }
             // The embedded model: fetched on first use (pip), loaded on the first call.
-            None => Ok(Arc::new(EmbeddedBackend::lazy(EmbeddedOptions::from_env()))),
+            None => Ok(Arc::new(EmbeddedBackend::lazy(EmbeddedOptions {
+                model: self.embedded_model,
+                ..EmbeddedOptions::from_env()
+            }))),
         }
     }
 }
