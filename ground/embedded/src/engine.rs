@@ -262,6 +262,26 @@ impl Engine {
         }
     }
 
+    /// Computes the keys and values of `messages` (no generation prompt: the beginning of later
+    /// prompts) and keeps them; returns how many tokens were computed.
+    pub fn warm_up(&self, messages: &[tacos_llm::ChatMessage]) -> Result<usize, LlmError> {
+        let segments = chatml_segments(messages, false, self.model.default_system_prompt());
+        let tokens = self
+            .tokenizer
+            .encode_segments(&segments)
+            .map_err(LlmError::Generation)?;
+        if tokens.is_empty() || tokens.len() >= self.decoder.window {
+            return Ok(0);
+        }
+        let mut cache = self.take_cache(&tokens);
+        let start = cache.tokens().len();
+        for chunk in tokens[start..].chunks(PREFILL_CHUNK) {
+            self.forward(chunk, &mut cache)?;
+        }
+        self.keep_cache(cache);
+        Ok(tokens.len() - start)
+    }
+
     /// One chat completion. `cancel` is polled between steps: when set, the call stops with
     /// `LlmError::Generation("cancelled")`.
     pub fn generate(

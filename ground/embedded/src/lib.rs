@@ -342,6 +342,36 @@ impl LlmBackend for EmbeddedBackend {
         })
     }
 
+    /// Prefills `messages` on the blocking pool and keeps their key/value cache, one generation
+    /// at a time like any call (a call waiting behind it would have computed the same tokens).
+    fn warm_up<'a>(
+        &'a self,
+        messages: &'a [tacos_llm::ChatMessage],
+    ) -> BoxFuture<'a, Result<(), LlmError>> {
+        Box::pin(async move {
+            let inner = self.inner.clone();
+            let messages = messages.to_vec();
+            let joined = tokio::task::spawn_blocking(move || {
+                let engine = inner.engine()?;
+                let _one_at_a_time = lock(&inner.gate);
+                let started = Instant::now();
+                let computed = engine.warm_up(&messages)?;
+                tracing::debug!(
+                    computed,
+                    ms = started.elapsed().as_millis() as u64,
+                    "embedded model warmed up"
+                );
+                Ok(())
+            })
+            .await;
+            joined.unwrap_or_else(|e| {
+                Err(LlmError::Generation(format!(
+                    "the model thread failed: {e}"
+                )))
+            })
+        })
+    }
+
     fn describe(&self) -> String {
         let model = self.inner.options.model;
         let held = match self.inner.options.weights.resolve(model) {

@@ -287,3 +287,37 @@ async fn a_required_opening_call_opens_the_reply() {
         );
     }
 }
+
+/// Warming up with a layer's fixed messages leaves their keys and values kept: the next call
+/// that begins with them computes only its own part.
+#[tokio::test]
+async fn a_warm_up_serves_the_next_call() {
+    let b = backend_of(EmbeddedModel::SmolLm2_135M);
+    let mut req = request(300);
+    let fixed = vec![
+        ChatMessage::system(format!(
+            "You command alfa, bravo and charlie. {}",
+            "Keep every drone clear of the others. ".repeat(20)
+        )),
+        ChatMessage::user("Take off with alfa."),
+        ChatMessage::assistant("{\"reasoning\": \"alfa only\", \"plan\": []}"),
+    ];
+    b.warm_up(&fixed).await.expect("warm-up");
+    req.messages = fixed.clone();
+    req.messages.push(ChatMessage::user("Land bravo."));
+    let fixed_tokens = b
+        .count_prompt_tokens(&ChatRequest {
+            messages: fixed,
+            ..request(300)
+        })
+        .expect("count");
+    let (reply, stats) = b.chat_blocking(&req).expect("call after warm-up");
+    eprintln!(
+        "{} of {} prompt tokens reused; the fixed part is {fixed_tokens} with its generation prompt",
+        stats.reused_tokens, reply.usage.prompt_tokens
+    );
+    // The fixed part without its generation prompt (`<|im_start|>assistant\n`, a few tokens);
+    // without the warm-up only a handful would be shared with any earlier prompt.
+    assert!(stats.reused_tokens + 5 >= fixed_tokens, "{stats:?}");
+    valid_plan(&reply.content);
+}

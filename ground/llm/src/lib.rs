@@ -121,6 +121,14 @@ pub trait LlmBackend: Send + Sync {
 
     /// Backend and model, for the status bar and the mission log (e.g. `openai http://…/v1 gpt-oss:20b`).
     fn describe(&self) -> String;
+
+    /// Computes ahead of time what `messages` cost, so that a later request beginning with them
+    /// (a layer's system prompt and few-shot turns: the fixed part of every call) answers sooner.
+    /// Backends without a prompt cache of their own do nothing.
+    fn warm_up<'a>(&'a self, messages: &'a [ChatMessage]) -> BoxFuture<'a, Result<(), LlmError>> {
+        let _ = messages;
+        Box::pin(async { Ok(()) })
+    }
 }
 
 /// Splits a `<think>…</think>` block off the start of `content` (what llama.cpp's server and some

@@ -84,6 +84,25 @@ async fn log_positions(link: Arc<GroundLink>, log: Arc<MissionLog>) {
     }
 }
 
+/// Has the backend compute the fixed beginning of the layers' prompts while the pilot types the
+/// first instruction: with the embedded model that part (~1,200 tokens of instructions and
+/// examples per layer) is what makes a first call slow. A failure only costs that head start.
+async fn warm_up(backend: Arc<dyn LlmBackend>, mode: Mode) {
+    let prefixes = match mode {
+        Mode::Tacos | Mode::Wor => vec![
+            coordinator::coordinator_fixed_messages(),
+            cycles::supervisor_fixed_messages(),
+        ],
+        Mode::Mnl => vec![cycles::monolithic_fixed_messages()],
+    };
+    for messages in prefixes {
+        if let Err(e) = backend.warm_up(&messages).await {
+            tracing::debug!(error = %e, "warming the model up failed");
+            return;
+        }
+    }
+}
+
 impl Mission {
     pub async fn new(
         cfg: MissionConfig,
@@ -193,6 +212,10 @@ impl Mission {
         let _positions = AbortOnDrop(tokio::spawn(log_positions(
             self.link.clone(),
             self.log.clone(),
+        )));
+        let _warm_up = AbortOnDrop(tokio::spawn(warm_up(
+            self.caller.backend.clone(),
+            self.cfg.mode,
         )));
         let mut tick = tokio::time::interval(Duration::from_millis(250));
         // After a model call, one tick, not a burst of the ones missed.

@@ -332,6 +332,14 @@ fn missing_takeoffs(calls: &[Call], grounded: &[String]) -> Vec<usize> {
 /// The Coordinator's messages: its configuration prompt, the few-shot examples as turns, then
 /// the request.
 pub fn coordinator_messages(user: String) -> Vec<ChatMessage> {
+    let mut messages = coordinator_fixed_messages();
+    messages.push(ChatMessage::user(user));
+    messages
+}
+
+/// The beginning every Coordinator request shares: its configuration prompt and the few-shot
+/// turns.
+pub fn coordinator_fixed_messages() -> Vec<ChatMessage> {
     let mut messages = vec![ChatMessage::system(texts::COORDINATOR)];
     for example in texts::coordinator_examples().unwrap_or_default() {
         // "Named in the instruction" as a real request shows it: the example plan's drones and
@@ -352,7 +360,6 @@ pub fn coordinator_messages(user: String) -> Vec<ChatMessage> {
         )));
         messages.push(ChatMessage::assistant(example.reply.to_string()));
     }
-    messages.push(ChatMessage::user(user));
     messages
 }
 

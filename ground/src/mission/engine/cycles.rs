@@ -132,10 +132,11 @@ impl Mission {
         let ask = CycleAsk {
             layer: "monolithic",
             output: Output::Monolithic,
-            messages: vec![
-                ChatMessage::system(texts::MONOLITHIC),
-                ChatMessage::user(user),
-            ],
+            messages: {
+                let mut messages = monolithic_fixed_messages();
+                messages.push(ChatMessage::user(user));
+                messages
+            },
             schema: callable_schema(&callable, &drones, &places, &trackable),
             parse: |text| MonolithicReply::parse(text).map(CycleReply::from),
             only: None,
@@ -453,12 +454,24 @@ pub(super) fn match_startable(proposed: &[Call], startable: &[Call]) -> (Vec<Cal
 
 /// The Supervisor's messages: its configuration prompt, the few-shot cycles, then the request.
 pub fn supervisor_messages(user: String) -> Vec<ChatMessage> {
+    let mut messages = supervisor_fixed_messages();
+    messages.push(ChatMessage::user(user));
+    messages
+}
+
+/// The beginning every monolithic request shares: its configuration prompt.
+pub fn monolithic_fixed_messages() -> Vec<ChatMessage> {
+    vec![ChatMessage::system(texts::MONOLITHIC)]
+}
+
+/// The beginning every Supervisor request shares: its configuration prompt and the few-shot
+/// cycles.
+pub fn supervisor_fixed_messages() -> Vec<ChatMessage> {
     let mut messages = vec![ChatMessage::system(texts::SUPERVISOR)];
     for example in texts::supervisor_examples().unwrap_or_default() {
         messages.push(ChatMessage::user(example.context));
         messages.push(ChatMessage::assistant(example.reply.to_string()));
     }
-    messages.push(ChatMessage::user(user));
     messages
 }
 
