@@ -455,4 +455,22 @@ mod tests {
             }
         }
     }
+
+    /// Every mission script the project ships parses.
+    #[test]
+    fn the_shipped_mission_scripts_parse() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("missions");
+        let mut n = 0;
+        for entry in std::fs::read_dir(&dir).expect("ground/missions") {
+            let path = entry.expect("a directory entry").path();
+            if path.extension().is_some_and(|e| e == "txt") {
+                let text = std::fs::read_to_string(&path).expect("readable");
+                if let Err(e) = parse(&text) {
+                    panic!("{}: {e}", path.display());
+                }
+                n += 1;
+            }
+        }
+        assert!(n >= 4, "{n} scripts in {}", dir.display());
+    }
 }
