@@ -14,7 +14,24 @@ use tacos_prompts::render::{self, HistoryEntry, TaskStatus};
 use tacos_prompts::schema::{self, Output};
 use tacos_prompts::{ActionName, Call, CoordinatorReply, texts};
 
+/// How long a Coordinator call waits for a drone to be heard again when none is available: a
+/// status is stale after a second, and a loaded ground (a model computing on both cores) or a
+/// network hiccup can silence the whole swarm for that long without anything being lost.
+const SILENCE_GRACE: std::time::Duration = std::time::Duration::from_secs(5);
+
 impl Mission {
+    /// The available drones; when there are none, those heard again within [`SILENCE_GRACE`].
+    async fn available_after_silence(&self) -> Vec<String> {
+        let deadline = tokio::time::Instant::now() + SILENCE_GRACE;
+        loop {
+            let available = self.available_ids();
+            if !available.is_empty() || tokio::time::Instant::now() >= deadline {
+                return available;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+        }
+    }
+
     /// Runs the Coordinator for `instruction`; its plan replaces the current one (the pending
     /// plan was in its prompt).
     pub(super) async fn coordinate(&mut self, instruction: &str) -> Result<(), MissionError> {
@@ -46,7 +63,7 @@ impl Mission {
         }
         // A plan for a drone that cannot fly it would wait for ever: the grammar offers only the
         // available drones, and the reply check holds a server that ignores the schema to them.
-        let available = self.available_ids();
+        let available = self.available_after_silence().await;
         if available.is_empty() {
             return Err(MissionError::NoDroneAvailable);
         }
