@@ -35,7 +35,7 @@ pub mod template;
 mod tokenizer;
 
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
@@ -170,6 +170,8 @@ struct Inner {
     engine: Mutex<Option<Arc<Engine>>>,
     /// One generation at a time: on two cores, concurrent calls only slow each other down.
     gate: Mutex<()>,
+    /// Calls waiting for the gate: a warm-up gives way to them (a call computes what it needs).
+    waiting: AtomicUsize,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -206,7 +208,9 @@ impl Inner {
     ) -> Result<(ChatReply, GenerationStats), LlmError> {
         let started = Instant::now();
         let engine = self.engine()?;
+        self.waiting.fetch_add(1, Ordering::SeqCst);
         let _one_at_a_time = lock(&self.gate);
+        self.waiting.fetch_sub(1, Ordering::SeqCst);
         let g = engine.generate(request, cancel)?;
         let latency = started.elapsed();
         tracing::debug!(
@@ -282,6 +286,7 @@ impl EmbeddedBackend {
                 options,
                 engine: Mutex::new(None),
                 gate: Mutex::new(()),
+                waiting: AtomicUsize::new(0),
             }),
         }
     }
@@ -343,7 +348,8 @@ impl LlmBackend for EmbeddedBackend {
     }
 
     /// Prefills `messages` on the blocking pool and keeps their key/value cache, one generation
-    /// at a time like any call (a call waiting behind it would have computed the same tokens).
+    /// at a time like any call; skipped when a call is waiting for the model (a script's first
+    /// line comes at once: the Coordinator's call must not wait for the Supervisor's prefix).
     fn warm_up<'a>(
         &'a self,
         messages: &'a [tacos_llm::ChatMessage],
@@ -354,6 +360,10 @@ impl LlmBackend for EmbeddedBackend {
             let joined = tokio::task::spawn_blocking(move || {
                 let engine = inner.engine()?;
                 let _one_at_a_time = lock(&inner.gate);
+                if inner.waiting.load(Ordering::SeqCst) > 0 {
+                    tracing::debug!("warm-up skipped: a call is waiting for the model");
+                    return Ok(());
+                }
                 let started = Instant::now();
                 let computed = engine.warm_up(&messages)?;
                 tracing::debug!(
