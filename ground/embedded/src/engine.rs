@@ -122,7 +122,7 @@ pub struct Engine {
 
 /// How many key/value caches are kept (each up to the window: ~115 MB for a 2,000-token prompt
 /// on Qwen2.5-Coder-1.5B).
-const KEPT_CACHES: usize = 3;
+const KEPT_CACHES: usize = 4;
 
 /// How many of the model's own recent free-text choices the repetition penalty looks back over.
 const REPEAT_WINDOW: usize = 64;
@@ -228,7 +228,10 @@ impl Engine {
 
     /// The kept cache sharing the longest beginning with `prompt`, cut back to that beginning
     /// (never the whole prompt: the last prompt token is fed again for its logits). A fresh one
-    /// when none shares anything.
+    /// when none shares anything. A cache the prompt extends is taken out (the new one supersedes
+    /// it); one it shares only part of is copied (the copy shares the tensors), so that the
+    /// Supervisor's prompt, which shares a few tokens with the Coordinator's, does not cut the
+    /// Coordinator's cache down to them.
     fn take_cache(&self, prompt: &[u32]) -> KvCache {
         let mut kept = self.caches.lock().unwrap_or_else(|p| p.into_inner());
         let shared = |c: &KvCache| {
@@ -246,7 +249,11 @@ impl Engine {
         if n == 0 {
             return KvCache::default();
         }
-        let mut cache = kept.remove(best);
+        let mut cache = if n == kept[best].tokens().len() {
+            kept.remove(best)
+        } else {
+            kept[best].clone()
+        };
         if cache.truncate(n).is_err() {
             return KvCache::default();
         }

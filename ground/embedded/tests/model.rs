@@ -288,8 +288,8 @@ async fn a_required_opening_call_opens_the_reply() {
     }
 }
 
-/// Warming up with a layer's fixed messages leaves their keys and values kept: the next call
-/// that begins with them computes only its own part.
+/// Warming up with a layer's fixed messages leaves their keys and values kept, also after another
+/// layer's warm-up: the next call that begins with them computes only its own part.
 #[tokio::test]
 async fn a_warm_up_serves_the_next_call() {
     let b = backend_of(EmbeddedModel::SmolLm2_135M);
@@ -303,6 +303,10 @@ async fn a_warm_up_serves_the_next_call() {
         ChatMessage::assistant("{\"reasoning\": \"alfa only\", \"plan\": []}"),
     ];
     b.warm_up(&fixed).await.expect("warm-up");
+    // Another layer's prefix, which shares only the first few tokens, must not cut the first
+    // one's cache down to them.
+    let other = [ChatMessage::system("You check drone plans. ".repeat(30))];
+    b.warm_up(&other).await.expect("second warm-up");
     req.messages = fixed.clone();
     req.messages.push(ChatMessage::user("Land bravo."));
     let fixed_tokens = b
