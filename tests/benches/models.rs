@@ -1,0 +1,974 @@
+//! The embedded model beside llama.cpp's own server on the same GGUF file, the same thread
+//! count and the same mission prompts (a program that prints figures; nothing here asserts a
+//! speed).
+//!
+//! For each model, both backends answer the same five requests, in this order:
+//!
+//! 1. a Coordinator call, cold: 6 idle drones of the city, the pilot's "all drones take off";
+//! 2. a Coordinator call with the fixed part cached: the same state, another pilot line;
+//! 3. a Supervisor cycle, cold (its prompt shares only the chat template's first tokens with
+//!    the Coordinator's): the 6 take-offs of the plan, none started;
+//! 4. a later Supervisor cycle: three take-offs running, three startable;
+//! 5. decoding alone: a short prompt, no schema: copy a paragraph (about 70 tokens; a longer one
+//!    or counting sent SmolLM2 into a loop up to the token limit).
+//!
+//! Requests 1–4 are built as the mission engine builds them (`coordinator_messages`,
+//! `supervisor_messages`, the schemas of `tacos_prompts`, `MissionConfig`'s token limits,
+//! temperature 0 and seed): the embedded model gets the schema as its grammar, llama.cpp as
+//! `response_format: json_schema` through `tacos_llm::OpenAiBackend`, as a pilot's ground would
+//! send it. Each run loads the embedded model and starts the server afresh, so the cold calls
+//! find no cache (llama.cpp also keeps prompts in host memory across requests).
+//!
+//! Figures: latency is the call as its caller waited for it. The embedded backend's prefill and
+//! decode times come from its `GenerationStats`; llama.cpp's from the `timings` object of its
+//! reply (`prompt_n`, `prompt_ms`, `predicted_n`, `predicted_ms`, `cache_n`), which
+//! `OpenAiBackend` does not expose: a loopback relay between the backend and the server keeps a
+//! copy of each reply's bytes. Prefill tokens/s is over the two cold calls' computed prompt
+//! tokens; decode tokens/s is request 5's; the mission calls' decoding is given both per
+//! completion token (the tokens the embedded grammar forces included: it feeds them with the
+//! sampled token, in one step) and per step (sampled tokens; llama.cpp samples every token).
+//! With several runs each figure is the median.
+//!
+//! The embedded backend runs with repetition penalty 1.0 by default (`--repeat-penalty`; the
+//! ground's default is 1.2): llama.cpp's server applies none by default, and with both greedy
+//! on the same weights their answers can be compared.
+//!
+//! Threads: candle's from `CANDLE_NUM_THREADS` (and rayon's `RAYON_NUM_THREADS`), set here from
+//! `--threads` before any thread starts; llama.cpp's server gets the same as `n_threads` for
+//! prompt and generation. Needs the venv of `bash tests/python/setup.sh` (xllamacpp). Run alone
+//! on the machine:
+//!
+//! `cargo bench -p tacos-tests --bench models [-- --model qwen2.5-coder-1.5b|qwen2.5-coder-0.5b|smollm2-135m|all --threads 2 --runs 1 --repeat-penalty 1.0]`
+
+use std::io::{Read, Write};
+use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
+use std::process::Command;
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, bail};
+use serde_json::Value;
+use tacos_embedded::{EmbeddedBackend, EmbeddedModel, EmbeddedOptions};
+use tacos_ground::mission::{MissionConfig, coordinator_messages, grounding, supervisor_messages};
+use tacos_llm::{ChatReply, ChatRequest, LlmBackend, OpenAiBackend, OpenAiConfig, ResponseSchema};
+use tacos_prompts::offer::startable_schema;
+use tacos_prompts::render::{self, DroneLine, HistoryEntry, TaskStatus};
+use tacos_prompts::schema::{self, Output};
+use tacos_prompts::{ActionName, Call};
+use tacos_shared::scenario::Scenario;
+use tacos_shared::{DroneMode, Vec3};
+use tacos_tests::llama_server::{self, LlamaServer, LlamaServerConfig};
+
+/// Drones of the city in the mission state.
+const DRONES: usize = 6;
+/// llama.cpp's context (one slot): the Coordinator's prompt and reply fit with room to spare.
+const LLAMA_N_CTX: u32 = 8192;
+/// The issue's goals.
+const RATIO_GOAL: f64 = 1.2;
+const SUPERVISOR_GOAL: Duration = Duration::from_secs(6);
+const COORDINATOR_GOAL: Duration = Duration::from_secs(9);
+
+const USAGE: &str = "usage: cargo bench -p tacos-tests --bench models [-- --model NAME|all] \
+[--threads N] [--runs N] [--repeat-penalty P]\n  NAME: qwen2.5-coder-1.5b (default), \
+qwen2.5-coder-0.5b, smollm2-135m; all: the three\n  --threads: CPU threads of both backends \
+(default 2)\n  --runs: runs per model, each figure the median (default 1)\n  --repeat-penalty: \
+the embedded model's (default 1.0, as llama.cpp's server; the ground's is 1.2)";
+
+struct Args {
+    models: Vec<EmbeddedModel>,
+    threads: u32,
+    runs: usize,
+    repeat_penalty: f32,
+}
+
+fn parse_args() -> anyhow::Result<Args> {
+    let mut args = Args {
+        models: vec![EmbeddedModel::default()],
+        threads: 2,
+        runs: 1,
+        repeat_penalty: 1.0,
+    };
+    let mut it = std::env::args().skip(1);
+    while let Some(arg) = it.next() {
+        let (flag, inline) = match arg.split_once('=') {
+            Some((f, v)) => (f.to_owned(), Some(v.to_owned())),
+            None => (arg.clone(), None),
+        };
+        let mut value = |name: &str| {
+            inline
+                .clone()
+                .or_else(|| it.next())
+                .with_context(|| format!("{name} needs a value\n{USAGE}"))
+        };
+        match flag.as_str() {
+            // cargo bench passes --bench to a harness-less bench.
+            "--bench" => {}
+            "--model" => {
+                let v = value("--model")?;
+                args.models = if v == "all" {
+                    EmbeddedModel::ALL.to_vec()
+                } else {
+                    vec![
+                        v.parse::<EmbeddedModel>()
+                            .map_err(|e| anyhow::anyhow!("--model {v}: {e}\n{USAGE}"))?,
+                    ]
+                };
+            }
+            "--threads" => {
+                let v = value("--threads")?;
+                args.threads = v
+                    .parse()
+                    .ok()
+                    .filter(|n| *n > 0)
+                    .with_context(|| format!("--threads {v}: not a positive integer"))?;
+            }
+            "--runs" => {
+                let v = value("--runs")?;
+                args.runs = v
+                    .parse()
+                    .ok()
+                    .filter(|n| *n > 0)
+                    .with_context(|| format!("--runs {v}: not a positive integer"))?;
+            }
+            "--repeat-penalty" => {
+                let v = value("--repeat-penalty")?;
+                args.repeat_penalty = v
+                    .parse()
+                    .ok()
+                    .filter(|p: &f32| p.is_finite() && *p >= 1.0)
+                    .with_context(|| format!("--repeat-penalty {v}: not a number ≥ 1"))?;
+            }
+            "-h" | "--help" => {
+                println!("{USAGE}");
+                std::process::exit(0);
+            }
+            other => bail!("unknown argument {other:?}\n{USAGE}"),
+        }
+    }
+    Ok(args)
+}
+
+/// The probes, in the order they run.
+const COORDINATOR_COLD: usize = 0;
+const COORDINATOR_CACHED: usize = 1;
+const SUPERVISOR_COLD: usize = 2;
+const SUPERVISOR_CACHED: usize = 3;
+const DECODE: usize = 4;
+/// The mission calls (the others measure decoding alone).
+const MISSION: std::ops::Range<usize> = 0..4;
+
+/// One request of the bench.
+struct Probe {
+    name: &'static str,
+    request: ChatRequest,
+}
+
+fn request(messages: Vec<tacos_llm::ChatMessage>, output: Output, schema: Value) -> ChatRequest {
+    let cfg = MissionConfig::default();
+    let floor = match output {
+        Output::Coordinator => cfg.coordinator_max_tokens,
+        _ => cfg.supervisor_max_tokens,
+    };
+    ChatRequest {
+        messages,
+        schema: Some(ResponseSchema {
+            name: output.name().into(),
+            schema,
+        }),
+        max_tokens: floor.max(schema::token_budget(output, DRONES)),
+        temperature: cfg.temperature,
+        seed: cfg.seed,
+        reasoning_effort: None,
+    }
+}
+
+fn take_off(task: usize, drone: &str) -> Call {
+    Call {
+        task: format!("T{task}"),
+        drone: drone.to_owned(),
+        action: ActionName::ArmTakeoff,
+        target: schema::NO_TARGET.into(),
+        xyz: None,
+    }
+}
+
+/// The four mission requests, built as the mission engine builds them for this state, then
+/// the decode probe.
+fn mission_probes() -> anyhow::Result<Vec<Probe>> {
+    let city = Scenario::builtin("city").context("the city scenario")?;
+    anyhow::ensure!(
+        city.drones.len() >= DRONES,
+        "the city has {} drones, fewer than {DRONES}",
+        city.drones.len()
+    );
+    let fleet = &city.drones[..DRONES];
+    let ids: Vec<String> = fleet.iter().map(|d| d.id.to_string()).collect();
+    let world = render::world(&city.world, &[], &[]);
+    let on_ground: Vec<DroneLine> = fleet
+        .iter()
+        .map(|d| DroneLine {
+            id: d.id.to_string(),
+            mode: DroneMode::Idle,
+            position: d.home,
+            speed: 0.0,
+            action: None,
+            state: None,
+        })
+        .collect();
+    let trackable: Vec<String> = city
+        .targets
+        .iter()
+        .filter(|t| t.hidden_at.is_none())
+        .map(|t| t.name.clone())
+        .collect();
+    let places: Vec<String> = city
+        .world
+        .landmarks
+        .iter()
+        .map(|l| l.name.clone())
+        .chain(trackable.iter().cloned())
+        .collect();
+    let names: Vec<String> = ids.iter().chain(&places).cloned().collect();
+    let coordinator = |instruction: &str| {
+        let named = render::named_in(instruction, &names);
+        let scope = grounding::places_in_scope(&places, &named, &[]);
+        let messages = coordinator_messages(render::coordinator_request(
+            &render::swarm(&on_ground),
+            &world,
+            &render::plan(&[]),
+            &render::history(&[HistoryEntry::Pilot(instruction.to_owned())]),
+            instruction,
+            &named,
+        ));
+        let in_scope: Vec<String> = trackable
+            .iter()
+            .filter(|t| scope.as_ref().is_none_or(|s| s.contains(t)))
+            .cloned()
+            .collect();
+        let schema = schema::build(
+            Output::Coordinator,
+            &ids,
+            scope.as_ref().unwrap_or(&places),
+            &in_scope,
+        );
+        request(messages, Output::Coordinator, schema)
+    };
+
+    let reasoning =
+        "The pilot asks every drone to take off: one arm_takeoff per drone, all at once.";
+    let plan: Vec<Call> = ids
+        .iter()
+        .enumerate()
+        .map(|(i, id)| take_off(i + 1, id))
+        .collect();
+    // Cycle 1: nothing started, every take-off startable (and one must start).
+    let first = render::supervisor_request(
+        Some(reasoning),
+        &render::plan(
+            &plan
+                .iter()
+                .map(|c| (c.clone(), TaskStatus::NotStarted))
+                .collect::<Vec<_>>(),
+        ),
+        &render::swarm(&on_ground),
+        &world,
+        &[],
+    );
+    // A later cycle: the first three took off (climbing), the other three startable.
+    let running = 3;
+    let climbing: Vec<DroneLine> = on_ground
+        .iter()
+        .zip(&plan)
+        .enumerate()
+        .map(|(i, (d, call))| {
+            if i < running {
+                DroneLine {
+                    mode: DroneMode::Flying,
+                    position: d.position + Vec3::new(0.0, 0.0, 4.0),
+                    speed: 1.5,
+                    action: Some(call.to_string()),
+                    state: Some("running 40%".into()),
+                    ..d.clone()
+                }
+            } else {
+                d.clone()
+            }
+        })
+        .collect();
+    let later = render::supervisor_request(
+        Some(reasoning),
+        &render::plan(
+            &plan
+                .iter()
+                .enumerate()
+                .map(|(i, c)| {
+                    let status = if i < running {
+                        TaskStatus::Running
+                    } else {
+                        TaskStatus::NotStarted
+                    };
+                    (c.clone(), status)
+                })
+                .collect::<Vec<_>>(),
+        ),
+        &render::swarm(&climbing),
+        &world,
+        &plan[..running]
+            .iter()
+            .map(|c| format!("issued {c}"))
+            .collect::<Vec<_>>(),
+    );
+    Ok(vec![
+        Probe {
+            name: "coordinator cold",
+            request: coordinator("all drones take off"),
+        },
+        Probe {
+            name: "coordinator cached",
+            request: coordinator("take off with every drone"),
+        },
+        Probe {
+            name: "supervisor cold",
+            request: request(
+                supervisor_messages(first),
+                Output::Supervisor,
+                startable_schema(&plan, true),
+            ),
+        },
+        Probe {
+            name: "supervisor cached",
+            request: request(
+                supervisor_messages(later),
+                Output::Supervisor,
+                startable_schema(&plan[running..], false),
+            ),
+        },
+        // Decoding alone: a short prompt, no schema, a reply that ends by itself (a cut-off
+        // reply is an error for both backends; a copy ends where the text does). Greedy on the same weights, both should write
+        // the same text; no grammar step, no forced token.
+        Probe {
+            name: "decode, no schema",
+            request: ChatRequest {
+                messages: vec![
+                    tacos_llm::ChatMessage::system("You are a helpful assistant."),
+                    tacos_llm::ChatMessage::user(
+                        "Copy this text exactly, and write nothing else: A drone swarm takes off \
+                         from the city square at dawn. Each drone climbs to ten metres, turns north \
+                         and waits for its next order. The pilot watches the map, names a car, and \
+                         two drones fly to it while the others hold their places above the park. \
+                         When the search is over, every drone returns to its home and lands.",
+                    ),
+                ],
+                schema: None,
+                max_tokens: 600,
+                temperature: 0.0,
+                seed: MissionConfig::default().seed,
+                reasoning_effort: None,
+            },
+        },
+    ])
+}
+
+/// One call's figures.
+#[derive(Debug, Clone)]
+struct Measure {
+    latency: Duration,
+    prompt_tokens: u32,
+    /// Prompt tokens taken from a cache (embedded: reused; llama.cpp: `cache_n`).
+    cached_tokens: u32,
+    /// Prompt tokens computed and the time they took.
+    prefilled_tokens: u32,
+    prefill: Duration,
+    /// Completion tokens and the time of their decoding.
+    completion_tokens: u32,
+    decode: Duration,
+    /// Completion tokens the embedded model's grammar forced (fed without sampling).
+    forced_tokens: Option<u32>,
+    content: String,
+}
+
+/// One backend's run over the probes.
+struct RunResult {
+    startup: Duration,
+    calls: Vec<Measure>,
+}
+
+impl RunResult {
+    /// Over the cold calls: the first of the Coordinator's and of the Supervisor's.
+    fn prefill_rate(&self) -> f64 {
+        let cold = [&self.calls[COORDINATOR_COLD], &self.calls[SUPERVISOR_COLD]];
+        let tokens: u32 = cold.iter().map(|m| m.prefilled_tokens).sum();
+        let secs: f64 = cold.iter().map(|m| m.prefill.as_secs_f64()).sum();
+        f64::from(tokens) / secs
+    }
+
+    /// The decode probe's tokens per second.
+    fn decode_rate(&self) -> f64 {
+        let m = &self.calls[DECODE];
+        f64::from(m.completion_tokens) / m.decode.as_secs_f64()
+    }
+
+    /// The mission calls' completion tokens per second, forced ones included.
+    fn mission_decode_rate(&self) -> f64 {
+        let calls = &self.calls[MISSION];
+        let tokens: u32 = calls.iter().map(|m| m.completion_tokens).sum();
+        let secs: f64 = calls.iter().map(|m| m.decode.as_secs_f64()).sum();
+        f64::from(tokens) / secs
+    }
+
+    /// The mission calls' sampled tokens per second: one decoding step each (the embedded
+    /// model feeds the tokens its grammar forces with the sampled one, in the same step).
+    fn mission_step_rate(&self) -> f64 {
+        let calls = &self.calls[MISSION];
+        let steps: u32 = calls
+            .iter()
+            .map(|m| m.completion_tokens - m.forced_tokens.unwrap_or(0))
+            .sum();
+        let secs: f64 = calls.iter().map(|m| m.decode.as_secs_f64()).sum();
+        f64::from(steps) / secs
+    }
+}
+
+fn run_embedded(
+    model: EmbeddedModel,
+    repeat_penalty: f32,
+    probes: &[Probe],
+) -> anyhow::Result<RunResult> {
+    let options = EmbeddedOptions {
+        model,
+        repeat_penalty,
+        ..EmbeddedOptions::from_env()
+    };
+    let t0 = Instant::now();
+    let backend = EmbeddedBackend::load(options)
+        .with_context(|| format!("loading the embedded {}", model.display_name()))?;
+    let startup = t0.elapsed();
+    let mut calls = Vec::new();
+    for probe in probes {
+        let (reply, stats) = backend
+            .chat_blocking(&probe.request)
+            .with_context(|| format!("embedded {}: {}", model.display_name(), probe.name))?;
+        let computed = reply
+            .usage
+            .prompt_tokens
+            .saturating_sub(stats.reused_tokens);
+        let m = Measure {
+            latency: reply.latency,
+            prompt_tokens: reply.usage.prompt_tokens,
+            cached_tokens: stats.reused_tokens,
+            prefilled_tokens: computed,
+            prefill: stats.prefill,
+            completion_tokens: reply.usage.completion_tokens,
+            decode: stats.decode,
+            forced_tokens: Some(stats.forced_tokens),
+            content: reply.content,
+        };
+        print_call("embedded", probe.name, &m);
+        calls.push(m);
+    }
+    Ok(RunResult { startup, calls })
+}
+
+fn run_llama(
+    python: &std::path::Path,
+    gguf: &std::path::Path,
+    model: EmbeddedModel,
+    threads: u32,
+    probes: &[Probe],
+) -> anyhow::Result<RunResult> {
+    let config = LlamaServerConfig::new(python, gguf, model.name())
+        .n_ctx(LLAMA_N_CTX)
+        .threads(threads)
+        .n_parallel(1);
+    let server = LlamaServer::start(&config)?;
+    let startup = server.startup();
+    let relay = Relay::start(server.url())?;
+    // One attempt per call: a retry would hide a failure and mix two replies in the relay.
+    let backend = OpenAiBackend::new(
+        OpenAiConfig::new(relay.url.clone(), server.model())
+            .with_timeout(Duration::from_secs(900))
+            .with_retries(0, Duration::from_millis(100)),
+    )
+    .context("the OpenAI backend for llama.cpp's server")?;
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    let mut calls = Vec::new();
+    for probe in probes {
+        relay.clear();
+        let reply: ChatReply = runtime
+            .block_on(backend.chat(&probe.request))
+            .map_err(|e| {
+                anyhow::anyhow!(
+                    "llama.cpp {}: {}: {e}; the end of the server's log:\n{}",
+                    model.name(),
+                    probe.name,
+                    server.log_tail(20)
+                )
+            })?;
+        let timings = relay
+            .reply_timings()
+            .with_context(|| format!("llama.cpp {}: {}", model.name(), probe.name))?;
+        let m = Measure {
+            latency: reply.latency,
+            prompt_tokens: reply.usage.prompt_tokens,
+            cached_tokens: timings.cache_n,
+            prefilled_tokens: timings.prompt_n,
+            prefill: timings.prompt,
+            completion_tokens: timings.predicted_n,
+            decode: timings.predicted,
+            forced_tokens: None,
+            content: reply.content,
+        };
+        if timings.predicted_n != reply.usage.completion_tokens {
+            println!(
+                "  note: llama.cpp {}: timings.predicted_n {} but usage.completion_tokens {}",
+                probe.name, timings.predicted_n, reply.usage.completion_tokens
+            );
+        }
+        print_call("llama.cpp", probe.name, &m);
+        calls.push(m);
+    }
+    Ok(RunResult { startup, calls })
+}
+
+fn print_call(backend: &str, probe: &str, m: &Measure) {
+    println!(
+        "  {backend:<9} {probe:<18} {:>6.2} s  prompt {:>4} ({:>4} cached, {:>4} computed in {:>6.2} s)  completion {:>3}{} in {:>6.2} s",
+        m.latency.as_secs_f64(),
+        m.prompt_tokens,
+        m.cached_tokens,
+        m.prefilled_tokens,
+        m.prefill.as_secs_f64(),
+        m.completion_tokens,
+        m.forced_tokens
+            .map_or_else(String::new, |n| format!(" ({n} forced)")),
+        m.decode.as_secs_f64(),
+    );
+}
+
+/// What llama.cpp's reply says of its own work.
+struct Timings {
+    cache_n: u32,
+    prompt_n: u32,
+    prompt: Duration,
+    predicted_n: u32,
+    predicted: Duration,
+}
+
+/// A loopback relay between `OpenAiBackend` and llama.cpp's server that keeps a copy of what
+/// the server answers, for the `timings` the backend does not expose.
+struct Relay {
+    url: String,
+    received: Arc<Mutex<Vec<u8>>>,
+}
+
+fn lock(m: &Mutex<Vec<u8>>) -> std::sync::MutexGuard<'_, Vec<u8>> {
+    m.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+impl Relay {
+    /// Relays to the server of `url` (`http://HOST:PORT/v1`); [`Relay::url`] is the same path on
+    /// the relay's own port.
+    fn start(url: &str) -> anyhow::Result<Relay> {
+        let (authority, path) = url
+            .strip_prefix("http://")
+            .and_then(|rest| rest.split_once('/'))
+            .with_context(|| format!("llama.cpp's URL {url:?} is not http://HOST:PORT/PATH"))?;
+        let upstream: SocketAddr = authority
+            .parse()
+            .with_context(|| format!("llama.cpp's address {authority:?}"))?;
+        let listener = TcpListener::bind("127.0.0.1:0").context("binding the relay")?;
+        let relay_url = format!("http://{}/{path}", listener.local_addr()?);
+        let received: Arc<Mutex<Vec<u8>>> = Arc::default();
+        let copy = received.clone();
+        std::thread::spawn(move || {
+            for client in listener.incoming() {
+                let Ok(client) = client else { break };
+                let copy = copy.clone();
+                std::thread::spawn(move || {
+                    if let Err(e) = relay_connection(client, upstream, &copy) {
+                        eprintln!("relay to llama.cpp: {e}");
+                    }
+                });
+            }
+        });
+        Ok(Relay {
+            url: relay_url,
+            received,
+        })
+    }
+
+    fn clear(&self) {
+        lock(&self.received).clear();
+    }
+
+    /// The `timings` of the one reply relayed since [`Relay::clear`].
+    fn reply_timings(&self) -> anyhow::Result<Timings> {
+        let bytes = std::mem::take(&mut *lock(&self.received));
+        let text = String::from_utf8_lossy(&bytes);
+        let replies = text.matches("HTTP/1.1 ").count();
+        anyhow::ensure!(
+            replies == 1,
+            "the relay saw {replies} HTTP replies for one call"
+        );
+        let (head, body) = text
+            .split_once("\r\n\r\n")
+            .context("the relayed reply has no end of headers")?;
+        if head
+            .to_ascii_lowercase()
+            .contains("transfer-encoding: chunked")
+        {
+            bail!("the server answered chunked; the relay reads only whole bodies");
+        }
+        let value: Value = serde_json::from_str(body)
+            .with_context(|| format!("the relayed body is not JSON: {:.200}", body))?;
+        let t = value
+            .get("timings")
+            .with_context(|| format!("the server's reply has no timings: {:.300}", body))?;
+        let count = |key: &str| {
+            t.get(key)
+                .and_then(Value::as_u64)
+                .and_then(|n| u32::try_from(n).ok())
+                .with_context(|| format!("timings.{key} is missing or not a count: {t}"))
+        };
+        let millis = |key: &str| {
+            t.get(key)
+                .and_then(Value::as_f64)
+                .filter(|ms| ms.is_finite() && *ms >= 0.0)
+                .map(|ms| Duration::from_secs_f64(ms / 1000.0))
+                .with_context(|| format!("timings.{key} is missing or not a duration: {t}"))
+        };
+        Ok(Timings {
+            cache_n: count("cache_n")?,
+            prompt_n: count("prompt_n")?,
+            prompt: millis("prompt_ms")?,
+            predicted_n: count("predicted_n")?,
+            predicted: millis("predicted_ms")?,
+        })
+    }
+}
+
+/// Copies both ways between `client` and the server; what the server sends is also appended to
+/// `received`, before the client gets it.
+fn relay_connection(
+    client: TcpStream,
+    upstream: SocketAddr,
+    received: &Mutex<Vec<u8>>,
+) -> std::io::Result<()> {
+    let server = TcpStream::connect(upstream)?;
+    let (mut from_client, mut to_server) = (client.try_clone()?, server.try_clone()?);
+    std::thread::spawn(move || {
+        let _ = std::io::copy(&mut from_client, &mut to_server);
+        let _ = to_server.shutdown(Shutdown::Write);
+    });
+    let (mut from_server, mut to_client) = (server, client);
+    let mut buf = vec![0u8; 64 * 1024];
+    loop {
+        let n = from_server.read(&mut buf)?;
+        if n == 0 {
+            break;
+        }
+        lock(received).extend_from_slice(&buf[..n]);
+        to_client.write_all(&buf[..n])?;
+    }
+    to_client.shutdown(Shutdown::Write)
+}
+
+fn median(mut values: Vec<f64>) -> f64 {
+    values.sort_by(f64::total_cmp);
+    match values.len() {
+        0 => f64::NAN,
+        n if n % 2 == 1 => values[n / 2],
+        n => (values[n / 2 - 1] + values[n / 2]) / 2.0,
+    }
+}
+
+/// The output of a command, trimmed, or why there is none.
+fn command_output(program: &str, args: &[&str]) -> String {
+    match Command::new(program).args(args).output() {
+        Ok(out) if out.status.success() => String::from_utf8_lossy(&out.stdout).trim().to_owned(),
+        Ok(out) => format!(
+            "unknown (`{program} {}`: {}: {})",
+            args.join(" "),
+            out.status,
+            String::from_utf8_lossy(&out.stderr).trim()
+        ),
+        Err(e) => format!("unknown (`{program}`: {e})"),
+    }
+}
+
+fn machine() -> String {
+    let cpuinfo = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
+    let cpu = cpuinfo
+        .lines()
+        .find_map(|l| l.strip_prefix("model name")?.split_once(':'))
+        .map_or_else(|| "unknown CPU".to_owned(), |(_, v)| v.trim().to_owned());
+    let meminfo = std::fs::read_to_string("/proc/meminfo").unwrap_or_default();
+    let mem = meminfo
+        .lines()
+        .find_map(|l| l.strip_prefix("MemTotal:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
+        .map_or_else(
+            || "memory unknown".to_owned(),
+            |kb| format!("{:.0} GiB", kb / 1024.0 / 1024.0),
+        );
+    format!("nproc {}, {cpu}, {mem}", command_output("nproc", &[]))
+}
+
+/// The 1, 5 and 15-minute load averages: the figures mean little when other work ran too.
+fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg").map_or_else(
+        |e| format!("unknown ({e})"),
+        |l| l.split_whitespace().take(3).collect::<Vec<_>>().join(" "),
+    )
+}
+
+/// A figure of both backends; `faster_is_higher` for rates, not for latencies.
+struct Row {
+    name: String,
+    embedded: f64,
+    llama: f64,
+    faster_is_higher: bool,
+}
+
+impl Row {
+    /// The embedded backend's time over llama.cpp's for the same work (below 1: faster).
+    fn slowdown(&self) -> f64 {
+        if self.faster_is_higher {
+            self.llama / self.embedded
+        } else {
+            self.embedded / self.llama
+        }
+    }
+}
+
+fn met(ok: bool) -> &'static str {
+    if ok { "MET" } else { "NOT MET" }
+}
+
+fn bench_model(args: &Args, python: &std::path::Path, model: EmbeddedModel) -> anyhow::Result<()> {
+    let gguf = llama_server::embedded_model(model)?;
+    let probes = mission_probes()?;
+    let xllamacpp = command_output(
+        &python.to_string_lossy(),
+        &[
+            "-c",
+            "import importlib.metadata as m; print(m.version('xllamacpp'))",
+        ],
+    );
+    println!();
+    println!(
+        "== {} ({}), threads {}, runs {}",
+        model.display_name(),
+        gguf.display(),
+        args.threads,
+        args.runs
+    );
+    println!(
+        "   embedded: {}, repeat penalty {}; llama.cpp: xllamacpp {xllamacpp}, n_ctx {LLAMA_N_CTX}, 1 slot, n_threads {}",
+        EmbeddedBackend::lazy(EmbeddedOptions {
+            model,
+            ..EmbeddedOptions::from_env()
+        })
+        .describe(),
+        args.repeat_penalty,
+        args.threads
+    );
+    for p in &probes {
+        println!(
+            "   {:<18} max_tokens {}, temperature {}, seed {}, schema {}",
+            p.name,
+            p.request.max_tokens,
+            p.request.temperature,
+            p.request
+                .seed
+                .map_or_else(|| "none".to_owned(), |s| s.to_string()),
+            p.request
+                .schema
+                .as_ref()
+                .map_or("none", |s| s.name.as_str())
+        );
+    }
+
+    let mut embedded_runs = Vec::new();
+    let mut llama_runs = Vec::new();
+    for run in 0..args.runs {
+        println!("-- run {}/{}", run + 1, args.runs);
+        // Taking turns at going first, in case the order matters.
+        let embedded_first = run % 2 == 0;
+        for first in [true, false] {
+            if first == embedded_first {
+                let r = run_embedded(model, args.repeat_penalty, &probes)?;
+                println!("  embedded  loaded in {:.2} s", r.startup.as_secs_f64());
+                embedded_runs.push(r);
+            } else {
+                let r = run_llama(python, &gguf, model, args.threads, &probes)?;
+                println!("  llama.cpp ready in {:.2} s", r.startup.as_secs_f64());
+                llama_runs.push(r);
+            }
+        }
+    }
+
+    let med = |runs: &[RunResult], f: &dyn Fn(&RunResult) -> f64| {
+        median(runs.iter().map(f).collect::<Vec<_>>())
+    };
+    let mut rows = vec![
+        Row {
+            name: "prefill tokens/s (cold)".into(),
+            embedded: med(&embedded_runs, &RunResult::prefill_rate),
+            llama: med(&llama_runs, &RunResult::prefill_rate),
+            faster_is_higher: true,
+        },
+        Row {
+            name: "decode tokens/s (no schema)".into(),
+            embedded: med(&embedded_runs, &RunResult::decode_rate),
+            llama: med(&llama_runs, &RunResult::decode_rate),
+            faster_is_higher: true,
+        },
+        Row {
+            name: "mission decode tokens/s".into(),
+            embedded: med(&embedded_runs, &RunResult::mission_decode_rate),
+            llama: med(&llama_runs, &RunResult::mission_decode_rate),
+            faster_is_higher: true,
+        },
+        Row {
+            name: "mission decode steps/s".into(),
+            embedded: med(&embedded_runs, &RunResult::mission_step_rate),
+            llama: med(&llama_runs, &RunResult::mission_step_rate),
+            faster_is_higher: true,
+        },
+    ];
+    let first_latency = rows.len();
+    for (i, p) in probes.iter().enumerate().take(MISSION.end) {
+        rows.push(Row {
+            name: format!("{} s", p.name),
+            embedded: med(&embedded_runs, &|r| r.calls[i].latency.as_secs_f64()),
+            llama: med(&llama_runs, &|r| r.calls[i].latency.as_secs_f64()),
+            faster_is_higher: false,
+        });
+    }
+
+    println!();
+    println!(
+        "{:<26} {:>10} {:>10} {:>16}   within {RATIO_GOAL}× of llama.cpp",
+        "figure", "embedded", "llama.cpp", "embedded/llama"
+    );
+    for r in &rows {
+        println!(
+            "{:<26} {:>10.2} {:>10.2} {:>15.2}×   {} (takes {:.2}× its time)",
+            r.name,
+            r.embedded,
+            r.llama,
+            r.embedded / r.llama,
+            met(r.slowdown() <= RATIO_GOAL),
+            r.slowdown(),
+        );
+    }
+    // Tokens of each call (first run): same prompt, how much of it cached, same answer.
+    println!();
+    println!(
+        "{:<20} {:>16} {:>16} {:>16}  same answer",
+        "call (run 1)", "prompt e/l", "cached e/l", "completion e/l"
+    );
+    let (e1, l1) = (&embedded_runs[0], &llama_runs[0]);
+    for (i, p) in probes.iter().enumerate() {
+        let (e, l) = (&e1.calls[i], &l1.calls[i]);
+        println!(
+            "{:<20} {:>16} {:>16} {:>16}  {}",
+            p.name,
+            format!("{} / {}", e.prompt_tokens, l.prompt_tokens),
+            format!("{} / {}", e.cached_tokens, l.cached_tokens),
+            format!("{} / {}", e.completion_tokens, l.completion_tokens),
+            if e.content == l.content { "yes" } else { "NO" }
+        );
+    }
+
+    let within = rows.iter().filter(|r| r.slowdown() <= RATIO_GOAL).count();
+    println!();
+    println!("load average after the runs: {}", load_average());
+    println!(
+        "goal: within {RATIO_GOAL}× of llama.cpp: {} ({within} of {} figures)",
+        met(within == rows.len()),
+        rows.len()
+    );
+    for (goal_name, goal, cold, cached) in [
+        (
+            "Supervisor call",
+            SUPERVISOR_GOAL,
+            SUPERVISOR_COLD,
+            SUPERVISOR_CACHED,
+        ),
+        (
+            "Coordinator call",
+            COORDINATOR_GOAL,
+            COORDINATOR_COLD,
+            COORDINATOR_CACHED,
+        ),
+    ] {
+        let (c, w) = (&rows[first_latency + cold], &rows[first_latency + cached]);
+        println!(
+            "goal: {goal_name} ≤ {} s (embedded): cold {:.2} s {}, cached {:.2} s {} (llama.cpp: cold {:.2} s, cached {:.2} s)",
+            goal.as_secs(),
+            c.embedded,
+            met(c.embedded <= goal.as_secs_f64()),
+            w.embedded,
+            met(w.embedded <= goal.as_secs_f64()),
+            c.llama,
+            w.llama,
+        );
+    }
+    for (i, p) in probes.iter().enumerate() {
+        let (e, l) = (&e1.calls[i].content, &l1.calls[i].content);
+        if e == l {
+            println!("answer {} (both): {e}", p.name);
+        } else {
+            println!("answer {} (embedded):  {e}", p.name);
+            println!("answer {} (llama.cpp): {l}", p.name);
+        }
+    }
+    Ok(())
+}
+
+fn main() {
+    if let Err(e) = run() {
+        eprintln!("models bench: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run() -> anyhow::Result<()> {
+    let args = parse_args()?;
+    // Before any thread starts (candle reads these when its pools are first used).
+    // SAFETY: no other thread runs yet in this process.
+    unsafe {
+        std::env::set_var("CANDLE_NUM_THREADS", args.threads.to_string());
+        std::env::set_var("RAYON_NUM_THREADS", args.threads.to_string());
+    }
+    // Without xllamacpp there is nothing to compare with: an error, not a skip.
+    let Some(python) = llama_server::llama_python_or_skip("models bench") else {
+        bail!(
+            "llama.cpp's server is needed for the comparison: run bash tests/python/setup.sh (it installs xllamacpp into {})",
+            llama_server::venv_python().display()
+        );
+    };
+    println!(
+        "models bench: commit {}, {}",
+        command_output("git", &["rev-parse", "--short", "HEAD"]),
+        machine()
+    );
+    println!("load average at the start: {}", load_average());
+    println!(
+        "threads {} (CANDLE_NUM_THREADS, RAYON_NUM_THREADS; llama.cpp n_threads), models: {}",
+        args.threads,
+        args.models
+            .iter()
+            .map(|m| m.name())
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    for model in &args.models {
+        bench_model(&args, &python, *model)?;
+    }
+    Ok(())
+}
