@@ -49,6 +49,11 @@ pub enum Steering {
     Still(Vec3),
     /// The planner flies towards this goal, apart from the neighbours and the obstacles.
     Toward(Goal),
+    /// The last centimetres of a landing under offboard control: stream `point` with a descent
+    /// of `speed` m/s as the velocity feed-forward. PX4's land detector counts ground contact
+    /// only while the setpoint asks for a descent (`MulticopterLandDetector`'s `_in_descend`), so
+    /// a still point on the floor would never be detected as landed.
+    Sink { point: Vec3, speed: f64 },
 }
 
 /// Where a tracker should be, or why it cannot say.
@@ -280,37 +285,41 @@ impl Motion {
         velocity: Vec3,
         steering: Steering,
     ) -> MotionOutput {
-        match steering {
-            Steering::Still(point) => {
-                if self.plan.take().is_some() {
-                    self.generation += 1;
-                }
-                if let Some(planner) = self.planner.as_mut() {
-                    planner.reset();
-                }
-                let path = self.due(self.last_path, now).then(|| {
-                    self.last_path = Some(now);
-                    // Where it is heading on its own (climbing, descending, standing).
-                    let cfg = &self.planner_cfg;
-                    let positions = (0..=cfg.horizon_steps)
-                        .map(|k| position + velocity * (k as f64 * cfg.dt))
-                        .collect();
-                    self.path_message(now, cfg.dt, positions, false, None)
-                });
-                MotionOutput {
-                    reference: ReferenceState::still(point),
-                    path,
-                }
-            }
-            Steering::Toward(_) => MotionOutput {
-                // Until the first solve lands (a few milliseconds), stay where it is.
-                reference: match &self.plan {
-                    Some(plan) => plan.sample(now),
-                    None => ReferenceState::still(position),
-                },
-                path: None,
+        let reference = match steering {
+            Steering::Still(point) => ReferenceState::still(point),
+            Steering::Sink { point, speed } => ReferenceState {
+                position: point,
+                velocity: Vec3::new(0.0, 0.0, -speed),
+                acceleration: Vec3::zeros(),
             },
+            Steering::Toward(_) => {
+                return MotionOutput {
+                    // Until the first solve lands (a few milliseconds), stay where it is.
+                    reference: match &self.plan {
+                        Some(plan) => plan.sample(now),
+                        None => ReferenceState::still(position),
+                    },
+                    path: None,
+                };
+            }
+        };
+        // Not flown by the planner: drop its plan, and publish where the drone heads on its own.
+        if self.plan.take().is_some() {
+            self.generation += 1;
         }
+        if let Some(planner) = self.planner.as_mut() {
+            planner.reset();
+        }
+        let path = self.due(self.last_path, now).then(|| {
+            self.last_path = Some(now);
+            // Where it is heading on its own (climbing, descending, standing).
+            let cfg = &self.planner_cfg;
+            let positions = (0..=cfg.horizon_steps)
+                .map(|k| position + velocity * (k as f64 * cfg.dt))
+                .collect();
+            self.path_message(now, cfg.dt, positions, false, None)
+        });
+        MotionOutput { reference, path }
     }
 
     fn due(&self, last: Option<f64>, now: f64) -> bool {

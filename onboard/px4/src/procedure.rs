@@ -2,9 +2,11 @@
 //! a TACOS command is sent, what it is sent with, and what confirms it. Measured on PX4 SITL
 //! (`deploy/README.md`, "Real PX4"):
 //!
-//! - **Arm**: PX4 arms only in an armable mode (after an offboard flight lands it is back in
-//!   OFFBOARD and refuses), and only once its pre-flight checks pass (HEARTBEAT system_status
-//!   STANDBY). So: switch to AUTO.LOITER unless already there, wait for readiness (bounded), arm.
+//! - **Arm**: PX4 arms only in an armable mode (AUTO.LOITER; OFFBOARD while setpoints stream;
+//!   after an offboard flight lands it is back in OFFBOARD with no stream and refuses), and only
+//!   once its pre-flight checks pass (HEARTBEAT system_status STANDBY). So: switch to
+//!   AUTO.LOITER unless armable where it is, wait for readiness (bounded), arm.
+//! - **Offboard on the ground** is refused until the pre-flight checks pass: wait for them.
 //! - **Take-off**: MAV_CMD_NAV_TAKEOFF's param7 is AMSL. The command's height above the vehicle
 //!   is added to the vehicle's own AMSL altitude (GLOBAL_POSITION_INT, requested when missing).
 //! - **Mode switches** are acknowledged twice by PX4 (first ACCEPTED from the receiver, then the
@@ -63,7 +65,7 @@ pub enum ProcedureEvent {
 enum Step {
     /// Not started yet.
     Start,
-    /// Waiting for PX4 to report ready to arm.
+    /// Waiting for PX4 to report ready to arm (an arm, or an offboard switch on the ground).
     WaitReady { until: Instant },
     /// Waiting for a fresh AMSL altitude (take-off).
     WaitAltitude { until: Instant, requested: bool },
@@ -116,9 +118,16 @@ fn mode_command(mode: Px4Mode) -> CommandLong {
     }
 }
 
-/// Modes PX4 arms in without a remote control.
-fn armable(mode: Px4Mode) -> bool {
-    matches!(mode, Px4Mode::Hold | Px4Mode::Takeoff)
+/// Whether PX4 would arm in its current mode without a remote control: AUTO.LOITER and
+/// AUTO.TAKEOFF always; OFFBOARD only while setpoints stream, which PX4 shows as readiness
+/// (after an offboard flight lands it is back in OFFBOARD with no stream and refuses). The
+/// onboard takes off by arming in OFFBOARD, so the planner flies the climb.
+fn armable(facts: &AutopilotFacts) -> bool {
+    match facts.mode {
+        Px4Mode::Hold | Px4Mode::Takeoff => true,
+        Px4Mode::Offboard => facts.ready,
+        _ => false,
+    }
 }
 
 fn mav_result_name(code: u8) -> &'static str {
@@ -369,7 +378,7 @@ impl Procedures {
         let Some(job) = self.job else { return };
         match job.step {
             Step::Start => match job.kind {
-                CommandKind::Arm if !facts.armed && !armable(facts.mode) => {
+                CommandKind::Arm if !facts.armed && !armable(facts) => {
                     self.send(mode_command(Px4Mode::Hold), Then::WaitReadyThenArm)
                 }
                 CommandKind::Arm => self.after(Then::WaitReadyThenArm, now, facts, events),
@@ -384,9 +393,35 @@ impl Procedures {
                 }
                 CommandKind::Disarm => self.send(CommandLong::disarm(), Then::Finish),
                 CommandKind::Land => self.send(CommandLong::land(), Then::Finish),
+                // On the ground PX4 refuses the switch until its pre-flight checks pass.
+                CommandKind::Offboard if !facts.armed && !facts.ready => {
+                    if let Some(job) = self.job.as_mut() {
+                        job.step = Step::WaitReady {
+                            until: now + READY_TIMEOUT,
+                        };
+                    }
+                }
                 CommandKind::Offboard => self.send(mode_command(Px4Mode::Offboard), Then::Finish),
                 CommandKind::Hold => self.send(mode_command(Px4Mode::Hold), Then::Finish),
             },
+            Step::WaitReady { until } if job.kind == CommandKind::Offboard => {
+                if facts.armed || facts.ready {
+                    self.send(mode_command(Px4Mode::Offboard), Then::Finish);
+                } else if !facts.link_ok {
+                    self.finish(
+                        CommandOutcome::LinkLost,
+                        NO_MAV_RESULT,
+                        Some("the autopilot link was lost while waiting for it to be ready"),
+                        events,
+                    );
+                } else if now >= until {
+                    let why = format!(
+                        "the autopilot was not ready for offboard control after {} s (its pre-flight checks did not pass)",
+                        READY_TIMEOUT.as_secs()
+                    );
+                    self.finish_rejected(NO_MAV_RESULT, &why, events);
+                }
+            }
             Step::WaitReady { until } => {
                 if let SetupState::Failed(why) = &self.setup {
                     let why = format!("the autopilot could not be prepared for flight: {why}");

@@ -336,3 +336,37 @@ fn arming_waits_for_the_setup_and_a_failed_setup_refuses_with_its_reason() {
     let reason = results[0].reason().unwrap_or_default();
     assert!(reason.contains("COM_OBL_RC_ACT"), "{reason}");
 }
+
+#[test]
+fn in_offboard_with_setpoints_streaming_the_arm_is_sent_there() {
+    // The onboard's take-off: setpoints stream, PX4 is switched to OFFBOARD and reports ready.
+    let t0 = Instant::now();
+    let mut p = ready_procedures();
+    p.submit(CommandSample::new(2, CommandKind::Arm, 0.0));
+    let ev = p.poll(t0, &facts(Px4Mode::Offboard, true));
+    assert_eq!(commands(&ev), vec![mav_cmd::COMPONENT_ARM_DISARM]);
+}
+
+#[test]
+fn an_offboard_switch_on_the_ground_waits_for_the_preflight_checks() {
+    let t0 = Instant::now();
+    let mut p = ready_procedures();
+    p.submit(CommandSample::new(4, CommandKind::Offboard, 0.0));
+    let booting = facts(Px4Mode::Hold, false);
+    assert!(p.poll(t0, &booting).is_empty(), "refused by PX4 before ready");
+    let ev = p.poll(at(t0, 3000), &facts(Px4Mode::Hold, true));
+    assert_eq!(
+        sent(&ev),
+        vec![(176, [1.0, 6.0, 0.0, 0.0, 0.0, 0.0, 0.0])],
+        "DO_SET_MODE OFFBOARD"
+    );
+    // Never ready: it fails with the time it waited.
+    let mut p = ready_procedures();
+    p.submit(CommandSample::new(5, CommandKind::Offboard, 0.0));
+    p.poll(t0, &booting);
+    let results = done(&p.poll(at(t0, 30_000), &booting));
+    assert_eq!(results.len(), 1);
+    assert_eq!(results[0].outcome(), Some(CommandOutcome::Rejected));
+    let reason = results[0].reason().unwrap_or_default();
+    assert!(reason.contains("not ready for offboard control"), "{reason}");
+}

@@ -553,12 +553,33 @@ impl Vehicle {
         }
     }
 
+    /// PX4's land detector: under offboard control, ground contact counts only while the
+    /// setpoint asks for a descent of at least 1.1 × 0.9 × MPC_LAND_SPEED
+    /// (`MulticopterLandDetector`'s `_in_descend`); a vehicle held on the floor by a still
+    /// setpoint stays "in air".
+    fn descent_commanded(&self) -> bool {
+        if self.mode != Px4Mode::Offboard {
+            return true;
+        }
+        let wanted = 1.1 * 0.9 * self.params.land_speed;
+        self.setpoint
+            .and_then(|r| r.velocity[2])
+            .is_some_and(|down| down >= wanted)
+    }
+
+    /// The floor stops the body; the land detector decides whether it has landed.
     fn check_ground_contact(&mut self) {
-        let p = self.body.position;
-        if !self.landed && p.z > -GROUND_CONTACT && self.body.velocity.z >= 0.0 {
+        if self.landed || self.body.velocity.z < 0.0 {
+            return;
+        }
+        let near = self.body.position.z > -GROUND_CONTACT;
+        let detected = near && self.descent_commanded();
+        if detected || self.body.position.z >= 0.0 {
             self.struck_ground |= self.body.velocity.z > HARD_TOUCHDOWN_SPEED;
             self.body.position.z = 0.0;
             self.body.velocity = Vec3::zeros();
+        }
+        if detected {
             self.landed = true;
             self.armed_on_ground_since = self.time;
             self.home = self.body.position;

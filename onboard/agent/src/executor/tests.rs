@@ -44,7 +44,7 @@ fn state_of(ex: &Executor) -> ActionState {
 }
 
 #[test]
-fn takeoff_arms_climbs_then_switches_to_offboard() {
+fn takeoff_switches_to_offboard_on_the_pad_arms_there_and_the_planner_climbs() {
     let mut ex = lab();
     let home = Vec3::new(-50.0, -132.5, 0.0);
     ex.on_vehicle(&state(home, false, Px4Mode::Hold));
@@ -52,34 +52,66 @@ fn takeoff_arms_climbs_then_switches_to_offboard() {
     assert!(ex.on_command(&cmd(1, Action::ArmTakeoff), 0.0));
     let out = ex.tick(0.0);
     assert_eq!(out.commands.len(), 1);
-    assert_eq!(out.commands[0].kind(), Some(CommandKind::Arm));
+    assert_eq!(out.commands[0].kind(), Some(CommandKind::Offboard));
+    assert_eq!(out.steering, Some(Steering::Still(home)), "the pad streams");
     accept(&mut ex, &out.commands[0], 0.1);
+    ex.on_vehicle(&state(home, false, Px4Mode::Offboard));
     let out = ex.tick(0.1);
-    assert_eq!(out.commands[0].kind(), Some(CommandKind::Takeoff));
-    assert_eq!(out.commands[0].param, 10.0);
+    assert_eq!(out.commands[0].kind(), Some(CommandKind::Arm));
+    assert_eq!(out.steering, Some(Steering::Still(home)));
     accept(&mut ex, &out.commands[0], 0.2);
+    ex.on_vehicle(&state(home, true, Px4Mode::Offboard));
+    let climb_to = home + Vec3::new(0.0, 0.0, 10.0);
+    let out = ex.tick(0.3);
+    assert!(out.commands.is_empty(), "{:?}", out.commands);
+    assert_eq!(
+        out.steering,
+        Some(Steering::Toward(Goal::fixed(climb_to))),
+        "the planner flies the climb"
+    );
     ex.on_vehicle(&state(
         home + Vec3::new(0.0, 0.0, 5.0),
         true,
-        Px4Mode::Takeoff,
+        Px4Mode::Offboard,
     ));
-    assert!(ex.tick(1.0).commands.is_empty());
+    ex.tick(3.0);
     assert!(matches!(state_of(&ex), ActionState::Running { .. }));
     ex.on_vehicle(&state(
-        home + Vec3::new(0.0, 0.0, 9.95),
+        home + Vec3::new(0.1, 0.0, 9.95),
         true,
-        Px4Mode::Hold,
+        Px4Mode::Offboard,
     ));
-    let out = ex.tick(3.0);
-    assert_eq!(out.commands[0].kind(), Some(CommandKind::Offboard));
-    assert!(
-        matches!(out.steering, Some(Steering::Still(p)) if p.z == 10.0),
-        "{:?}",
-        out.steering
-    );
-    accept(&mut ex, &out.commands[0], 3.1);
+    let out = ex.tick(6.0);
+    assert!(out.commands.is_empty());
     assert_eq!(state_of(&ex), ActionState::Done);
     assert_eq!(ex.mode(), DroneMode::Flying);
+    assert_eq!(out.steering, Some(Steering::Toward(Goal::fixed(climb_to))));
+}
+
+#[test]
+fn a_takeoff_already_in_offboard_arms_at_once_and_one_armed_in_hold_asks_for_offboard() {
+    // After an offboard flight PX4 is back in OFFBOARD on the ground.
+    let mut ex = lab();
+    let home = Vec3::new(-50.0, -132.5, 0.0);
+    ex.on_vehicle(&state(home, false, Px4Mode::Offboard));
+    ex.on_command(&cmd(1, Action::ArmTakeoff), 0.0);
+    let arm = ex.tick(0.0).commands[0];
+    assert_eq!(arm.kind(), Some(CommandKind::Arm));
+    // The writer armed it through AUTO.LOITER (PX4 was not ready in OFFBOARD): OFFBOARD again.
+    accept(&mut ex, &arm, 0.5);
+    ex.on_vehicle(&state(home, true, Px4Mode::Hold));
+    let out = ex.tick(0.6);
+    assert_eq!(
+        out.commands.first().and_then(|c| c.kind()),
+        Some(CommandKind::Offboard)
+    );
+    // Disarmed by PX4 before it climbed: the take-off fails and says so.
+    ex.on_vehicle(&state(home, false, Px4Mode::Hold));
+    ex.tick(11.0);
+    assert!(matches!(
+        state_of(&ex),
+        ActionState::Failed(FailureReason::InvalidForMode(_))
+    ));
 }
 
 #[test]
@@ -528,14 +560,14 @@ fn failsafe_holds_then_lands() {
         true,
         Px4Mode::Offboard,
     ));
-    assert_eq!(
-        ex.tick(9.0).commands.last().and_then(|c| c.kind()),
-        Some(CommandKind::Land)
-    );
+    assert!(matches!(
+        ex.tick(9.0).steering,
+        Some(Steering::Sink { .. })
+    ));
 }
 
 #[test]
-fn a_landing_descends_through_the_planner_then_hands_over_to_px4() {
+fn a_landing_descends_through_the_planner_sinks_onto_the_floor_and_disarms() {
     let mut ex = lab();
     let high = Vec3::new(-50.0, -132.5, 10.0);
     ex.on_vehicle(&state(high, true, Px4Mode::Offboard));
@@ -546,7 +578,7 @@ fn a_landing_descends_through_the_planner_then_hands_over_to_px4() {
         "no NAV_LAND from 10 m: {:?}",
         out.commands
     );
-    // City: drone radius 0.5, so PX4 takes over 1 m above the floor.
+    // City: drone radius 0.5, so the planner's descent ends 1 m above the floor.
     let handoff = Vec3::new(-50.0, -132.5, 1.0);
     assert_eq!(out.steering, Some(Steering::Toward(Goal::fixed(handoff))));
     ex.on_vehicle(&state(
@@ -555,29 +587,86 @@ fn a_landing_descends_through_the_planner_then_hands_over_to_px4() {
         Px4Mode::Offboard,
     ));
     assert!(ex.tick(3.0).commands.is_empty(), "still descending");
+    let low = Vec3::new(-50.0, -132.5, 1.05);
+    ex.on_vehicle(&state(low, true, Px4Mode::Offboard));
+    let out = ex.tick(6.0);
+    assert!(out.commands.is_empty(), "{:?}", out.commands);
+    // Then it sinks at the touchdown speed, the velocity feed-forward PX4's land detector needs.
+    assert_eq!(
+        out.steering,
+        Some(Steering::Sink {
+            point: low,
+            speed: landing::TOUCHDOWN_SPEED
+        })
+    );
+    let out = ex.tick(7.0);
+    assert_eq!(
+        out.steering,
+        Some(Steering::Sink {
+            point: Vec3::new(low.x, low.y, low.z - landing::TOUCHDOWN_SPEED),
+            speed: landing::TOUCHDOWN_SPEED
+        })
+    );
+    // Pressed at most half a metre into the floor.
+    let Some(Steering::Sink { point, .. }) = ex.tick(15.0).steering else {
+        panic!("not sinking")
+    };
+    assert_eq!(point.z, -0.5);
+    // Down: disarmed, then done.
+    ex.on_vehicle(&state(Vec3::new(-50.0, -132.5, 0.0), true, Px4Mode::Offboard));
+    let out = ex.tick(9.0);
+    assert_eq!(
+        out.commands.first().and_then(|c| c.kind()),
+        Some(CommandKind::Disarm)
+    );
+    // A refused disarm does not fail the landing: PX4's own disarm after landing follows.
+    ex.on_result(
+        &CommandResultSample::new(
+            out.commands[0].seq,
+            out.commands[0].kind,
+            CommandOutcome::Rejected,
+            4,
+        ),
+        9.1,
+    );
+    assert!(matches!(state_of(&ex), ActionState::Running { .. }));
     ex.on_vehicle(&state(
-        Vec3::new(-50.0, -132.5, 1.05),
-        true,
+        Vec3::new(-50.0, -132.5, 0.0),
+        false,
         Px4Mode::Offboard,
     ));
-    let out = ex.tick(6.0);
+    ex.tick(11.0);
+    assert_eq!(state_of(&ex), ActionState::Done);
+    assert_eq!(ex.mode(), DroneMode::Idle);
+
+    // Never detected as landed: PX4's landing takes over, so a landing always lands.
+    let mut ex = lab();
+    ex.on_vehicle(&state(low, true, Px4Mode::Offboard));
+    ex.on_command(&cmd(2, Action::Land), 0.0);
+    assert!(matches!(
+        ex.tick(0.0).steering,
+        Some(Steering::Sink { .. })
+    ));
+    let stuck = Vec3::new(-50.0, -132.5, 0.3);
+    let mut state_stuck = state(stuck, true, Px4Mode::Offboard);
+    state_stuck.landed = 0;
+    ex.on_vehicle(&state_stuck);
+    let out = ex.tick(1.05 / landing::TOUCHDOWN_SPEED + 10.1);
     assert_eq!(
         out.commands.first().and_then(|c| c.kind()),
         Some(CommandKind::Land)
     );
-    accept(&mut ex, &out.commands[0], 6.1);
+    accept(&mut ex, &out.commands[0], 14.0);
     ex.on_vehicle(&state(Vec3::new(-50.0, -132.5, 0.0), false, Px4Mode::Land));
-    ex.tick(9.0);
+    ex.tick(16.0);
     assert_eq!(state_of(&ex), ActionState::Done);
 
-    // A descent that does not get there hands over anyway: a landing always lands.
+    // Not in OFFBOARD (PX4's failsafe holds it): PX4 lands it.
     let mut ex = lab();
-    ex.on_vehicle(&state(high, true, Px4Mode::Offboard));
-    ex.on_command(&cmd(2, Action::Land), 0.0);
-    ex.tick(0.0);
-    let out = ex.tick(10.0 + 9.0 / 0.5 + 0.1);
+    ex.on_vehicle(&state(high, true, Px4Mode::Hold));
+    ex.on_command(&cmd(3, Action::Land), 0.0);
     assert_eq!(
-        out.commands.first().and_then(|c| c.kind()),
+        ex.tick(0.0).commands.first().and_then(|c| c.kind()),
         Some(CommandKind::Land)
     );
 }

@@ -23,6 +23,7 @@ use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
+use tacos_shared::px4_mode::Px4Mode;
 use tacos_shared::{DroneId, SwarmId};
 
 pub fn unique_swarm(tag: &str) -> SwarmId {
@@ -197,6 +198,15 @@ pub struct ApState {
 impl ApState {
     pub fn param(&self, name: &str) -> Option<Param> {
         self.params.iter().find(|(n, _)| n == name).map(|(_, v)| *v)
+    }
+
+    /// A SET_POSITION_TARGET_LOCAL_NED arrived within PX4's offboard timeout.
+    pub fn setpoints_streaming(&self, now: Instant) -> bool {
+        self.received
+            .iter()
+            .rev()
+            .find(|r| matches!(r.msg, MavMessage::SET_POSITION_TARGET_LOCAL_NED(_)))
+            .is_some_and(|r| now.saturating_duration_since(r.at) < Duration::from_millis(500))
     }
 
     /// The stored fence's vertices (lat, lon in degrees × 10⁷).
@@ -384,6 +394,11 @@ fn run_autopilot(inner: &Inner) {
                     base_mode: base,
                     system_status: if s.armed {
                         MavState::MAV_STATE_ACTIVE
+                    } else if s.custom_mode == Px4Mode::Offboard.custom_mode()
+                        && !s.setpoints_streaming(now)
+                    {
+                        // PX4 in OFFBOARD with no setpoint stream is not ready to arm.
+                        MavState::MAV_STATE_UNINIT
                     } else {
                         MavState::MAV_STATE_STANDBY
                     },

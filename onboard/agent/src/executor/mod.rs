@@ -15,9 +15,15 @@ use tacos_shared::ipc::{
 };
 use tacos_shared::messages::{ActionProgress, ActionState, FailsafeStage, FailureReason};
 use tacos_shared::px4_mode::Px4Mode;
-use tacos_shared::scenario::FlightLimits;
-use tacos_shared::world::World;
 use tacos_shared::{DroneMode, Vec3};
+
+mod landing;
+mod takeoff;
+mod view;
+
+use landing::LandPhase;
+use takeoff::TakeoffStep;
+pub use view::{ExecutorConfig, POSITION_STALE_MS, TickOutput, VehicleView};
 
 /// MAV_RESULT_TEMPORARILY_REJECTED: the autopilot may accept the same command a little later
 /// (PX4 says so for an offboard switch before its setpoint stream has settled, which a loaded
@@ -36,49 +42,14 @@ const MODE_REPORT_GRACE_S: f64 = 1.6;
 /// 40% of top speed on average, while a drone that is stuck stops closing in.
 const GOTO_STALL_S: f64 = 30.0;
 
-/// A position older than this means the autopilot's estimate is gone: the drone is unavailable
-/// even while heartbeats still arrive (PX4 streams LOCAL_POSITION_NED at 30 Hz or more).
-pub const POSITION_STALE_MS: u64 = 1_000;
-
-/// What the executor knows of the vehicle, from `tacos-px4`.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct VehicleView {
-    pub link_ok: bool,
-    pub armed: bool,
-    pub px4: Px4Mode,
-    pub landed: bool,
-    pub position: Vec3,
-    pub velocity: Vec3,
-}
-
-impl From<&VehicleStateSample> for VehicleView {
-    fn from(s: &VehicleStateSample) -> Self {
-        VehicleView {
-            link_ok: s.link_ok != 0 && s.position_age_ms <= POSITION_STALE_MS,
-            armed: s.armed != 0,
-            px4: s.mode(),
-            landed: s.landed != 0,
-            position: s.position(),
-            velocity: s.velocity(),
-        }
-    }
-}
-
-#[derive(Debug, Clone, Copy, PartialEq)]
-enum TakeoffStep {
-    Arming,
-    Commanding,
-    Climbing,
-    Offboarding,
-}
-
 #[derive(Debug, Clone, PartialEq)]
 enum Task {
     /// Nothing commanded: the reference follows the vehicle.
     Idle,
+    /// Taking off under offboard control from `pad` (see `takeoff`).
     Takeoff {
         step: TakeoffStep,
-        ground_z: f64,
+        pad: Vec3,
         deadline: f64,
     },
     /// The planner flies to `target` (around obstacles, apart from neighbours).
@@ -106,49 +77,8 @@ enum Task {
     },
     /// Airborne at `hold_point` under offboard control.
     Hold,
-    Land {
-        accepted: bool,
-        deadline: f64,
-        /// While `Some`: descending under offboard control to this point (the hand-over
-        /// height), until the given time at the latest; then PX4 lands the rest of the way.
-        descent: Option<(Vec3, f64)>,
-    },
-}
-
-/// What one tick asks the shell to send.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct TickOutput {
-    /// How to fly (world ENU), or `None` while the vehicle is unknown.
-    pub steering: Option<Steering>,
-    pub commands: Vec<CommandSample>,
-}
-
-#[derive(Debug, Clone)]
-pub struct ExecutorConfig {
-    pub limits: FlightLimits,
-    pub world: World,
-    /// A goto is done when the vehicle is this close to its goal (and slow).
-    pub arrive_tolerance: f64,
-    /// start_tracking is done once the vehicle is this close to its station.
-    pub acquire_tolerance: f64,
-    /// start_tracking fails if the target has not been seen this long after it started.
-    pub unseen_timeout_s: f64,
-    /// start_tracking fails if the station has not been reached this long after it started.
-    pub acquire_timeout_s: f64,
-}
-
-impl ExecutorConfig {
-    pub fn new(limits: FlightLimits, world: World) -> Self {
-        let arrive_tolerance = (2.0 * limits.drone_radius).max(0.2);
-        ExecutorConfig {
-            limits,
-            world,
-            arrive_tolerance,
-            acquire_tolerance: 2.5,
-            unseen_timeout_s: 3.0,
-            acquire_timeout_s: 120.0,
-        }
-    }
+    /// Landing (see `landing`), failing after `deadline`.
+    Land { phase: LandPhase, deadline: f64 },
 }
 
 pub struct Executor {
@@ -359,15 +289,7 @@ impl Executor {
         };
         let limits = self.cfg.limits;
         match &command.action {
-            Action::ArmTakeoff => {
-                let deadline = now + 30.0 + limits.takeoff_altitude / 0.5;
-                self.task = Task::Takeoff {
-                    step: TakeoffStep::Arming,
-                    ground_z: vehicle.position.z,
-                    deadline,
-                };
-                self.request(CommandKind::Arm, 0.0);
-            }
+            Action::ArmTakeoff => self.start_takeoff(vehicle.position, now),
             Action::Goto { target } => {
                 // Only the point itself can make a goto impossible: the planner flies round
                 // whatever stands between.
@@ -462,6 +384,13 @@ impl Executor {
         let kind = awaiting.kind();
         match result.outcome() {
             Some(CommandOutcome::Accepted) => {}
+            // PX4 refuses a disarm it does not think landed: its own disarm after landing
+            // (COM_DISARM_LAND) follows, or the landing's fallback does.
+            Some(_)
+                if kind == Some(CommandKind::Disarm) && matches!(self.task, Task::Land { .. }) =>
+            {
+                return;
+            }
             Some(CommandOutcome::Rejected)
                 if result.mav_result == MAV_RESULT_TEMPORARILY_REJECTED
                     && self.retries < RETRIES_AFTER_TEMPORARY_REJECTION =>
@@ -488,67 +417,11 @@ impl Executor {
         if kind == Some(CommandKind::Offboard) {
             self.offboard_since = Some(now);
         }
-        match (&mut self.task, kind) {
-            (Task::Takeoff { step, .. }, Some(CommandKind::Arm))
-                if *step == TakeoffStep::Arming =>
-            {
-                *step = TakeoffStep::Commanding;
-                let altitude = self.cfg.limits.takeoff_altitude;
-                self.request(CommandKind::Takeoff, altitude);
-            }
-            (Task::Takeoff { step, .. }, Some(CommandKind::Takeoff))
-                if *step == TakeoffStep::Commanding =>
-            {
-                *step = TakeoffStep::Climbing;
-            }
-            (Task::Takeoff { step, .. }, Some(CommandKind::Offboard))
-                if *step == TakeoffStep::Offboarding =>
-            {
-                self.task = Task::Hold;
-                self.finish(ActionState::Done);
-            }
+        match (&self.task, kind) {
+            (Task::Takeoff { .. }, Some(kind)) => self.takeoff_accepted(kind),
             (Task::Hold, Some(CommandKind::Offboard)) => self.finish(ActionState::Done),
-            (Task::Land { accepted, .. }, Some(CommandKind::Land)) => *accepted = true,
+            (Task::Land { .. }, Some(CommandKind::Land)) => self.landing_accepted(),
             _ => {}
-        }
-    }
-
-    /// How high above the floor PX4's own landing takes over: above it the drone descends under
-    /// offboard control, through the planner, which keeps it apart from its neighbours. PX4's
-    /// AUTO.LAND does not, and drifts tenths of a metre (measured on PX4 SITL: three drones of
-    /// the lab map, 1 m apart, came within 0.34 m landing from 1 m).
-    fn handoff_height(&self) -> f64 {
-        (2.0 * self.cfg.limits.drone_radius).max(0.3)
-    }
-
-    /// Lands: a deconflicted descent to the hand-over height when the drone is airborne under
-    /// offboard control above it and that point is free, then PX4's landing.
-    fn start_landing(&mut self, now: f64) {
-        let Some(vehicle) = self.vehicle else { return };
-        let deadline = now + 60.0 + vehicle.position.z / 0.5;
-        let p = vehicle.position;
-        let handoff = Vec3::new(
-            p.x,
-            p.y,
-            self.cfg.world.bounds.min.z + self.handoff_height(),
-        );
-        let descend = self.airborne()
-            && self.in_offboard()
-            && p.z > handoff.z + 0.2
-            && self
-                .cfg
-                .world
-                .check_point(&handoff, self.cfg.limits.drone_radius)
-                .is_ok();
-        // Room for the descent at a third of PX4's default 1.5 m/s down, then PX4 takes over.
-        let descent = descend.then(|| (handoff, now + 10.0 + (p.z - handoff.z) / 0.5));
-        self.task = Task::Land {
-            accepted: false,
-            deadline,
-            descent,
-        };
-        if descent.is_none() {
-            self.request(CommandKind::Land, 0.0);
         }
     }
 
@@ -609,15 +482,11 @@ impl Executor {
                 Steering::Toward(station.unwrap_or(Goal::fixed(hold_point)))
             }
             Task::Hold => Steering::Toward(Goal::fixed(hold_point)),
-            Task::Land {
-                descent: Some((handoff, _)),
-                ..
-            } => Steering::Toward(Goal::fixed(*handoff)),
-            Task::Takeoff {
-                step: TakeoffStep::Offboarding,
-                ..
-            } => Steering::Still(hold_point),
-            _ => Steering::Still(vehicle.position),
+            Task::Takeoff { step, pad, .. } => self.takeoff_steering(*step, *pad),
+            Task::Land { phase, .. } => self
+                .landing_steering(phase, now)
+                .unwrap_or(Steering::Still(vehicle.position)),
+            Task::Idle => Steering::Still(vehicle.position),
         };
         TickOutput {
             steering: Some(steering),
@@ -646,30 +515,9 @@ impl Executor {
             }
             Task::Takeoff {
                 step,
-                ground_z,
+                pad,
                 deadline,
-            } => {
-                if now > deadline {
-                    return self.fail(FailureReason::TimedOut);
-                }
-                let goal_z = ground_z + limits.takeoff_altitude;
-                let reached =
-                    vehicle.position.z >= goal_z - (0.1 * limits.takeoff_altitude).max(0.1);
-                self.set_running(
-                    (((vehicle.position.z - ground_z) / limits.takeoff_altitude).clamp(0.0, 1.0)
-                        * 0.9) as f32,
-                );
-                if step == TakeoffStep::Climbing && reached {
-                    self.hold_point =
-                        Some(Vec3::new(vehicle.position.x, vehicle.position.y, goal_z));
-                    self.task = Task::Takeoff {
-                        step: TakeoffStep::Offboarding,
-                        ground_z,
-                        deadline,
-                    };
-                    self.request(CommandKind::Offboard, 0.0);
-                }
-            }
+            } => self.advance_takeoff(step, pad, deadline, now),
             Task::Goto {
                 target,
                 initial_distance,
@@ -731,45 +579,7 @@ impl Executor {
                     self.task = Task::Idle;
                 }
             }
-            Task::Land {
-                deadline,
-                descent: Some((handoff, until)),
-                ..
-            } => {
-                let there =
-                    (vehicle.position.z - handoff.z).abs() <= 0.1 && vehicle.velocity.norm() <= 0.3;
-                if !vehicle.armed {
-                    self.hold_point = None;
-                    self.task = Task::Idle;
-                    self.finish(ActionState::Done);
-                } else if there || now > until || self.left_offboard(&vehicle, now) {
-                    self.task = Task::Land {
-                        accepted: false,
-                        deadline,
-                        descent: None,
-                    };
-                    self.request(CommandKind::Land, 0.0);
-                } else {
-                    let height = (vehicle.position.z - handoff.z).max(0.0);
-                    let progress = 1.0 - height / limits.takeoff_altitude.max(0.1);
-                    self.set_running((progress.clamp(0.0, 1.0) * 0.5) as f32);
-                }
-            }
-            Task::Land {
-                accepted, deadline, ..
-            } => {
-                if accepted && !vehicle.armed {
-                    self.hold_point = None;
-                    self.task = Task::Idle;
-                    self.finish(ActionState::Done);
-                } else if now > deadline {
-                    self.fail(FailureReason::TimedOut);
-                } else if accepted {
-                    let progress = 1.0
-                        - (vehicle.position.z / limits.takeoff_altitude.max(0.1)).clamp(0.0, 1.0);
-                    self.set_running((progress * 0.95) as f32);
-                }
-            }
+            Task::Land { phase, deadline } => self.advance_landing(phase, deadline, now),
         }
     }
 }
