@@ -353,7 +353,10 @@ fn an_offboard_switch_on_the_ground_waits_for_the_preflight_checks() {
     let mut p = ready_procedures();
     p.submit(CommandSample::new(4, CommandKind::Offboard, 0.0));
     let booting = facts(Px4Mode::Hold, false);
-    assert!(p.poll(t0, &booting).is_empty(), "refused by PX4 before ready");
+    assert!(
+        p.poll(t0, &booting).is_empty(),
+        "refused by PX4 before ready"
+    );
     let ev = p.poll(at(t0, 3000), &facts(Px4Mode::Hold, true));
     assert_eq!(
         sent(&ev),
@@ -368,5 +371,8 @@ fn an_offboard_switch_on_the_ground_waits_for_the_preflight_checks() {
     assert_eq!(results.len(), 1);
     assert_eq!(results[0].outcome(), Some(CommandOutcome::Rejected));
     let reason = results[0].reason().unwrap_or_default();
-    assert!(reason.contains("not ready for offboard control"), "{reason}");
+    assert!(
+        reason.contains("not ready for offboard control"),
+        "{reason}"
+    );
 }

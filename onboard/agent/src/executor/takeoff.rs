@@ -75,7 +75,13 @@ impl Executor {
         }
     }
 
-    pub(super) fn advance_takeoff(&mut self, step: TakeoffStep, pad: Vec3, deadline: f64, now: f64) {
+    pub(super) fn advance_takeoff(
+        &mut self,
+        step: TakeoffStep,
+        pad: Vec3,
+        deadline: f64,
+        now: f64,
+    ) {
         let Some(vehicle) = self.vehicle else { return };
         if now > deadline {
             return self.fail(FailureReason::TimedOut);

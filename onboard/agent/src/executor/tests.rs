@@ -560,10 +560,7 @@ fn failsafe_holds_then_lands() {
         true,
         Px4Mode::Offboard,
     ));
-    assert!(matches!(
-        ex.tick(9.0).steering,
-        Some(Steering::Sink { .. })
-    ));
+    assert!(matches!(ex.tick(9.0).steering, Some(Steering::Sink { .. })));
 }
 
 #[test]
@@ -613,7 +610,11 @@ fn a_landing_descends_through_the_planner_sinks_onto_the_floor_and_disarms() {
     };
     assert_eq!(point.z, -0.5);
     // Down: disarmed, then done.
-    ex.on_vehicle(&state(Vec3::new(-50.0, -132.5, 0.0), true, Px4Mode::Offboard));
+    ex.on_vehicle(&state(
+        Vec3::new(-50.0, -132.5, 0.0),
+        true,
+        Px4Mode::Offboard,
+    ));
     let out = ex.tick(9.0);
     assert_eq!(
         out.commands.first().and_then(|c| c.kind()),
@@ -643,10 +644,7 @@ fn a_landing_descends_through_the_planner_sinks_onto_the_floor_and_disarms() {
     let mut ex = lab();
     ex.on_vehicle(&state(low, true, Px4Mode::Offboard));
     ex.on_command(&cmd(2, Action::Land), 0.0);
-    assert!(matches!(
-        ex.tick(0.0).steering,
-        Some(Steering::Sink { .. })
-    ));
+    assert!(matches!(ex.tick(0.0).steering, Some(Steering::Sink { .. })));
     let stuck = Vec3::new(-50.0, -132.5, 0.3);
     let mut state_stuck = state(stuck, true, Px4Mode::Offboard);
     state_stuck.landed = 0;
