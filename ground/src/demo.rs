@@ -3,7 +3,7 @@
 //! `--no-llm`, one of the fixed patterns of `patterns` through the same gate and link a pilot
 //! uses, checking every phase against the simulator's ground truth.
 
-use crate::launch::{Stack, StackConfig};
+use crate::launch::{AutopilotKind, Role, Stack, StackConfig};
 use crate::link::{GroundLink, LinkError};
 use crate::patterns::{fly_points, fly_swap};
 use crate::pilot::{SessionOptions, SessionReport, run_session};
@@ -13,7 +13,8 @@ use std::sync::Arc;
 use std::time::Duration;
 use tacos_llm::LlmBackend;
 use tacos_shared::scenario::Scenario;
-use tacos_shared::{DroneMode, SwarmId};
+use tacos_shared::{DroneId, DroneMode, SwarmId};
+use tracing::{info, warn};
 
 #[derive(Debug, thiserror::Error)]
 pub enum DemoError {
@@ -77,7 +78,7 @@ pub enum DemoReport {
 /// Runs the whole demo; every child is shut down before this returns.
 pub async fn run_demo(
     opts: DemoOptions,
-    plan: DemoPlan,
+    mut plan: DemoPlan,
     interrupt: impl std::future::Future<Output = ()>,
 ) -> Result<DemoReport, DemoError> {
     let swarm = SwarmId::new(format!("demo{}", std::process::id()))
@@ -92,6 +93,15 @@ pub async fn run_demo(
     config.autopilot = opts.autopilot.clone();
     let logs = config.log_dir.display().to_string();
     let link = Arc::new(GroundLink::connect(&config.ground_bus()).await?);
+    // On PX4 SITL the simulator owns no vehicle: a script's `fail <drone>` comes here, and the
+    // drone's PX4 instance (its autopilot and its simulated airframe) is killed.
+    let (deaths_tx, mut deaths) = tokio::sync::mpsc::unbounded_channel::<DroneId>();
+    if let (AutopilotKind::Px4Sitl { .. }, DemoPlan::Script { options, .. }) =
+        (&config.autopilot, &mut plan)
+    {
+        options.vehicle_deaths = Some(deaths_tx);
+    }
+    let mut killed: Vec<DroneId> = Vec::new();
     let mut stack = Stack::start(config)?;
     let truth = link.watch_truth().await?;
     let gate = SafetyGate::new(opts.scenario.clone());
@@ -106,32 +116,61 @@ pub async fn run_demo(
         },
         logs: logs.clone(),
     };
-    let mut result = tokio::select! {
-        r = async {
-            match plan {
-                DemoPlan::Fixed => fly_points(&link, &gate, &ids, truth, opts.verbose).await.map(|()| DemoReport::Flown),
-                DemoPlan::Swap => fly_swap(&link, &gate, &ids, truth, opts.verbose).await.map(|()| DemoReport::Flown),
-                DemoPlan::Llm { backend, session } => {
-                    link.wait_for_drones(&ids, Duration::from_secs(60), |s| s.autopilot_link && s.mode == DroneMode::Idle).await?;
-                    let report = run_session(link.clone(), gate.clone(), backend, session)
-                        .await
-                        .map_err(|e| DemoError::Step(e.to_string()))?;
-                    Ok(DemoReport::Session(report))
-                }
-                DemoPlan::Script { backend, script, options } => {
-                    link.wait_for_drones(&ids, Duration::from_secs(60), |s| s.autopilot_link && s.mode == DroneMode::Idle).await?;
-                    let report = run_script(link.clone(), gate.clone(), backend, &script, options)
-                        .await
-                        .map_err(|e| DemoError::Step(e.to_string()))?;
-                    Ok(DemoReport::Script(report))
-                }
+    let flight = async {
+        match plan {
+            DemoPlan::Fixed => fly_points(&link, &gate, &ids, truth, opts.verbose)
+                .await
+                .map(|()| DemoReport::Flown),
+            DemoPlan::Swap => fly_swap(&link, &gate, &ids, truth, opts.verbose)
+                .await
+                .map(|()| DemoReport::Flown),
+            DemoPlan::Llm { backend, session } => {
+                link.wait_for_drones(&ids, Duration::from_secs(60), |s| {
+                    s.autopilot_link && s.mode == DroneMode::Idle
+                })
+                .await?;
+                let report = run_session(link.clone(), gate.clone(), backend, session)
+                    .await
+                    .map_err(|e| DemoError::Step(e.to_string()))?;
+                Ok(DemoReport::Session(report))
             }
-        } => r,
-        exit = stack.next_exit() => Err(match exit {
-            Some(e) => died(e),
-            None => DemoError::Step("the process supervisor stopped".into()),
-        }),
-        _ = &mut interrupt => Err(DemoError::Interrupted),
+            DemoPlan::Script {
+                backend,
+                script,
+                options,
+            } => {
+                link.wait_for_drones(&ids, Duration::from_secs(60), |s| {
+                    s.autopilot_link && s.mode == DroneMode::Idle
+                })
+                .await?;
+                let report = run_script(link.clone(), gate.clone(), backend, &script, options)
+                    .await
+                    .map_err(|e| DemoError::Step(e.to_string()))?;
+                Ok(DemoReport::Script(report))
+            }
+        }
+    };
+    tokio::pin!(flight);
+    let mut result = loop {
+        tokio::select! {
+            r = &mut flight => break r,
+            Some(drone) = deaths.recv() => {
+                match stack.crash(Role::Px4, Some(&drone)).await {
+                    Some(exit) => info!(%drone, status = ?exit.status, "PX4 SITL instance killed: the vehicle fails"),
+                    None => warn!(%drone, "no PX4 SITL instance of this drone was running"),
+                }
+                killed.push(drone);
+            }
+            exit = stack.next_exit() => match exit {
+                // A killed vehicle's writer may give up on its dead autopilot: expected.
+                Some(e) if e.drone.as_ref().is_some_and(|d| killed.contains(d)) => {
+                    warn!(child = %e.name, status = ?e.status, "a failed vehicle's process ended");
+                }
+                Some(e) => break Err(died(e)),
+                None => break Err(DemoError::Step("the process supervisor stopped".into())),
+            },
+            _ = &mut interrupt => break Err(DemoError::Interrupted),
+        }
     };
     // The link can notice a drone vanish before the supervisor reaps its process: name the
     // process as the cause when that is what happened.

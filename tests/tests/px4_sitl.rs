@@ -11,7 +11,7 @@ use tacos_ground::safety::SafetyGate;
 use tacos_shared::action::Action;
 use tacos_shared::messages::FailureReason;
 use tacos_shared::px4_mode::Px4Mode;
-use tacos_shared::{DroneId, Vec3};
+use tacos_shared::{DroneId, DroneMode, Vec3};
 use tacos_tests::{SimSwarm, all_ready, id, px4_sitl_or_skip, truth_until, vehicle};
 
 /// Time for one action (PX4 climbs at 1.5 m/s and lands at 0.7 m/s).
@@ -268,7 +268,8 @@ async fn three_drones_fly_the_fixed_pattern_on_real_px4() -> anyhow::Result<()> 
 }
 
 /// The fault table on real PX4: the onboard killed (the writer holds the last setpoint and PX4
-/// stays in OFFBOARD), then the ground silent (the drone holds, then lands by itself).
+/// stays in OFFBOARD), then the ground silent (the drone holds, then lands by itself), then the
+/// vehicle dead (its PX4 instance killed: unavailable).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn faults_on_real_px4() -> anyhow::Result<()> {
     let Some(dir) = px4_sitl_or_skip("faults_on_real_px4") else {
@@ -333,5 +334,16 @@ async fn fault_steps(sim: &mut SimSwarm) -> anyhow::Result<()> {
     )
     .await?;
     sim.link.set_heartbeat(true);
+
+    // The vehicle dies, as a script's `fail alfa` makes it on PX4 SITL: its PX4 instance is
+    // killed. The writer loses its autopilot (3 s without a heartbeat) and the drone is
+    // unavailable to the ground.
+    let exit = sim.stack.crash(Role::Px4, Some(&alfa)).await;
+    anyhow::ensure!(exit.is_some(), "alfa's PX4 instance was not running");
+    sim.link
+        .wait_for_drones(std::slice::from_ref(&alfa), Duration::from_secs(15), |s| {
+            s.mode == DroneMode::Unavailable && !s.autopilot_link
+        })
+        .await?;
     Ok(())
 }

@@ -126,6 +126,8 @@ impl DemoArgs {
                     mission,
                     log_path: log_path.clone(),
                     verbose: true,
+                    // Set by the demo when the drones fly on PX4 SITL.
+                    vehicle_deaths: None,
                 },
             },
             None => DemoPlan::Llm {

@@ -9,7 +9,8 @@
 //! wait <seconds>                             let time pass
 //! wait until <condition> [within <seconds>]  poll until it holds (default within 600 s)
 //! expect <condition>                         must hold now
-//! fail <drone> | fail one <state>            the simulator kills that vehicle (for good)
+//! fail <drone> | fail one <state>            the simulator kills that vehicle (for good; on PX4
+//!                                            SITL its PX4 instance is killed)
 //! ```
 //!
 //! Conditions: `<who> <state>` with `<who>` = `all` (every drone of the run but those a `fail`

@@ -29,6 +29,10 @@ pub struct ScriptOptions {
     pub log_path: PathBuf,
     /// Print each step and each update (stdout).
     pub verbose: bool,
+    /// Where `fail <drone>` goes when the simulator does not own the vehicles (PX4 SITL: the
+    /// launcher kills that drone's PX4 instance, autopilot and simulated vehicle at once).
+    /// `None`: the simulator kills its own vehicle.
+    pub vehicle_deaths: Option<mpsc::UnboundedSender<DroneId>>,
 }
 
 #[derive(Debug, Clone)]
@@ -217,6 +221,7 @@ struct Runner {
     seen: Seen,
     start: Instant,
     verbose: bool,
+    vehicle_deaths: Option<mpsc::UnboundedSender<DroneId>>,
 }
 
 impl Runner {
@@ -331,13 +336,25 @@ impl Runner {
             }
             StepKind::Fail(victim) => {
                 let drone = self.victim(victim)?;
-                self.link
-                    .inject_fault(&drone, FaultKind::VehicleDies)
-                    .await
-                    .map_err(|e| e.to_string())?;
-                self.say(&format!(
-                    "script: {drone} fails (the simulator kills the vehicle)"
-                ));
+                match &self.vehicle_deaths {
+                    Some(deaths) => {
+                        deaths
+                            .send(drone.clone())
+                            .map_err(|_| "the launcher that kills vehicles is gone".to_owned())?;
+                        self.say(&format!(
+                            "script: {drone} fails (its PX4 SITL instance is killed)"
+                        ));
+                    }
+                    None => {
+                        self.link
+                            .inject_fault(&drone, FaultKind::VehicleDies)
+                            .await
+                            .map_err(|e| e.to_string())?;
+                        self.say(&format!(
+                            "script: {drone} fails (the simulator kills the vehicle)"
+                        ));
+                    }
+                }
                 self.seen.killed.push(drone);
                 self.seen.plans_since_fail = 0;
                 Ok(())
@@ -419,6 +436,7 @@ pub async fn run_script(
         seen: Seen::default(),
         start: Instant::now(),
         verbose: opts.verbose,
+        vehicle_deaths: opts.vehicle_deaths.clone(),
     };
     let mut result = Ok(());
     for step in &script.steps {
