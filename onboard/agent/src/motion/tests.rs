@@ -241,3 +241,35 @@ fn a_target_at_constant_velocity_is_followed_with_a_settling_error() {
     assert!(early > 10.0, "starts far off: {early}");
     assert!(late < 1.0, "settled error {late:.2} m");
 }
+
+/// A vehicle that lags its plan (PX4 on a slow climb) is replanned from the plan it is flying,
+/// so the lag does not eat the plan; one pushed off it is replanned from where it is.
+#[test]
+fn solves_start_from_the_plan_being_flown_while_the_vehicle_follows_it() {
+    let mut m = motion("alfa");
+    let p = Vec3::new(-50.0, -132.5, 10.0);
+    let goal = Goal::fixed(p + Vec3::new(0.0, 0.0, 5.0));
+    m.step(100.0, p, Vec3::zeros(), Steering::Toward(goal), None);
+    let planned = m
+        .tick(100.5, p, Vec3::zeros(), Steering::Toward(goal))
+        .reference;
+    assert!(
+        planned.position.z > p.z + 0.01,
+        "the plan climbs: {planned:?}"
+    );
+    // Lagging 0.1 m behind, still: the solve starts on the plan, at its speed.
+    let lagging = planned.position - Vec3::new(0.0, 0.0, 0.1);
+    let job = m
+        .solve_job(100.5, lagging, Vec3::zeros(), goal, None)
+        .expect("a solve");
+    assert_eq!(
+        (job.position, job.velocity),
+        (planned.position, planned.velocity)
+    );
+    m.solve_done(job.run());
+    // A metre off the plan: from the vehicle's own state.
+    let off = p + Vec3::new(1.0, 0.0, 0.0);
+    let v = Vec3::new(0.3, 0.0, 0.0);
+    let job = m.solve_job(100.6, off, v, goal, None).expect("a solve");
+    assert_eq!((job.position, job.velocity), (off, v));
+}
