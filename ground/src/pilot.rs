@@ -188,7 +188,7 @@ pub async fn run_session(
     } else if result.is_ok() && opts.interactive {
         let mut stdin = tokio::io::BufReader::new(tokio::io::stdin()).lines();
         println!(
-            "type an instruction for the swarm (\"land all\", \"alfa, take off\", …); Ctrl-D to end"
+            "type an instruction for the swarm (\"alfa, take off\", \"land all\", \"cancel\", \"undo\", …); Ctrl-D to end"
         );
         loop {
             tokio::select! {

@@ -1,5 +1,7 @@
 //! The pilot's direct commands, recognised before any model is called and executed at once:
-//! `land all`, `hold all`, `<drone> land`, `<drone> hold`.
+//! `land all`, `hold all`, `<drone> land`, `<drone> hold`, `cancel` (end the current plan and
+//! hold the drones it moves) and `undo` (fly the drones the last instruction moved back to where
+//! they were before it).
 
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Directive {
@@ -7,6 +9,8 @@ pub enum Directive {
     HoldAll,
     Land(String),
     Hold(String),
+    Cancel,
+    Undo,
 }
 
 /// Recognises a direct command; anything else is for the models.
@@ -37,6 +41,8 @@ pub fn parse(text: &str, drones: &[String]) -> Option<Directive> {
         | ["hold", "everyone"]
         | ["stop", "all"]
         | ["all", "stop"] => Some(Directive::HoldAll),
+        ["cancel"] | ["cancel", "that" | "it" | "plan" | "mission"] => Some(Directive::Cancel),
+        ["undo"] | ["undo", "that" | "it"] => Some(Directive::Undo),
         [d, "land"] | ["land", d] if is_drone(d) => Some(Directive::Land((*d).to_owned())),
         [d, "hold"] | ["hold", d] | [d, "stop"] if is_drone(d) => {
             Some(Directive::Hold((*d).to_owned()))
@@ -69,5 +75,12 @@ mod tests {
         assert_eq!(parse("zulu land", &drones), None);
         assert_eq!(parse("alfa, land at the villa", &drones), None);
         assert_eq!(parse("all drones take off", &drones), None);
+        assert_eq!(parse("Cancel!", &drones), Some(Directive::Cancel));
+        assert_eq!(parse("cancel the plan", &drones), Some(Directive::Cancel));
+        assert_eq!(parse("undo", &drones), Some(Directive::Undo));
+        assert_eq!(parse("Undo that, please.", &drones), Some(Directive::Undo));
+        // The paper's "go back to the last location" is for the models.
+        assert_eq!(parse("alfa, go back to the last location", &drones), None);
+        assert_eq!(parse("cancel alfa's goto and land it", &drones), None);
     }
 }

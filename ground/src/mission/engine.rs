@@ -13,8 +13,9 @@ pub use coordinator::coordinator_messages;
 pub use cycles::supervisor_messages;
 
 use super::addressed;
+use super::commands::DirectCommands;
 use super::config::{MissionConfig, Mode};
-use super::directives::{self, Directive};
+use super::directives;
 use super::input::MissionInputs;
 use super::log::{MissionLog, Record};
 use super::report::{EventTopic, MissionError, MissionStats, MissionUpdate};
@@ -31,7 +32,6 @@ use std::time::Duration;
 use tacos_llm::LlmBackend;
 use tacos_prompts::render::{HistoryEntry, TaskStatus};
 use tacos_shared::DroneId;
-use tacos_shared::action::Action;
 use tacos_shared::messages::{TargetObservation, WorldEvent};
 use tokio::sync::{mpsc, watch};
 
@@ -48,9 +48,12 @@ pub struct Mission {
     plan: Option<ActivePlan>,
     mnl: Monolithic,
     stats: MissionStats,
-    /// Counts the direct commands `PilotInput` carried out; a change the engine has not yet
-    /// seen means a model's proposal is older than the pilot's command (see `mission::input`).
+    /// Counts the direct commands carried out; a change the engine has not yet seen means a
+    /// model's proposal is older than the pilot's command (see `mission::input`).
     overrides: watch::Receiver<u64>,
+    /// The direct commands: the engine carries out those among its lines, and keeps their
+    /// memory of the last instruction (for `cancel` and `undo`).
+    commands: DirectCommands,
     /// The drones present as the membership changes the engine took in say; after changes
     /// were missed (a lagging channel) the difference to the view is taken in instead.
     present: BTreeSet<DroneId>,
@@ -139,6 +142,8 @@ impl Mission {
             temperature: cfg.temperature,
             seed: cfg.seed,
         };
+        let (commands, overrides) =
+            DirectCommands::new(link.clone(), gate.clone(), log.clone(), updates.clone());
         Ok(Mission {
             cfg,
             caller,
@@ -152,8 +157,9 @@ impl Mission {
             plan: None,
             mnl: Monolithic::default(),
             stats: MissionStats::default(),
-            // No sender: never changes until `run_with` brings the pilot's.
-            overrides: watch::channel(0).1,
+            // The engine's own, until `run_with` brings the pilot's.
+            overrides,
+            commands,
             present: BTreeSet::new(),
         })
     }
@@ -182,12 +188,12 @@ impl Mission {
 
     /// Runs the mission until `inputs` closes: pilot lines in, cycles on every change.
     pub async fn run(self, inputs: mpsc::Receiver<String>) -> MissionStats {
-        let (_no_overrides, overrides) = watch::channel(0);
-        self.run_with(MissionInputs {
+        let inputs = MissionInputs {
             lines: inputs,
-            overrides,
-        })
-        .await
+            overrides: self.overrides.clone(),
+            commands: self.commands.clone(),
+        };
+        self.run_with(inputs).await
     }
 
     /// As `run`, with the direct commands of a `PilotInput` carried out beside the engine.
@@ -195,8 +201,10 @@ impl Mission {
         let MissionInputs {
             lines: mut inputs,
             overrides: mut wake,
+            commands,
         } = inputs;
         self.overrides = wake.clone();
+        self.commands = commands;
         let mut wake_open = true;
         let mut membership = self.link.membership();
         self.present = self.link.view().present_ids();
@@ -279,8 +287,7 @@ impl Mission {
         self.stats
     }
 
-    /// After a direct command carried out by `PilotInput`: the models' plan ends, as with one
-    /// the engine carries out itself. True when there was one.
+    /// After a direct command: the models' plan ends. True when there was one.
     fn take_override(&mut self) -> bool {
         if !self.overrides.has_changed().unwrap_or(false) {
             return false;
@@ -301,7 +308,8 @@ impl Mission {
         }
         let drones = self.swarm_ids();
         if let Some(directive) = directives::parse(text, &drones) {
-            self.direct(text, directive).await;
+            // The override it raises ends the plan (`take_override`).
+            self.commands.execute(text, directive).await;
             return Ok(());
         }
         self.log.note(Record::Pilot {
@@ -320,6 +328,7 @@ impl Mission {
             });
             return Err(refusal);
         }
+        self.commands.begin_instruction(text);
         match self.cfg.mode {
             Mode::Mnl => {
                 self.mnl.instructions.push(text.to_owned());
@@ -334,60 +343,6 @@ impl Mission {
                 self.coordinate(text).await
             }
         }
-    }
-
-    async fn direct(&mut self, text: &str, directive: Directive) {
-        let (targets, action): (Vec<String>, Action) = match directive {
-            Directive::LandAll => (
-                self.link
-                    .view()
-                    .alive_ids()
-                    .iter()
-                    .map(|d| d.to_string())
-                    .collect(),
-                Action::Land,
-            ),
-            Directive::HoldAll => (
-                self.link
-                    .view()
-                    .alive_ids()
-                    .iter()
-                    .map(|d| d.to_string())
-                    .collect(),
-                Action::Hold,
-            ),
-            Directive::Land(d) => (vec![d], Action::Land),
-            Directive::Hold(d) => (vec![d], Action::Hold),
-        };
-        let mut outcomes = Vec::new();
-        for drone in targets {
-            let checked = {
-                let view = self.link.view();
-                self.gate
-                    .check(&view, &drone, &action, self.link.clock().instant())
-            };
-            match checked {
-                Ok(c) => match self.send(&c, None).await {
-                    Ok(seq) => outcomes.push(format!("{drone}: sent #{seq}")),
-                    Err(e) => outcomes.push(format!("{drone}: {e}")),
-                },
-                Err(r) => outcomes.push(format!("{drone}: refused: {r}")),
-            }
-        }
-        let outcome = outcomes.join("; ");
-        self.log.note(Record::Direct {
-            text: text.to_owned(),
-            outcome: outcome.clone(),
-        });
-        self.tell(MissionUpdate::Event {
-            topic: EventTopic::Direct,
-            text: format!("direct command {text:?}: {outcome}"),
-        });
-        // A direct command overrides whatever the models were doing.
-        if let Some(plan) = self.plan.take() {
-            self.finish_plan(plan, "interrupted by a direct command");
-        }
-        self.mnl.active = false;
     }
 
     async fn membership_changed(&mut self, change: SwarmChange) -> Result<(), MissionError> {
@@ -488,6 +443,7 @@ impl Mission {
                 reason: e.to_string(),
             })?;
         self.stats.actions_sent += 1;
+        self.commands.moved(checked.drone());
         self.log.note(Record::action_sent(checked, task, seq));
         self.tell(MissionUpdate::Sent {
             drone: checked.drone().to_string(),

@@ -4,11 +4,13 @@
 //!
 //! Every call a model proposes is resolved (`resolve`), checked at the safety gate, and only
 //! then sent; rejected replies go back to their model with the reasons (`engine`). Direct
-//! commands (`directives`) never wait for a model: `input` carries them out beside the engine.
+//! commands (`directives`) never wait for a model: `input` has `commands` carry them out beside
+//! the engine; `undo` remembers the last instruction for `cancel` and `undo`.
 //! Everything is written to the mission `log`.
 
 pub mod addressed;
 pub mod aids;
+pub mod commands;
 pub mod config;
 pub mod directives;
 pub mod engine;
@@ -17,6 +19,7 @@ pub mod input;
 pub mod log;
 pub mod report;
 pub mod resolve;
+pub mod undo;
 pub mod untrusted;
 
 pub use aids::{Aid, ModelAids};
