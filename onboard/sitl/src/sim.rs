@@ -97,6 +97,8 @@ pub struct Simulation {
     detector: Detector,
     rules: SafetyRules,
     stats: SafetyStats,
+    /// Whether the last step breached separation: a breach is logged when it begins.
+    breaching: bool,
 }
 
 impl Simulation {
@@ -151,6 +153,7 @@ impl Simulation {
                 scenario.limits.safety_distance,
             ),
             stats: SafetyStats::default(),
+            breaching: false,
         }
     }
 
@@ -309,11 +312,12 @@ impl Simulation {
         }
 
         let fleet = fleet(&self.vehicles, &self.observed, self.time);
-        let airborne: Vec<Vec3> = fleet
+        let airborne_ids: Vec<(&DroneId, Vec3)> = fleet
             .iter()
             .filter(|(_, _, _, landed)| !landed)
-            .map(|(_, p, _, _)| *p)
+            .map(|(id, p, _, _)| (*id, *p))
             .collect();
+        let airborne: Vec<Vec3> = airborne_ids.iter().map(|(_, p)| *p).collect();
         let alive_airborne: Vec<Vec3> = fleet
             .iter()
             .filter(|(_, _, alive, landed)| *alive && !landed)
@@ -322,7 +326,21 @@ impl Simulation {
         for t in &mut self.targets {
             t.step(dt, &self.bounds, &alive_airborne);
         }
-        self.stats.update(&airborne, struck_ground, &self.rules);
+        let breach = self.stats.update(&airborne, struck_ground, &self.rules);
+        if let (Some((i, j, distance)), false) = (breach, self.breaching) {
+            let ((a, pa), (b, pb)) = (airborne_ids[i], airborne_ids[j]);
+            tracing::warn!(
+                time = self.time,
+                "separation breach begins: {a} at ({:.2}, {:.2}, {:.2}) and {b} at ({:.2}, {:.2}, {:.2}) are {distance:.2} m apart",
+                pa.x,
+                pa.y,
+                pa.z,
+                pb.x,
+                pb.y,
+                pb.z
+            );
+        }
+        self.breaching = breach.is_some();
 
         let observers: Vec<Observer<'_>> = fleet
             .iter()

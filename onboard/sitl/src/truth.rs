@@ -48,17 +48,25 @@ impl SafetyStats {
     /// Folds in one simulation step; `airborne` are the world positions of the vehicles in the air,
     /// `struck_ground` whether a vehicle flew into the ground under power during the step (the
     /// ground counts as an obstacle). A step counts one separation breach however many pairs are
-    /// too close, and likewise for obstacles.
-    pub fn update(&mut self, airborne: &[Vec3], struck_ground: bool, rules: &SafetyRules) {
-        let mut too_close = false;
+    /// too close, and likewise for obstacles. Returns the closest pair too close this step, as
+    /// indices into `airborne` and their distance, so the caller can say which drones they were.
+    pub fn update(
+        &mut self,
+        airborne: &[Vec3],
+        struck_ground: bool,
+        rules: &SafetyRules,
+    ) -> Option<(usize, usize, f64)> {
+        let mut closest: Option<(usize, usize, f64)> = None;
         for (i, a) in airborne.iter().enumerate() {
-            for b in airborne.iter().skip(i + 1) {
+            for (j, b) in airborne.iter().enumerate().skip(i + 1) {
                 let d = (a - b).norm();
                 self.min_pair_distance = self.min_pair_distance.min(d);
-                too_close |= d < rules.safety_distance;
+                if d < rules.safety_distance && closest.is_none_or(|(_, _, c)| d < c) {
+                    closest = Some((i, j, d));
+                }
             }
         }
-        if too_close {
+        if closest.is_some() {
             self.separation_breaches += 1;
         }
         let mut inside = false;
@@ -72,6 +80,7 @@ impl SafetyStats {
         if inside || struck_ground {
             self.obstacle_breaches += 1;
         }
+        closest
     }
 }
 
