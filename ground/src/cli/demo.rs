@@ -62,6 +62,13 @@ pub struct DemoArgs {
     /// each time one fired.
     #[arg(long, default_value = "small")]
     pub aids: ModelAids,
+    /// Hold every Coordinator plan for the pilot: it is shown call by call with what the
+    /// checks say, and flies once the pilot answers `approve` (or `drop <task>`, or
+    /// `reject <why>`, which goes back to the Coordinator). Direct commands never wait.
+    /// `confirm on` / `confirm off` switch it during a mission. Not with `--mode mnl`, which
+    /// has no plan to hold.
+    #[arg(long, conflicts_with = "no_llm")]
+    pub confirm: bool,
     /// The mission log (JSON lines); default: missions-out/<time>-<mode>.jsonl
     #[arg(long)]
     pub log: Option<PathBuf>,
@@ -113,9 +120,13 @@ impl DemoArgs {
             backend.describe(),
             log_path.display()
         );
+        if self.confirm && self.mode == Mode::Mnl {
+            anyhow::bail!("--confirm holds Coordinator plans, and --mode mnl has none");
+        }
         let mission = MissionConfig {
             mode: self.mode,
             aids: self.aids,
+            confirm: self.confirm,
             ..MissionConfig::default()
         };
         let plan = match script {

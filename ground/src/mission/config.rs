@@ -54,6 +54,9 @@ pub struct MissionConfig {
     pub supervisor_max_tokens: u32,
     pub temperature: f32,
     pub seed: Option<u64>,
+    /// Every Coordinator plan is held for the pilot's approval (`mission::approval`); the
+    /// pilot turns it on and off with `confirm on` / `confirm off`.
+    pub confirm: bool,
 }
 
 impl Default for MissionConfig {
@@ -69,6 +72,7 @@ impl Default for MissionConfig {
             supervisor_max_tokens: 400,
             temperature: 0.0,
             seed: Some(7),
+            confirm: false,
         }
     }
 }

@@ -2,6 +2,7 @@
 //! pending plan, the two memories, automatic replans, and the bookkeeping of what was sent.
 //! This file holds the engine's state and its event loop; its parts are the child modules.
 
+mod approval;
 mod caller;
 mod checks;
 mod coordinator;
@@ -13,6 +14,7 @@ pub use coordinator::coordinator_messages;
 pub use cycles::supervisor_messages;
 
 use super::addressed;
+use super::approval::HeldPlan;
 use super::commands::DirectCommands;
 use super::config::{MissionConfig, Mode};
 use super::directives;
@@ -54,6 +56,8 @@ pub struct Mission {
     /// The direct commands: the engine carries out those among its lines, and keeps their
     /// memory of the last instruction (for `cancel` and `undo`).
     commands: DirectCommands,
+    /// A Coordinator plan held for the pilot's approval (`--confirm`).
+    held: Option<HeldPlan>,
     /// The drones present as the membership changes the engine took in say; after changes
     /// were missed (a lagging channel) the difference to the view is taken in instead.
     present: BTreeSet<DroneId>,
@@ -161,6 +165,7 @@ impl Mission {
             overrides,
             commands,
             present: BTreeSet::new(),
+            held: None,
         })
     }
 
@@ -296,6 +301,13 @@ impl Mission {
         if let Some(plan) = self.plan.take() {
             self.finish_plan(plan, "interrupted by a direct command");
         }
+        if let Some(held) = self.held.take() {
+            let text = format!(
+                "the plan for {:?} awaiting approval ended: interrupted by a direct command",
+                held.instruction
+            );
+            self.event(EventTopic::PlanEnded, text);
+        }
         self.mnl.active = false;
         true
     }
@@ -311,6 +323,21 @@ impl Mission {
             // The override it raises ends the plan (`take_override`).
             self.commands.execute(text, directive).await;
             return Ok(());
+        }
+        if let Some(on) = confirm_switch(text) {
+            self.cfg.confirm = on;
+            let what = if on {
+                "on: every plan waits for your approval"
+            } else {
+                "off: plans fly once checked"
+            };
+            self.event(EventTopic::Note, format!("confirm {what}"));
+            return Ok(());
+        }
+        if self.held.is_some()
+            && let approval::Answered::Done(result) = self.answer_held(text).await
+        {
+            return result;
         }
         self.log.note(Record::Pilot {
             text: text.to_owned(),
@@ -451,5 +478,14 @@ impl Mission {
             seq,
         });
         Ok(seq)
+    }
+}
+
+/// `confirm on` / `confirm off`: the pilot's switch for holding plans for approval.
+fn confirm_switch(text: &str) -> Option<bool> {
+    match text.trim().to_lowercase().trim_end_matches(['.', '!']) {
+        "confirm on" => Some(true),
+        "confirm off" => Some(false),
+        _ => None,
     }
 }

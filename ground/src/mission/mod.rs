@@ -10,6 +10,7 @@
 
 pub mod addressed;
 pub mod aids;
+pub mod approval;
 pub mod commands;
 pub mod config;
 pub mod directives;

@@ -179,6 +179,12 @@ fn parse_step(content: &str) -> Result<StepKind, String> {
     match keyword.to_lowercase().as_str() {
         "say" if rest.is_empty() => Err("`say` needs the pilot's words".into()),
         "say" => Ok(StepKind::Say(rest.to_owned())),
+        // The pilot's answers to a plan held for approval (`--confirm`), said as lines.
+        "approve" if rest.is_empty() => Ok(StepKind::Say("approve".into())),
+        "approve" => Err("`approve` takes no words (`drop <task>` is said with `say`)".into()),
+        "reject" => Ok(StepKind::Say(
+            format!("reject {rest}").trim_end().to_owned(),
+        )),
         "wait" => match words.as_slice() {
             ["until", condition @ ..] => {
                 let (condition, within) = match condition {
@@ -202,7 +208,7 @@ fn parse_step(content: &str) -> Result<StepKind, String> {
             _ => Err("expected `fail <drone>` or `fail one <state>`".into()),
         },
         other => Err(format!(
-            "unknown step {other:?}: expected say, wait, expect or fail"
+            "unknown step {other:?}: expected say, approve, reject, wait, expect or fail"
         )),
     }
 }
@@ -350,6 +356,19 @@ mod tests {
             Ok(s) => s.steps.into_iter().map(|s| s.kind).collect(),
             Err(e) => panic!("{e}"),
         }
+    }
+
+    #[test]
+    fn approve_and_reject_are_the_pilot_s_answers_said_as_lines() {
+        assert_eq!(
+            kinds("approve\nreject bravo stays home\nreject\n"),
+            vec![
+                StepKind::Say("approve".into()),
+                StepKind::Say("reject bravo stays home".into()),
+                StepKind::Say("reject".into()),
+            ]
+        );
+        assert!(parse("approve it all\n").is_err());
     }
 
     #[test]

@@ -5,6 +5,7 @@ use super::caller::Checked;
 use super::checks::check_static;
 use super::plan_state::{ActivePlan, PlanTask};
 use crate::mission::aids::Aid;
+use crate::mission::approval::HeldPlan;
 use crate::mission::grounding;
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionError, MissionUpdate};
@@ -248,11 +249,25 @@ impl Mission {
             reasoning: reasoning.clone(),
             calls: calls.iter().map(|c| c.to_string()).collect(),
         });
+        if self.cfg.confirm {
+            self.hold_for_approval(HeldPlan {
+                instruction: instruction.to_owned(),
+                reasoning,
+                calls,
+            });
+            return Ok(());
+        }
+        self.adopt_plan(reasoning, calls);
+        Ok(())
+    }
+
+    /// Makes `calls` the plan in force; tasks already running keep their status when the new
+    /// plan repeats them.
+    pub(super) fn adopt_plan(&mut self, reasoning: String, calls: Vec<Call>) {
         self.history.push(HistoryEntry::Plan {
             reasoning: reasoning.clone(),
             plan: calls.clone(),
         });
-        // Tasks already running keep their status when the new plan repeats them.
         let running: HashMap<(String, String), PlanTask> = self
             .plan
             .take()
@@ -285,7 +300,6 @@ impl Mission {
             cycles: 0,
             stuck_since: None,
         });
-        Ok(())
     }
 
     /// The plan with a take-off added before the first goto or start_tracking of each drone that

@@ -467,17 +467,17 @@ impl Mission {
 
 /// What decides whether a call can start now: the swarm as seen, the gate, the targets seen and
 /// the drones with an action under way.
-struct Start<'a> {
-    view: &'a SwarmView,
-    gate: &'a SafetyGate,
-    now: Instant,
-    visible: &'a [TargetObservation],
-    pending: &'a [DroneId],
+pub(super) struct Start<'a> {
+    pub(super) view: &'a SwarmView,
+    pub(super) gate: &'a SafetyGate,
+    pub(super) now: Instant,
+    pub(super) visible: &'a [TargetObservation],
+    pub(super) pending: &'a [DroneId],
 }
 
 impl Start<'_> {
     /// Why `call` cannot start now on its drone; `None` when it can.
-    fn blocker(&self, call: &Call) -> Option<String> {
+    pub(super) fn blocker(&self, call: &Call) -> Option<String> {
         let drone = &call.drone;
         let Some(entry) = DroneId::new(drone).ok().and_then(|id| self.view.get(&id)) else {
             return Some(format!("{drone} is not in the swarm"));
