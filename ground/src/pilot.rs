@@ -173,7 +173,10 @@ pub async fn run_session(
         if let Err(e) = crate::tui::run_terminal(
             link_for_terminal.clone(),
             scenario,
-            description,
+            crate::tui::Session {
+                backend: description,
+                confirm: opts.mission.confirm,
+            },
             updates,
             input.clone(),
             targets,

@@ -114,10 +114,18 @@ impl Drop for TerminalGuard {
 /// (direct commands are carried out at once, other lines queued in a background task so the
 /// screen never blocks), and `targets` brings the observed targets. The swarm is read from
 /// `link` at every frame.
+/// What the terminal shows of the session from the start.
+pub struct Session {
+    /// The model backend, as the status bar names it.
+    pub backend: String,
+    /// Plans are held for the pilot's approval (`--confirm`); F2 switches it.
+    pub confirm: bool,
+}
+
 pub async fn run_terminal(
     link: Arc<GroundLink>,
     scenario: Scenario,
-    backend_description: String,
+    session: Session,
     mut updates: mpsc::UnboundedReceiver<MissionUpdate>,
     input: PilotInput,
     mut targets: watch::Receiver<Vec<TargetObservation>>,
@@ -130,7 +138,7 @@ pub async fn run_terminal(
             &mut terminal,
             &link,
             &scenario,
-            backend_description,
+            session,
             &mut updates,
             &input,
             &mut targets,
@@ -146,12 +154,13 @@ async fn event_loop(
     terminal: &mut Terminal<CrosstermBackend<Stdout>>,
     link: &GroundLink,
     scenario: &Scenario,
-    backend_description: String,
+    session: Session,
     updates: &mut mpsc::UnboundedReceiver<MissionUpdate>,
     input: &PilotInput,
     targets: &mut watch::Receiver<Vec<TargetObservation>>,
 ) -> Result<(), TuiError> {
-    let mut state = TerminalState::new(scenario, backend_description, link.clock().instant());
+    let mut state = TerminalState::new(scenario, session.backend, link.clock().instant());
+    state.status.confirm = session.confirm;
     let mut keys = EventStream::new();
     let mut frame = tokio::time::interval(FRAME);
     frame.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);

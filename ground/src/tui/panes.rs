@@ -817,6 +817,12 @@ pub fn status_line(state: &TerminalState) -> Line<'static> {
         }
         None => spans.push(Span::styled(" ready ".to_owned(), bar.fg(Color::Green))),
     }
+    if state.status.confirm {
+        spans.push(Span::styled(
+            "│ confirm (F2) ".to_owned(),
+            bar.fg(Color::Magenta).add_modifier(Modifier::BOLD),
+        ));
+    }
     if let Some(call) = &state.status.last_call {
         spans.push(Span::styled(
             format!(

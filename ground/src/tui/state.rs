@@ -144,6 +144,8 @@ pub struct Status {
     pub calls: u32,
     /// The layer a model call is in flight for, and since when.
     pub thinking: Option<(String, Instant)>,
+    /// Plans wait for the pilot's approval (`--confirm`; F2 switches it).
+    pub confirm: bool,
 }
 
 /// The pilot's input line: a cursor (in characters) and a history for ↑/↓.
@@ -318,6 +320,7 @@ impl TerminalState {
                 last_call: None,
                 calls: 0,
                 thinking: None,
+                confirm: false,
             },
             input: InputLine::default(),
             focus: Focus::Chat,
@@ -550,6 +553,15 @@ impl TerminalState {
         match key.code {
             KeyCode::Char('c') | KeyCode::Char('d') if ctrl => return Some(Command::Quit),
             KeyCode::Esc => return Some(Command::Quit),
+            KeyCode::F(2) => {
+                self.status.confirm = !self.status.confirm;
+                let line = if self.status.confirm {
+                    "confirm on"
+                } else {
+                    "confirm off"
+                };
+                return Some(Command::Submit(line.into()));
+            }
             KeyCode::Enter => {
                 if matches!(self.input.text().trim(), ":q" | ":quit") {
                     self.input.take();

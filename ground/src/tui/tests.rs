@@ -976,3 +976,26 @@ fn drones_sharing_a_map_cell_are_one_marker_with_a_count() {
         );
     }
 }
+
+#[test]
+fn f2_switches_plan_approval_and_the_status_bar_shows_it() {
+    let mut state = TerminalState::new(&lab(), "test", Instant::now());
+    let bar = |state: &TerminalState| -> String {
+        crate::tui::panes::status_line(state)
+            .spans
+            .iter()
+            .map(|s| s.content.as_ref())
+            .collect()
+    };
+    assert!(!bar(&state).contains("confirm"));
+    assert_eq!(
+        state.key(key(KeyCode::F(2))),
+        Some(Command::Submit("confirm on".into()))
+    );
+    assert!(bar(&state).contains("confirm (F2)"), "{}", bar(&state));
+    assert_eq!(
+        state.key(key(KeyCode::F(2))),
+        Some(Command::Submit("confirm off".into()))
+    );
+    assert!(!bar(&state).contains("confirm"));
+}
