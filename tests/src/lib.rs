@@ -158,6 +158,28 @@ pub async fn within<T>(
         .map_err(|_| anyhow::anyhow!("timed out after {limit:?}: {what}"))
 }
 
+/// The next event the pilot is told whose text contains `needle` (within 30 s).
+pub async fn told(
+    updates: &mut tokio::sync::mpsc::UnboundedReceiver<tacos_ground::mission::MissionUpdate>,
+    needle: &str,
+) -> anyhow::Result<String> {
+    within(
+        &format!("an event with {needle:?}"),
+        Duration::from_secs(30),
+        async {
+            while let Some(update) = updates.recv().await {
+                if let tacos_ground::mission::MissionUpdate::Event { text, .. } = update
+                    && text.contains(needle)
+                {
+                    return text;
+                }
+            }
+            String::new()
+        },
+    )
+    .await
+}
+
 /// A stand-in for a language model that answers from what the prompt says, the way a model
 /// would: `policy` sees each request (system prompt, user message, any repair turns) and
 /// returns the reply text, or an error as a server would. It records every request.

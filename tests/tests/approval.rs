@@ -13,7 +13,7 @@ use tacos_llm::{ChatRequest, LlmError};
 use tacos_shared::DroneId;
 use tacos_shared::action::Action;
 use tacos_tests::prompt_text::first_offered_per_drone;
-use tacos_tests::{PolicyBackend, SimSwarm, within};
+use tacos_tests::{PolicyBackend, SimSwarm, told, within};
 use tokio::sync::mpsc;
 
 const REJECTED: &str = "The pilot rejected your plan";
@@ -41,28 +41,6 @@ fn policy(request: &ChatRequest) -> Result<String, LlmError> {
         json!({ "reasoning": "Start the gotos.", "actions": actions, "plan_complete": false })
             .to_string(),
     )
-}
-
-/// The next event the pilot is told whose text contains `needle`.
-async fn told(
-    updates: &mut mpsc::UnboundedReceiver<MissionUpdate>,
-    needle: &str,
-) -> anyhow::Result<String> {
-    within(
-        &format!("an event with {needle:?}"),
-        Duration::from_secs(30),
-        async {
-            while let Some(update) = updates.recv().await {
-                if let MissionUpdate::Event { text, .. } = update
-                    && text.contains(needle)
-                {
-                    return text;
-                }
-            }
-            String::new()
-        },
-    )
-    .await
 }
 
 fn gotos_sent(lines: &[log::Line]) -> Vec<(String, String)> {

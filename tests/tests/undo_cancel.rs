@@ -15,7 +15,7 @@ use tacos_llm::{ChatRequest, LlmError};
 use tacos_shared::action::Action;
 use tacos_shared::{DroneId, Vec3};
 use tacos_tests::prompt_text::first_offered_per_drone;
-use tacos_tests::{PolicyBackend, SimSwarm, within};
+use tacos_tests::{PolicyBackend, SimSwarm, told, within};
 use tokio::sync::mpsc;
 
 /// Alfa to car_11 and bravo to car_1, as a Coordinator would plan "inspect the cars"; the
@@ -59,28 +59,6 @@ async fn until_swarm(
             let _ = version.recv().await;
         }
     })
-    .await
-}
-
-/// The next event the pilot is told whose text contains `needle`.
-async fn told(
-    updates: &mut mpsc::UnboundedReceiver<MissionUpdate>,
-    needle: &str,
-) -> anyhow::Result<String> {
-    within(
-        &format!("an event with {needle:?}"),
-        Duration::from_secs(30),
-        async {
-            while let Some(update) = updates.recv().await {
-                if let MissionUpdate::Event { text, .. } = update
-                    && text.contains(needle)
-                {
-                    return text;
-                }
-            }
-            String::new()
-        },
-    )
     .await
 }
 

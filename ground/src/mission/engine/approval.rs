@@ -2,7 +2,6 @@
 //! (`mission::approval`). Direct commands never wait for it; one ends a held plan.
 
 use super::Mission;
-use super::plan_state::Start;
 use crate::mission::approval::{self, HeldPlan, Verdict};
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionError};
@@ -23,19 +22,8 @@ impl Mission {
     }
 
     fn show_held(&self, plan: &HeldPlan) {
-        let verdicts: Vec<Option<String>> = {
-            let pending = self.drones_with_pending_actions();
-            let view = self.link.view();
-            let visible = self.visible_targets();
-            let start = Start {
-                view: &view,
-                gate: &self.gate,
-                now: self.link.clock().instant(),
-                visible: &visible,
-                pending: &pending,
-            };
-            plan.calls.iter().map(|c| start.blocker(c)).collect()
-        };
+        let verdicts: Vec<Option<String>> =
+            self.with_start(|start| plan.calls.iter().map(|c| start.blocker(c)).collect());
         self.event(EventTopic::Note, plan.describe(&verdicts));
     }
 

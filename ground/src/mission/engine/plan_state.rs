@@ -262,47 +262,15 @@ impl Mission {
         };
         // Before the view is locked: `swarm_ids` locks it too, and the lock is not reentrant.
         let swarm = self.swarm_ids();
-        let pending = self.drones_with_pending_actions();
-        let view = self.link.view();
-        let now = self.link.clock().instant();
-        let visible = self.visible_targets();
-        let start = Start {
-            view: &view,
-            gate: &self.gate,
-            now,
-            visible: &visible,
-            pending: &pending,
-        };
-        let mut out = Vec::new();
-        // No order is imposed here: the plan's temporal dependencies are the Supervisor's to
-        // infer (the paper's division of labour); the drone's mode rules what is possible.
-        for task in &plan.tasks {
-            let drones: Vec<String> = match &task.status {
-                TaskStatus::NotStarted => vec![task.call.drone.clone()],
-                TaskStatus::Failed(_) => swarm.clone(),
-                _ => continue,
-            };
-            for drone in drones {
-                let call = Call {
-                    drone,
-                    ..task.call.clone()
-                };
-                if start.blocker(&call).is_none() {
-                    out.push(call);
-                }
-            }
-        }
-        out
+        self.with_start(|start| startable(plan, &swarm, start))
     }
 
-    /// Why each of the plan's unfinished tasks cannot start now, as the pilot reads it.
-    fn blockers(&self) -> Vec<String> {
-        let Some(plan) = self.plan.as_ref() else {
-            return Vec::new();
-        };
+    /// Runs `f` with the checks of whether a call can start, on one locked view of the swarm.
+    pub(super) fn with_start<R>(&self, f: impl FnOnce(&Start<'_>) -> R) -> R {
+        // Before the view is locked: each of these locks it too, and the lock is not reentrant.
         let pending = self.drones_with_pending_actions();
-        let view = self.link.view();
         let visible = self.visible_targets();
+        let view = self.link.view();
         let start = Start {
             view: &view,
             gate: &self.gate,
@@ -310,14 +278,24 @@ impl Mission {
             visible: &visible,
             pending: &pending,
         };
-        plan.tasks
-            .iter()
-            .filter(|t| t.status != TaskStatus::Done)
-            .map(|t| match start.blocker(&t.call) {
-                Some(why) => format!("{} ({why})", t.call),
-                None => t.call.to_string(),
-            })
-            .collect()
+        f(&start)
+    }
+
+    /// Why each of the plan's unfinished tasks cannot start now, as the pilot reads it.
+    fn blockers(&self) -> Vec<String> {
+        let Some(plan) = self.plan.as_ref() else {
+            return Vec::new();
+        };
+        self.with_start(|start| {
+            plan.tasks
+                .iter()
+                .filter(|t| t.status != TaskStatus::Done)
+                .map(|t| match start.blocker(&t.call) {
+                    Some(why) => format!("{} ({why})", t.call),
+                    None => t.call.to_string(),
+                })
+                .collect()
+        })
     }
 
     /// Drones with an action the engine sent and has not yet seen finish. A drone's status lags
@@ -467,6 +445,30 @@ impl Mission {
 
 /// What decides whether a call can start now: the swarm as seen, the gate, the targets seen and
 /// the drones with an action under way.
+/// The plan's calls that could start now (see `Mission::startable_calls`).
+fn startable(plan: &ActivePlan, swarm: &[String], start: &Start<'_>) -> Vec<Call> {
+    let mut out = Vec::new();
+    // No order is imposed here: the plan's temporal dependencies are the Supervisor's to
+    // infer (the paper's division of labour); the drone's mode rules what is possible.
+    for task in &plan.tasks {
+        let drones: Vec<String> = match &task.status {
+            TaskStatus::NotStarted => vec![task.call.drone.clone()],
+            TaskStatus::Failed(_) => swarm.to_vec(),
+            _ => continue,
+        };
+        for drone in drones {
+            let call = Call {
+                drone,
+                ..task.call.clone()
+            };
+            if start.blocker(&call).is_none() {
+                out.push(call);
+            }
+        }
+    }
+    out
+}
+
 pub(super) struct Start<'a> {
     pub(super) view: &'a SwarmView,
     pub(super) gate: &'a SafetyGate,
