@@ -47,6 +47,15 @@ pub fn parse(text: &str) -> Option<Verdict> {
     }
 }
 
+/// `confirm on` / `confirm off`: the pilot's switch for holding plans, if `text` is one.
+pub fn switch(text: &str) -> Option<bool> {
+    match text.trim().to_lowercase().trim_end_matches(['.', '!']) {
+        "confirm on" => Some(true),
+        "confirm off" => Some(false),
+        _ => None,
+    }
+}
+
 /// A Coordinator plan held for the pilot.
 #[derive(Debug, Clone, PartialEq)]
 pub struct HeldPlan {
@@ -127,6 +136,9 @@ mod tests {
         assert_eq!(parse("drop"), None);
         assert_eq!(parse("alfa, go to the villa"), None);
         assert_eq!(parse("yes, and then land"), None);
+        assert_eq!(switch("Confirm on."), Some(true));
+        assert_eq!(switch("confirm off"), Some(false));
+        assert_eq!(parse("confirm on"), None);
     }
 
     #[test]

@@ -279,20 +279,8 @@ impl DirectCommands {
                 }
             };
             self.log.note(Record::action_sent(&checked, None, seq));
-            let outcome = self.link.wait_outcome(&drone, seq, OUTCOME_WAIT).await;
-            let (text, done) = match outcome {
-                Ok(ActionState::Done) => ("done".to_owned(), true),
-                Ok(ActionState::Failed(why)) => (format!("failed: {why}"), false),
-                Ok(ActionState::Running { .. }) => ("still running".to_owned(), false),
-                Err(e) => (format!("unknown: {e}"), false),
-            };
-            self.log.note(Record::ActionOutcome {
-                drone: drone.to_string(),
-                task: None,
-                seq,
-                outcome: text.clone(),
-            });
-            if !done {
+            let (text, failed) = logged_outcome(&self.link, &self.log, &drone, seq).await;
+            if failed {
                 self.tell_undo(&drone, format!("{} {text}", checked.action()));
                 return;
             }
@@ -348,21 +336,10 @@ impl DirectCommands {
     fn follow_outcome(&self, drone: DroneId, action: String, seq: u64) {
         let (link, log, updates) = (self.link.clone(), self.log.clone(), self.updates.clone());
         tokio::spawn(async move {
-            let (outcome, failed) = match link.wait_outcome(&drone, seq, OUTCOME_WAIT).await {
-                Ok(ActionState::Done) => ("done".to_owned(), false),
-                Ok(ActionState::Failed(why)) => (format!("failed: {why}"), true),
-                Ok(ActionState::Running { .. }) => ("still running".to_owned(), true),
-                Err(e) => (format!("unknown: {e}"), true),
-            };
-            log.note(Record::ActionOutcome {
-                drone: drone.to_string(),
-                task: None,
-                seq,
-                outcome: outcome.clone(),
-            });
+            let (outcome, failed) = logged_outcome(&link, &log, &drone, seq).await;
             // The swarm table shows each drone's action and state; only what went wrong is
             // worth an event line.
-            if outcome == "done" {
+            if !failed {
                 return;
             }
             let _ = updates.send(MissionUpdate::Outcome {
@@ -373,6 +350,29 @@ impl DirectCommands {
             });
         });
     }
+}
+
+/// Waits for the outcome of a direct command's action `seq` on `drone` and logs it; returns it
+/// as the log words it, and whether it did not finish well.
+async fn logged_outcome(
+    link: &GroundLink,
+    log: &MissionLog,
+    drone: &DroneId,
+    seq: u64,
+) -> (String, bool) {
+    let (outcome, failed) = match link.wait_outcome(drone, seq, OUTCOME_WAIT).await {
+        Ok(ActionState::Done) => ("done".to_owned(), false),
+        Ok(ActionState::Failed(why)) => (format!("failed: {why}"), true),
+        Ok(ActionState::Running { .. }) => ("still running".to_owned(), true),
+        Err(e) => (format!("unknown: {e}"), true),
+    };
+    log.note(Record::ActionOutcome {
+        drone: drone.to_string(),
+        task: None,
+        seq,
+        outcome: outcome.clone(),
+    });
+    (outcome, failed)
 }
 
 /// When an undo began: the override count and the instruction's generation.

@@ -324,7 +324,7 @@ impl Mission {
             self.commands.execute(text, directive).await;
             return Ok(());
         }
-        if let Some(on) = confirm_switch(text) {
+        if let Some(on) = super::approval::switch(text) {
             self.cfg.confirm = on;
             let what = if on {
                 "on: every plan waits for your approval"
@@ -478,14 +478,5 @@ impl Mission {
             seq,
         });
         Ok(seq)
-    }
-}
-
-/// `confirm on` / `confirm off`: the pilot's switch for holding plans for approval.
-fn confirm_switch(text: &str) -> Option<bool> {
-    match text.trim().to_lowercase().trim_end_matches(['.', '!']) {
-        "confirm on" => Some(true),
-        "confirm off" => Some(false),
-        _ => None,
     }
 }
