@@ -78,6 +78,27 @@ impl SimSwarm {
         Ok(ids)
     }
 
+    /// Takes `drones` off through `gate` (no model) and waits until each take-off is done.
+    pub async fn take_off(
+        &self,
+        gate: &tacos_ground::safety::SafetyGate,
+        drones: &[DroneId],
+    ) -> anyhow::Result<()> {
+        let takeoffs: Vec<(DroneId, tacos_shared::action::Action)> = drones
+            .iter()
+            .map(|d| (d.clone(), tacos_shared::action::Action::ArmTakeoff))
+            .collect();
+        tacos_ground::direct::run_actions(
+            &self.link,
+            gate,
+            &takeoffs,
+            None,
+            Duration::from_secs(90),
+        )
+        .await?;
+        Ok(())
+    }
+
     pub async fn stop(self) {
         self.stack.shutdown(Duration::from_secs(3)).await;
     }

@@ -5,12 +5,10 @@
 use serde_json::json;
 use std::sync::Arc;
 use std::time::Duration;
-use tacos_ground::direct::run_actions;
 use tacos_ground::mission::log::{self, MissionLog, Record};
 use tacos_ground::mission::{Mission, MissionConfig, MissionUpdate, PilotInput};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{ChatRequest, LlmError};
-use tacos_shared::DroneId;
 use tacos_shared::action::Action;
 use tacos_tests::prompt_text::first_offered_per_drone;
 use tacos_tests::{PolicyBackend, SimSwarm, told, within};
@@ -61,11 +59,7 @@ async fn a_held_plan_flies_only_once_approved_without_its_dropped_calls() -> any
     let result = async {
         let ids = sim.wait_on_the_ground(&["alfa", "bravo"]).await?;
         let gate = SafetyGate::new(sim.scenario.clone());
-        let takeoffs: Vec<(DroneId, Action)> = ids
-            .iter()
-            .map(|d| (d.clone(), Action::ArmTakeoff))
-            .collect();
-        run_actions(&sim.link, &gate, &takeoffs, None, Duration::from_secs(90)).await?;
+        sim.take_off(&gate, &ids).await?;
 
         let log_path =
             std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm("approve")));

@@ -5,7 +5,6 @@
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
-use tacos_ground::direct::run_actions;
 use tacos_ground::mission::log::{self, MissionLog, Record};
 use tacos_ground::mission::{EventTopic, Mission, MissionConfig, MissionUpdate, PilotInput};
 use tacos_ground::safety::SafetyGate;
@@ -79,11 +78,7 @@ async fn land_all_is_sent_while_a_model_call_is_pending_and_the_late_reply_is_no
         .await?;
         let gate = SafetyGate::new(sim.scenario.clone());
         // Set-up: all three in the air (through the gate, without a model).
-        let takeoffs: Vec<(DroneId, Action)> = ids
-            .iter()
-            .map(|d| (d.clone(), Action::ArmTakeoff))
-            .collect();
-        run_actions(&link, &gate, &takeoffs, None, Duration::from_secs(90)).await?;
+        sim.take_off(&gate, &ids).await?;
 
         let log_path =
             std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm("dlog")));

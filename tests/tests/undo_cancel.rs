@@ -7,7 +7,6 @@ use serde_json::json;
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Duration;
-use tacos_ground::direct::run_actions;
 use tacos_ground::mission::log::{self, MissionLog, Record};
 use tacos_ground::mission::{EventTopic, Mission, MissionConfig, MissionUpdate, PilotInput};
 use tacos_ground::safety::SafetyGate;
@@ -68,11 +67,7 @@ async fn cancel_holds_a_plan_s_drones_and_undo_flies_them_back() -> anyhow::Resu
     let result = async {
         let ids = sim.wait_on_the_ground(&["alfa", "bravo"]).await?;
         let gate = SafetyGate::new(sim.scenario.clone());
-        let takeoffs: Vec<(DroneId, Action)> = ids
-            .iter()
-            .map(|d| (d.clone(), Action::ArmTakeoff))
-            .collect();
-        run_actions(&sim.link, &gate, &takeoffs, None, Duration::from_secs(90)).await?;
+        sim.take_off(&gate, &ids).await?;
         let before = positions(&sim, &ids);
 
         let log_path =
