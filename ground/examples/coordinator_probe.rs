@@ -102,11 +102,17 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let reply = runtime.block_on(model.chat(&request))?;
         let plan = tacos_prompts::CoordinatorReply::parse(&reply.content)
             .map(|r| {
-                r.plan
+                let plan = r
+                    .plan
                     .iter()
                     .map(|c| c.to_string())
                     .collect::<Vec<_>>()
-                    .join("; ")
+                    .join("; ");
+                let said = match r.refusal_text() {
+                    Some(refusal) => format!("{plan} [declined: {refusal}]"),
+                    None => plan,
+                };
+                format!("{said}\n    reasoning: {}", r.reasoning)
             })
             .unwrap_or_else(|e| format!("unparsable: {e}"));
         println!(

@@ -58,6 +58,10 @@ impl fmt::Display for Call {
 pub struct CoordinatorReply {
     pub reasoning: String,
     pub plan: Vec<Call>,
+    /// Said to the pilot when the instruction cannot be carried out (a place or drone that does
+    /// not exist, a goal inside an obstacle): why, and what would work. Optional in the schema.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refusal: Option<String>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -100,6 +104,14 @@ fn parse<T: for<'de> Deserialize<'de>>(text: &str) -> Result<T, ReplyError> {
 impl CoordinatorReply {
     pub fn parse(text: &str) -> Result<Self, ReplyError> {
         parse(text)
+    }
+
+    /// The refusal, unless it is absent or blank.
+    pub fn refusal_text(&self) -> Option<&str> {
+        self.refusal
+            .as_deref()
+            .map(str::trim)
+            .filter(|r| !r.is_empty())
     }
 }
 
@@ -149,6 +161,14 @@ mod tests {
             CoordinatorReply::parse(&unknown_action),
             Err(ReplyError::Shape(_))
         ));
+        assert_eq!(reply.refusal_text(), None);
+        let refused = CoordinatorReply::parse(
+            r#"{"reasoning":"r","plan":[],"refusal":" There is no airport. "}"#,
+        )
+        .expect("a refusal is a reply");
+        assert_eq!(refused.refusal_text(), Some("There is no airport."));
+        let blank = CoordinatorReply::parse(r#"{"reasoning":"r","plan":[],"refusal":"  "}"#);
+        assert_eq!(blank.map(|r| r.refusal_text().is_none()), Ok(true));
         let extra = good.replace(r#""reasoning":"r""#, r#""reasoning":"r","mood":"happy""#);
         assert!(matches!(
             CoordinatorReply::parse(&extra),

@@ -173,7 +173,8 @@ pub fn requiring(schema: &Value, required: &[RequiredCall]) -> Value {
 pub fn token_budget(output: Output, drones: usize) -> u32 {
     let n = drones.max(1) as u32;
     let (reasoning, items) = match output {
-        Output::Coordinator => (300, (3 * n).clamp(3, PLAN_MAX_CALLS as u32)),
+        // Its reasoning and an optional refusal (200 characters).
+        Output::Coordinator => (300 + 200, (3 * n).clamp(3, PLAN_MAX_CALLS as u32)),
         Output::Supervisor => (200, n.min(20)),
         Output::Monolithic => (400, n.min(20)),
     };
@@ -182,7 +183,7 @@ pub fn token_budget(output: Output, drones: usize) -> u32 {
 
 /// The most tokens a Coordinator reply can take with a plan of up to `calls` calls.
 pub fn coordinator_token_budget(calls: usize) -> u32 {
-    300 + 40 + 40 * calls as u32
+    300 + 200 + 40 + 40 * calls as u32
 }
 
 #[cfg(test)]
@@ -281,7 +282,11 @@ mod tests {
             );
         }
         assert_eq!(s["properties"]["plan"]["maxItems"], 6);
-        assert_eq!(token_budget(Output::Coordinator, 2), 300 + 40 + 40 * 6);
+        assert_eq!(
+            token_budget(Output::Coordinator, 2),
+            300 + 200 + 40 + 40 * 6
+        );
+        assert_eq!(s["properties"]["refusal"]["maxLength"], 200);
         // Nothing to track: no call can be a start_tracking.
         let s = build(
             Output::Coordinator,

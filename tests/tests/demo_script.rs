@@ -52,6 +52,16 @@ fn policy(index: usize, request: &Value) -> PolicyResult {
                 .collect();
             match (words.first(), words.last()) {
                 (Some(d), Some(place)) if drones.iter().any(|(x, _, _, _)| x == d) => {
+                    // A place the schema does not offer does not exist: a capable model says
+                    // so instead of guessing one.
+                    if !enum_names(&request["response_format"]).contains(place) {
+                        return Ok(json!({
+                            "reasoning": format!("No landmark or target is called {place}."),
+                            "plan": [],
+                            "refusal": format!("There is no {place} on this map: name a landmark or give a point."),
+                        })
+                        .to_string());
+                    }
                     vec![call("T1", d, "goto", place)]
                 }
                 _ => Vec::new(),
@@ -81,6 +91,24 @@ fn policy(index: usize, request: &Value) -> PolicyResult {
     }
     let complete = tasks.iter().all(|t| t.4 == "done");
     Ok(json!({ "reasoning": "Start what can start now.", "actions": actions, "plan_complete": complete }).to_string())
+}
+
+/// Every name an `enum` of the request's schema offers.
+fn enum_names(value: &Value) -> Vec<String> {
+    match value {
+        Value::Object(map) => map
+            .iter()
+            .flat_map(|(key, v)| match (key.as_str(), v) {
+                ("enum", Value::Array(items)) => items
+                    .iter()
+                    .filter_map(|i| i.as_str().map(str::to_owned))
+                    .collect(),
+                _ => enum_names(v),
+            })
+            .collect(),
+        Value::Array(items) => items.iter().flat_map(enum_names).collect(),
+        _ => Vec::new(),
+    }
 }
 
 fn temp(name: &str, ext: &str) -> PathBuf {
@@ -334,6 +362,53 @@ async fn a_step_waiting_on_an_instruction_the_mission_gave_up_fails_at_once() ->
     assert!(
         stdout.contains(&format!("demo finished: {tally};")),
         "no summary in:\n{stdout}"
+    );
+    let _ = std::fs::remove_file(&script);
+    let _ = std::fs::remove_file(&log_path);
+    Ok(())
+}
+
+/// "alfa, go to the_airport" on a map without one: the model declines with a reason instead of
+/// planning, the pilot hears it, nothing is sent, and the step waiting on it fails at once with
+/// the reason, after one Coordinator call (no repair rounds for a refusal).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_instruction_the_coordinator_declines_is_answered_with_its_reason() -> anyhow::Result<()>
+{
+    let server = ChatServer::start("stand-in", policy).await?;
+    let script = temp("declined", "txt");
+    std::fs::write(
+        &script,
+        "say alfa, go to the_airport\nwait until plan complete within 600\n",
+    )?;
+    let log_path = temp("declined", "jsonl");
+    let started = std::time::Instant::now();
+    let (ok, stdout, stderr) = demo(&script, &server, &log_path).await?;
+    assert!(!ok, "the run must fail\nstdout:\n{stdout}");
+    assert!(
+        stderr.contains(
+            "script line 2 `wait until plan complete within 600` failed: the mission gave up: \
+             the Coordinator declined: There is no the_airport on this map: name a landmark or \
+             give a point. (nothing was sent)"
+        ),
+        "unclear error: {stderr}"
+    );
+    assert!(started.elapsed() < Duration::from_secs(120));
+    let lines = log::read(&log_path)?;
+    assert!(
+        !lines
+            .iter()
+            .any(|l| matches!(l.record, Record::Direct { .. } | Record::ActionSent { .. })),
+        "something was sent"
+    );
+    assert!(
+        lines.iter().any(|l| matches!(&l.record, Record::Event { text }
+            if text.starts_with("instruction declined by the Coordinator: There is no the_airport"))),
+        "the refusal is not in the log"
+    );
+    assert_eq!(
+        log::Tally::of(&lines).model_calls,
+        1,
+        "a refusal is not repaired"
     );
     let _ = std::fs::remove_file(&script);
     let _ = std::fs::remove_file(&log_path);

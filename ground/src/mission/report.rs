@@ -30,6 +30,9 @@ pub enum MissionError {
         names: Vec<String>,
         swarm: Vec<String>,
     },
+    /// The Coordinator's reply to the pilot instead of a plan.
+    #[error("the Coordinator declined: {refusal} (nothing was sent)")]
+    Declined { refusal: String },
     #[error("not sending {action} to {drone}: the pilot gave a direct command meanwhile")]
     Overridden { drone: String, action: String },
     #[error("sending {action} to {drone} failed: {reason}")]

@@ -161,8 +161,13 @@ impl Mission {
                             Err(why) => rejections.push(format!("{call}: {why}")),
                         }
                     }
-                    if reply.plan.is_empty() {
-                        rejections.push("the plan is empty".into());
+                    // An empty plan is a reply only with a refusal for the pilot.
+                    if reply.plan.is_empty() && reply.refusal_text().is_none() {
+                        rejections.push(
+                            "the plan is empty: list the calls the instruction needs, or, if it \
+                             cannot be carried out, say why in \"refusal\""
+                                .into(),
+                        );
                     }
                     if aids.is_on(Aid::PlanLengthCap)
                         && plan_cap < schema::PLAN_MAX_CALLS
@@ -212,7 +217,11 @@ impl Mission {
                     });
                     rejections.extend(missing.iter().map(grounding::FollowAsked::missing_text));
                     Checked {
-                        accepted: (reply.reasoning.clone(), plan),
+                        accepted: (
+                            reply.reasoning.clone(),
+                            plan,
+                            reply.refusal_text().map(str::to_owned),
+                        ),
                         rejections,
                         // A plan's calls are not actions yet: the gate judges them when sent.
                         gate_refusals: Vec::new(),
@@ -221,7 +230,14 @@ impl Mission {
                 },
             )
             .await?;
-        let (reasoning, calls) = checked;
+        let (reasoning, calls, refusal) = checked;
+        if let Some(refusal) = refusal {
+            if calls.is_empty() {
+                return Err(self.declined(reasoning, refusal));
+            }
+            // A plan with a refusal: what it can do flies, and the pilot hears what it cannot.
+            self.event(EventTopic::Note, format!("the Coordinator says: {refusal}"));
+        }
         if calls.is_empty() {
             // Every call of the last attempt was refused: the plan in force (if any) stays, and
             // the refusals are in the log's repair requests.
@@ -259,6 +275,18 @@ impl Mission {
         }
         self.adopt_plan(reasoning, calls);
         Ok(())
+    }
+
+    /// The Coordinator answered the pilot instead of planning: nothing is sent, the plan in force
+    /// (if any) stays, and the next request's history says what was declined and why.
+    fn declined(&mut self, reasoning: String, refusal: String) -> MissionError {
+        self.log.note(Record::Event {
+            text: format!("instruction declined by the Coordinator: {refusal} ({reasoning})"),
+        });
+        self.history.push(HistoryEntry::Event(format!(
+            "the Coordinator declined the instruction: {refusal}"
+        )));
+        MissionError::Declined { refusal }
     }
 
     /// Makes `calls` the plan in force; tasks already running keep their status when the new
