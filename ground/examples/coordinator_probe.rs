@@ -2,7 +2,8 @@
 //! flying above its home, and prints the plan it makes: a quick way to see how the small model
 //! reads a pilot line before writing it into a mission script.
 //! Run: `cargo run -p tacos-ground --example coordinator_probe -- lab "alfa, check small_park"`
-//! (`PROBE_ON_THE_GROUND=1` for a swarm that has not taken off).
+//! (`PROBE_ON_THE_GROUND=1` for a swarm that has not taken off, `PROBE_OFFER_REFUSAL=1` for the
+//! prompt and schema that let a reply decline, as with `--aids none`).
 
 use tacos_embedded::{EmbeddedBackend, EmbeddedOptions};
 use tacos_ground::mission::engine::coordinator_messages;
@@ -20,6 +21,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let model = EmbeddedBackend::load(EmbeddedOptions::from_env())?;
     // `PROBE_ON_THE_GROUND=1`: every drone idle at its home instead of flying above it.
     let grounded = std::env::var_os("PROBE_ON_THE_GROUND").is_some();
+    let offer_refusal = std::env::var_os("PROBE_OFFER_REFUSAL").is_some();
     let drones: Vec<DroneLine> = scenario
         .drones
         .iter()
@@ -71,28 +73,36 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         );
         // As the engine limits it: the places the instruction names, if it names any.
         let scope = grounding::places_in_scope(&places, &named, &[]);
-        let messages = coordinator_messages(render::coordinator_request(
-            &render::swarm(&drones),
-            &render::world(&scenario.world, &[], &[]),
-            &render::plan(&[]),
-            &history,
-            &instruction,
-            &named,
-        ));
+        let messages = coordinator_messages(
+            render::coordinator_request(
+                &render::swarm(&drones),
+                &render::world(&scenario.world, &[], &[]),
+                &render::plan(&[]),
+                &history,
+                &instruction,
+                &named,
+            ),
+            offer_refusal,
+        );
+        let built = schema::build(
+            Output::Coordinator,
+            &ids,
+            scope.as_ref().unwrap_or(&places),
+            &trackable
+                .iter()
+                .filter(|t| scope.as_ref().is_none_or(|s| s.contains(t)))
+                .cloned()
+                .collect::<Vec<_>>(),
+        );
         let request = ChatRequest {
             messages,
             schema: Some(ResponseSchema {
                 name: Output::Coordinator.name().into(),
-                schema: schema::build(
-                    Output::Coordinator,
-                    &ids,
-                    scope.as_ref().unwrap_or(&places),
-                    &trackable
-                        .iter()
-                        .filter(|t| scope.as_ref().is_none_or(|s| s.contains(t)))
-                        .cloned()
-                        .collect::<Vec<_>>(),
-                ),
+                schema: if offer_refusal {
+                    built
+                } else {
+                    schema::without_refusal(&built)
+                },
             }),
             max_tokens: schema::token_budget(Output::Coordinator, ids.len()),
             temperature: 0.0,

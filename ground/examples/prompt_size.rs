@@ -41,14 +41,17 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             })
             .collect();
         let swarm = render::swarm(&drones);
-        let coordinator = coordinator_messages(render::coordinator_request(
-            &swarm,
-            &world,
-            &render::plan(&plan),
-            "(mission start)\n",
-            "find the suspect hiding in one of the cars",
-            &[],
-        ));
+        let coordinator = coordinator_messages(
+            render::coordinator_request(
+                &swarm,
+                &world,
+                &render::plan(&plan),
+                "(mission start)\n",
+                "find the suspect hiding in one of the cars",
+                &[],
+            ),
+            false,
+        );
         let supervisor = vec![
             ChatMessage::system(texts::SUPERVISOR),
             ChatMessage::user(render::supervisor_request(

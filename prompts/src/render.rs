@@ -106,7 +106,8 @@ pub fn world(world: &World, targets: &[TargetObservation], events: &[String]) ->
     }
     out.push_str("Landmarks:\n");
     for (kind, names) in by_kind {
-        let _ = writeln!(out, "- {kind}: {}", names.join(", "));
+        // "of kind": the 1.5B model, shown "- park: small_park (…)", took "park" for a name.
+        let _ = writeln!(out, "- of kind {kind}: {}", names.join(", "));
     }
     if !targets.is_empty() {
         out.push_str("Moving targets:");

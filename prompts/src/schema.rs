@@ -122,6 +122,15 @@ pub fn without_plan_cap(schema: &Value) -> Value {
     out
 }
 
+/// The Coordinator schema `schema` without its optional "refusal" (the `plan-only` aid).
+pub fn without_refusal(schema: &Value) -> Value {
+    let mut out = schema.clone();
+    if let Some(properties) = out.get_mut("properties").and_then(Value::as_object_mut) {
+        properties.remove("refusal");
+    }
+    out
+}
+
 /// A call that a Coordinator plan must contain: `action` on `target`, by one of `drones`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RequiredCall {
@@ -287,6 +296,9 @@ mod tests {
             300 + 200 + 40 + 40 * 6
         );
         assert_eq!(s["properties"]["refusal"]["maxLength"], 200);
+        let plan_only = without_refusal(&s);
+        assert!(plan_only["properties"].get("refusal").is_none());
+        assert_eq!(plan_only["properties"]["plan"], s["properties"]["plan"]);
         // Nothing to track: no call can be a start_tracking.
         let s = build(
             Output::Coordinator,

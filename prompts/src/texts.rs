@@ -6,7 +6,10 @@ pub const COORDINATOR: &str = include_str!("../text/coordinator.md");
 pub const SUPERVISOR: &str = include_str!("../text/supervisor.md");
 /// The single model of the monolithic (`mnl`) ablation.
 pub const MONOLITHIC: &str = include_str!("../text/monolithic.md");
-/// Few-shot examples for the Coordinator (instruction, context, ideal reasoning and plan).
+/// Appended to [`COORDINATOR`] when a reply may decline (the `plan-only` aid off).
+pub const COORDINATOR_REFUSAL: &str = include_str!("../text/coordinator_refusal.md");
+/// Few-shot examples for the Coordinator (instruction, context, ideal reasoning and plan); those
+/// whose reply declines are shown only when a reply may.
 pub const COORDINATOR_EXAMPLES: &str = include_str!("../text/coordinator_examples.json");
 
 /// Few-shot examples for the Supervisor (plan and swarm excerpt, ideal cycle).

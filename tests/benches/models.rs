@@ -232,25 +232,29 @@ fn mission_probes() -> anyhow::Result<Vec<Probe>> {
     let coordinator = |instruction: &str| {
         let named = render::named_in(instruction, &names);
         let scope = grounding::places_in_scope(&places, &named, &[]);
-        let messages = coordinator_messages(render::coordinator_request(
-            &render::swarm(&on_ground),
-            &world,
-            &render::plan(&[]),
-            &render::history(&[HistoryEntry::Pilot(instruction.to_owned())]),
-            instruction,
-            &named,
-        ));
+        let messages = coordinator_messages(
+            render::coordinator_request(
+                &render::swarm(&on_ground),
+                &world,
+                &render::plan(&[]),
+                &render::history(&[HistoryEntry::Pilot(instruction.to_owned())]),
+                instruction,
+                &named,
+            ),
+            false,
+        );
         let in_scope: Vec<String> = trackable
             .iter()
             .filter(|t| scope.as_ref().is_none_or(|s| s.contains(t)))
             .cloned()
             .collect();
-        let schema = schema::build(
+        // As the engine asks with its default aids (`plan-only`: no refusal offered).
+        let schema = schema::without_refusal(&schema::build(
             Output::Coordinator,
             &ids,
             scope.as_ref().unwrap_or(&places),
             &in_scope,
-        );
+        ));
         request(messages, Output::Coordinator, schema)
     };
 

@@ -53,8 +53,13 @@ fn policy(index: usize, request: &Value) -> PolicyResult {
             match (words.first(), words.last()) {
                 (Some(d), Some(place)) if drones.iter().any(|(x, _, _, _)| x == d) => {
                     // A place the schema does not offer does not exist: a capable model says
-                    // so instead of guessing one.
-                    if !enum_names(&request["response_format"]).contains(place) {
+                    // so instead of guessing one, where the schema lets it decline.
+                    let format = &request["response_format"];
+                    if !enum_names(format).contains(place)
+                        && format
+                            .pointer("/json_schema/schema/properties/refusal")
+                            .is_some()
+                    {
                         return Ok(json!({
                             "reasoning": format!("No landmark or target is called {place}."),
                             "plan": [],
@@ -121,6 +126,16 @@ async fn demo(
     server: &ChatServer,
     log: &Path,
 ) -> anyhow::Result<(bool, String, String)> {
+    demo_with(script, server, log, &[]).await
+}
+
+/// [`demo`] with more arguments.
+async fn demo_with(
+    script: &Path,
+    server: &ChatServer,
+    log: &Path,
+    more: &[&str],
+) -> anyhow::Result<(bool, String, String)> {
     let ground = tacos_ground::launch::bin_dir().join("tacos-ground");
     let output = tokio::time::timeout(
         Duration::from_secs(280),
@@ -131,6 +146,7 @@ async fn demo(
             .arg(script)
             .arg("--log")
             .arg(log)
+            .args(more)
             .kill_on_drop(true)
             .output(),
     )
@@ -368,9 +384,10 @@ async fn a_step_waiting_on_an_instruction_the_mission_gave_up_fails_at_once() ->
     Ok(())
 }
 
-/// "alfa, go to the_airport" on a map without one: the model declines with a reason instead of
-/// planning, the pilot hears it, nothing is sent, and the step waiting on it fails at once with
-/// the reason, after one Coordinator call (no repair rounds for a refusal).
+/// "alfa, go to the_airport" on a map without one, with the `plan-only` aid off: the model
+/// declines with a reason instead of planning, the pilot hears it, nothing is sent, and the step
+/// waiting on it fails at once with the reason, after one Coordinator call (no repair rounds for
+/// a refusal).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_instruction_the_coordinator_declines_is_answered_with_its_reason() -> anyhow::Result<()>
 {
@@ -382,7 +399,8 @@ async fn an_instruction_the_coordinator_declines_is_answered_with_its_reason() -
     )?;
     let log_path = temp("declined", "jsonl");
     let started = std::time::Instant::now();
-    let (ok, stdout, stderr) = demo(&script, &server, &log_path).await?;
+    let (ok, stdout, stderr) =
+        demo_with(&script, &server, &log_path, &["--aids", "small,-plan-only"]).await?;
     assert!(!ok, "the run must fail\nstdout:\n{stdout}");
     assert!(
         stderr.contains(

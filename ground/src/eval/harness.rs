@@ -90,6 +90,28 @@ fn bar(done: usize, total: usize) -> String {
     )
 }
 
+/// The successes so far per mode, in `modes`' order: "tacos 3/5, wor 1/4" (runs that errored
+/// are not in `records`).
+fn successes_by_mode(records: &[RunRecord], modes: &[Mode]) -> String {
+    modes
+        .iter()
+        .map(|m| {
+            let of_mode = records.iter().filter(|r| r.mode == m.as_str());
+            let (won, all) = of_mode.fold((0, 0), |(won, all), r| {
+                (won + usize::from(r.status == Status::Success), all + 1)
+            });
+            format!("{} {won}/{all}", m.as_str())
+        })
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// The time the `remaining` runs should take at the pace of the `ran` runs of this session so
+/// far (`elapsed`), `jobs` at a time as they were; `None` before the first run ends.
+fn time_left(elapsed: Duration, ran: usize, remaining: usize) -> Option<Duration> {
+    (ran > 0).then(|| elapsed.mul_f64(remaining as f64 / ran as f64))
+}
+
 /// Writes `results.md`, `results.csv` and `results.svg` from every record so far.
 pub fn write_tables(
     opts: &EvalOptions,
@@ -234,8 +256,10 @@ pub async fn evaluate(
         } else {
             records.push(record.clone());
         }
+        let left = time_left(started.elapsed(), ran, total - finished)
+            .map_or_else(|| "?".into(), |d| format!("{:.0} s", d.as_secs_f64()));
         say(format!(
-            "{} {} n={} run {}: {:?} in {:.0} s ({:.0} s of mission), L={}, {} model calls — {}  ({:.0} s so far)",
+            "{} {} n={} run {}: {:?} in {:.0} s ({:.0} s of mission), L={}, {} model calls — {}  ({:.0} s so far, about {left} left; successes {})",
             bar(finished, total),
             record.mode,
             record.drones,
@@ -246,7 +270,8 @@ pub async fn evaluate(
             record.cycles,
             record.model_calls,
             record.reason,
-            started.elapsed().as_secs_f64()
+            started.elapsed().as_secs_f64(),
+            successes_by_mode(&records, &opts.modes),
         ));
         write_tables(&opts, &records)?;
         spawn_next(&mut running, &mut queue);
@@ -264,6 +289,26 @@ pub async fn evaluate(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn progress_says_the_successes_per_mode_and_the_time_left() {
+        use crate::eval::results::tests::record;
+        let records = [
+            record("tacos", 6, 0, Status::Success, 3),
+            record("mnl", 6, 0, Status::Failure, 9),
+            record("tacos", 6, 1, Status::Failure, 4),
+            record("tacos", 6, 2, Status::Success, 2),
+        ];
+        assert_eq!(
+            successes_by_mode(&records, &[Mode::Tacos, Mode::Wor, Mode::Mnl]),
+            "tacos 2/3, wor 0/0, mnl 0/1"
+        );
+        assert_eq!(time_left(Duration::from_secs(100), 0, 8), None);
+        assert_eq!(
+            time_left(Duration::from_secs(100), 4, 6),
+            Some(Duration::from_secs(150))
+        );
+    }
 
     #[test]
     fn seeds_are_stable_and_distinct() {

@@ -368,10 +368,16 @@ pub fn csv(cells: &[Cell]) -> String {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    fn record(mode: &str, drones: usize, run: u32, status: Status, cycles: u32) -> RunRecord {
+    pub(crate) fn record(
+        mode: &str,
+        drones: usize,
+        run: u32,
+        status: Status,
+        cycles: u32,
+    ) -> RunRecord {
         RunRecord {
             task: "find-suspect".into(),
             mode: mode.into(),

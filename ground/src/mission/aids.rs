@@ -1,6 +1,6 @@
 //! The aids that carry a small model, as named switches.
 //!
-//! The engine grew seven rules that exist because SmolLM2-135M needs them; a capable model can be
+//! The engine grew rules that exist because a small model needs them; a capable model can be
 //! hurt by them (a plan narrowed to the places the pilot named, a take-off the engine adds on its
 //! own). Each is a switch here; the mission log's start record says which were on, and every time
 //! one changes what the engine does it writes an [`Record::AidFired`](super::log::Record) naming
@@ -38,10 +38,15 @@ pub enum Aid {
     /// A repair round that the backend cannot answer leaves in force what passed the checks in
     /// the round before. Off: the call fails with the backend's error.
     KeepPartialPlan,
+    /// The Coordinator is offered no refusal: its schema has no "refusal" and its prompt no rule
+    /// or example for one. The 1.5B default, offered one, declined "all drones take off" with
+    /// every drone on the ground, and "charlie, search the business_district" on a map that has
+    /// it. Off: a reply may decline with a reason for the pilot instead of planning.
+    PlanOnly,
 }
 
 impl Aid {
-    pub const ALL: [Aid; 7] = [
+    pub const ALL: [Aid; 8] = [
         Aid::PlaceScope,
         Aid::FollowWords,
         Aid::RepairGrammar,
@@ -49,6 +54,7 @@ impl Aid {
         Aid::PlanLengthCap,
         Aid::CompactRepairEcho,
         Aid::KeepPartialPlan,
+        Aid::PlanOnly,
     ];
 
     /// The name on the command line and in the log.
@@ -61,6 +67,7 @@ impl Aid {
             Aid::PlanLengthCap => "plan-length-cap",
             Aid::CompactRepairEcho => "compact-repair-echo",
             Aid::KeepPartialPlan => "keep-partial-plan",
+            Aid::PlanOnly => "plan-only",
         }
     }
 
@@ -85,7 +92,7 @@ pub struct ModelAids {
 impl ModelAids {
     /// Every aid on: what the 135M embedded model needs.
     pub const fn small() -> ModelAids {
-        ModelAids { on: 0x7f }
+        ModelAids { on: 0xff }
     }
 
     /// No aid: the principled rules only.
@@ -208,7 +215,7 @@ mod tests {
         assert_eq!(some.describe(), "implied-takeoffs,keep-partial-plan");
         let all_but: ModelAids = "small,-place-scope".parse().expect("parses");
         assert!(!all_but.is_on(Aid::PlaceScope));
-        assert_eq!(all_but.enabled().len(), 6);
+        assert_eq!(all_but.enabled().len(), Aid::ALL.len() - 1);
         assert_eq!(ModelAids::small().enabled(), Aid::ALL);
         assert!(ModelAids::none().enabled().is_empty());
         let err = "small,scope".parse::<ModelAids>().expect_err("unknown");

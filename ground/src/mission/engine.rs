@@ -14,6 +14,7 @@ pub use coordinator::coordinator_messages;
 pub use cycles::supervisor_messages;
 
 use super::addressed;
+use super::aids::{Aid, ModelAids};
 use super::approval::HeldPlan;
 use super::commands::DirectCommands;
 use super::config::{MissionConfig, Mode};
@@ -94,10 +95,10 @@ async fn log_positions(link: Arc<GroundLink>, log: Arc<MissionLog>) {
 /// Has the backend compute the fixed beginning of the layers' prompts while the pilot types the
 /// first instruction: with the embedded model that part (~1,200 tokens of instructions and
 /// examples per layer) is what makes a first call slow. A failure only costs that head start.
-async fn warm_up(backend: Arc<dyn LlmBackend>, mode: Mode) {
+async fn warm_up(backend: Arc<dyn LlmBackend>, mode: Mode, aids: ModelAids) {
     let prefixes = match mode {
         Mode::Tacos | Mode::Wor => vec![
-            coordinator::coordinator_fixed_messages(),
+            coordinator::coordinator_fixed_messages(!aids.is_on(Aid::PlanOnly)),
             cycles::supervisor_fixed_messages(),
         ],
         Mode::Mnl => vec![cycles::monolithic_fixed_messages()],
@@ -229,6 +230,7 @@ impl Mission {
         let _warm_up = AbortOnDrop(tokio::spawn(warm_up(
             self.caller.backend.clone(),
             self.cfg.mode,
+            self.cfg.aids,
         )));
         let mut tick = tokio::time::interval(Duration::from_millis(250));
         // After a model call, one tick, not a burst of the ones missed.

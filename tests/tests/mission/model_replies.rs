@@ -6,7 +6,7 @@ use serde_json::json;
 use std::sync::Arc;
 use std::time::Duration;
 use tacos_ground::mission::log::{self, Record};
-use tacos_ground::mission::{Aid, MissionUpdate};
+use tacos_ground::mission::{Aid, MissionUpdate, ModelAids};
 use tacos_llm::{ChatRequest, LlmError};
 use tacos_shared::DroneId;
 use tacos_tests::prompt_text::request_text;
@@ -313,6 +313,62 @@ async fn an_instruction_to_a_drone_the_swarm_lacks_is_refused_with_the_swarm_s_d
             "a model was asked"
         );
         assert!(sent_tasks(&lines).is_empty());
+        anyhow::Ok(())
+    })
+    .await
+}
+
+/// A Coordinator that declines (the `plan-only` aid off), saying the place the pilot named is
+/// not on the map when it is (the 1.5B model did so for "charlie, search the business_district"
+/// on the lab map): the refusal is sent back with the fact, and the plan of the repair round
+/// flies.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_refusal_contradicted_by_the_map_is_sent_back() -> anyhow::Result<()> {
+    stopping_after(start("refusal").await?, async |run| {
+        let supervisor = offered_policy(json!([]), false);
+        let policy = move |request: &ChatRequest| {
+            if !request.messages[0].content.starts_with("You are the Coordinator") {
+                return supervisor(request);
+            }
+            let offered = request
+                .schema
+                .as_ref()
+                .is_some_and(|s| s.schema.pointer("/properties/refusal").is_some());
+            Ok(if repairs(request) == 0 && offered {
+                json!({ "reasoning": "No such place.", "plan": [], "refusal": "car_11 is not a place on this map." })
+            } else {
+                json!({ "reasoning": "Alfa goes.", "plan": [call("T1", "alfa", "arm_takeoff", "none"), call("T2", "alfa", "goto", "car_11")] })
+            }
+            .to_string())
+        };
+        let (mut updates, lines, log_path, _) = run_with_aids(
+            run,
+            "refusallog",
+            PolicyBackend::new(policy),
+            "alfa, check car_11",
+            ModelAids::small().with(Aid::PlanOnly, false),
+        )
+        .await?;
+        plan_complete(&mut updates, Duration::from_secs(120)).await?;
+        drop(lines);
+        let records = log::read(&log_path)?;
+        let rejected: Vec<&String> = records
+            .iter()
+            .filter_map(|l| match &l.record {
+                Record::GateRejected { call, .. } => Some(call),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(
+            rejected,
+            [
+                "the refusal: car_11 is a place on this map (the pilot named it), and a goto can reach it"
+            ],
+        );
+        assert_eq!(
+            sent_tasks(&records),
+            [("T1".to_owned(), "alfa".to_owned()), ("T2".into(), "alfa".into())]
+        );
         anyhow::Ok(())
     })
     .await

@@ -44,6 +44,11 @@ impl Mission {
         let (drones, places) = self.enums();
         let names: Vec<String> = drones.iter().chain(&places).cloned().collect();
         let named = render::named_in(instruction, &names);
+        let named_places: Vec<String> = named
+            .iter()
+            .filter(|n| places.contains(n))
+            .cloned()
+            .collect();
         let pending_places: Vec<String> = pending
             .iter()
             .filter_map(|(c, _)| c.target_name().map(str::to_owned))
@@ -101,7 +106,8 @@ impl Mission {
             instruction,
             &named,
         );
-        let messages = coordinator_messages(user);
+        let offer_refusal = !aids.is_on(Aid::PlanOnly);
+        let messages = coordinator_messages(user, offer_refusal);
         let in_scope = |name: &String| scope.as_ref().is_none_or(|s| s.contains(name));
         let trackable: Vec<String> = self.trackable().into_iter().filter(in_scope).collect();
         let mut schema = schema::build(
@@ -110,6 +116,9 @@ impl Mission {
             scope.as_ref().unwrap_or(&places),
             &trackable,
         );
+        if !offer_refusal {
+            schema = schema::without_refusal(&schema);
+        }
         let plan_cap = schema::plan_max_calls(&schema);
         let token_budget = if aids.is_on(Aid::PlanLengthCap) {
             schema::token_budget(Output::Coordinator, drones.len())
@@ -161,13 +170,24 @@ impl Mission {
                             Err(why) => rejections.push(format!("{call}: {why}")),
                         }
                     }
-                    // An empty plan is a reply only with a refusal for the pilot.
-                    if reply.plan.is_empty() && reply.refusal_text().is_none() {
-                        rejections.push(
+                    // An empty plan is a reply only with a refusal for the pilot, and not one
+                    // about a place the pilot named that the map has: the 1.5B model declined
+                    // "charlie, search the business_district" on the lab map, which has it.
+                    match reply.refusal_text() {
+                        None if reply.plan.is_empty() => rejections.push(
                             "the plan is empty: list the calls the instruction needs, or, if it \
                              cannot be carried out, say why in \"refusal\""
                                 .into(),
-                        );
+                        ),
+                        Some(refusal) if reply.plan.is_empty() => {
+                            for place in render::named_in(refusal, &named_places) {
+                                rejections.push(format!(
+                                    "the refusal: {place} is a place on this map (the pilot \
+                                     named it), and a goto can reach it"
+                                ));
+                            }
+                        }
+                        _ => {}
                     }
                     if aids.is_on(Aid::PlanLengthCap)
                         && plan_cap < schema::PLAN_MAX_CALLS
@@ -389,18 +409,26 @@ fn missing_takeoffs(calls: &[Call], grounded: &[String]) -> Vec<usize> {
 }
 
 /// The Coordinator's messages: its configuration prompt, the few-shot examples as turns, then
-/// the request.
-pub fn coordinator_messages(user: String) -> Vec<ChatMessage> {
-    let mut messages = coordinator_fixed_messages();
+/// the request. `offer_refusal`: a reply may decline (the `plan-only` aid off).
+pub fn coordinator_messages(user: String, offer_refusal: bool) -> Vec<ChatMessage> {
+    let mut messages = coordinator_fixed_messages(offer_refusal);
     messages.push(ChatMessage::user(user));
     messages
 }
 
 /// The beginning every Coordinator request shares: its configuration prompt and the few-shot
 /// turns.
-pub fn coordinator_fixed_messages() -> Vec<ChatMessage> {
-    let mut messages = vec![ChatMessage::system(texts::COORDINATOR)];
+pub fn coordinator_fixed_messages(offer_refusal: bool) -> Vec<ChatMessage> {
+    let system = if offer_refusal {
+        format!("{}{}", texts::COORDINATOR, texts::COORDINATOR_REFUSAL)
+    } else {
+        texts::COORDINATOR.to_owned()
+    };
+    let mut messages = vec![ChatMessage::system(system)];
     for example in texts::coordinator_examples().unwrap_or_default() {
+        if !offer_refusal && example.reply.get("refusal").is_some() {
+            continue;
+        }
         // "Named in the instruction" as a real request shows it: the example plan's drones and
         // places that its instruction names.
         let names: Vec<String> = CoordinatorReply::parse(&example.reply.to_string())
@@ -454,6 +482,21 @@ pub(super) fn same_work(call: &Call) -> (String, String) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_refusal_is_offered_only_with_the_plan_only_aid_off() {
+        let text = |messages: &[ChatMessage]| {
+            messages
+                .iter()
+                .map(|m| m.content.clone())
+                .collect::<String>()
+        };
+        let plan_only = text(&coordinator_fixed_messages(false));
+        let may_decline = text(&coordinator_fixed_messages(true));
+        assert!(!plan_only.contains("refusal"), "{plan_only}");
+        assert!(may_decline.contains("## Declining"));
+        assert!(may_decline.contains(r#""refusal":"airport is not a place on this map"#));
+    }
 
     #[test]
     fn work_repeated_in_a_row_is_one_task() {
