@@ -4,6 +4,7 @@
 //! Pure: every method takes the time it should assume, so the panes can be rendered and tested
 //! from a fixed state.
 
+pub use super::input_line::InputLine;
 use crate::mission::log::RefusedBy;
 use crate::mission::{EventTopic, MissionUpdate};
 use crate::swarm::SwarmView;
@@ -146,119 +147,6 @@ pub struct Status {
     pub thinking: Option<(String, Instant)>,
     /// Plans wait for the pilot's approval (`--confirm`; F2 switches it).
     pub confirm: bool,
-}
-
-/// The pilot's input line: a cursor (in characters) and a history for ↑/↓.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct InputLine {
-    chars: Vec<char>,
-    cursor: usize,
-    history: Vec<String>,
-    /// Where ↑/↓ is in the history (None: editing a fresh line).
-    browsing: Option<usize>,
-    /// The fresh line, kept while browsing.
-    draft: Vec<char>,
-}
-
-impl InputLine {
-    pub fn text(&self) -> String {
-        self.chars.iter().collect()
-    }
-
-    /// Cursor position in characters.
-    pub fn cursor(&self) -> usize {
-        self.cursor
-    }
-
-    pub fn history(&self) -> &[String] {
-        &self.history
-    }
-
-    fn set(&mut self, chars: Vec<char>) {
-        self.cursor = chars.len();
-        self.chars = chars;
-    }
-
-    fn insert(&mut self, c: char) {
-        self.chars.insert(self.cursor, c);
-        self.cursor += 1;
-    }
-
-    fn backspace(&mut self) {
-        if self.cursor > 0 {
-            self.cursor -= 1;
-            self.chars.remove(self.cursor);
-        }
-    }
-
-    fn delete(&mut self) {
-        if self.cursor < self.chars.len() {
-            self.chars.remove(self.cursor);
-        }
-    }
-
-    /// Deletes the word before the cursor (Ctrl-W).
-    fn delete_word(&mut self) {
-        let mut start = self.cursor;
-        while start > 0 && self.chars[start - 1].is_whitespace() {
-            start -= 1;
-        }
-        while start > 0 && !self.chars[start - 1].is_whitespace() {
-            start -= 1;
-        }
-        self.chars.drain(start..self.cursor);
-        self.cursor = start;
-    }
-
-    fn older(&mut self) {
-        if self.history.is_empty() {
-            return;
-        }
-        let next = match self.browsing {
-            None => {
-                self.draft = self.chars.clone();
-                self.history.len() - 1
-            }
-            Some(i) => i.saturating_sub(1),
-        };
-        self.browsing = Some(next);
-        let line = self.history[next].chars().collect();
-        self.set(line);
-    }
-
-    fn newer(&mut self) {
-        let Some(i) = self.browsing else {
-            return;
-        };
-        if i + 1 < self.history.len() {
-            self.browsing = Some(i + 1);
-            let line = self.history[i + 1].chars().collect();
-            self.set(line);
-        } else {
-            self.browsing = None;
-            let draft = std::mem::take(&mut self.draft);
-            self.set(draft);
-        }
-    }
-
-    /// Takes the line (trimmed) and remembers it; None when it is blank.
-    fn take(&mut self) -> Option<String> {
-        let text = self.text().trim().to_owned();
-        self.chars.clear();
-        self.cursor = 0;
-        self.browsing = None;
-        self.draft.clear();
-        if text.is_empty() {
-            return None;
-        }
-        if self.history.last() != Some(&text) {
-            self.history.push(text.clone());
-            if self.history.len() > HISTORY_CAPACITY {
-                self.history.remove(0);
-            }
-        }
-        Some(text)
-    }
 }
 
 /// The pane that PgUp/PgDn scroll.
@@ -572,25 +460,20 @@ impl TerminalState {
                 self.scroll.chat = 0;
                 return Some(Command::Submit(line));
             }
-            KeyCode::Char('a') if ctrl => self.input.cursor = 0,
-            KeyCode::Char('e') if ctrl => self.input.cursor = self.input.chars.len(),
-            KeyCode::Char('u') if ctrl => {
-                self.input.chars.drain(..self.input.cursor);
-                self.input.cursor = 0;
-            }
-            KeyCode::Char('k') if ctrl => self.input.chars.truncate(self.input.cursor),
+            KeyCode::Char('a') if ctrl => self.input.home(),
+            KeyCode::Char('e') if ctrl => self.input.end(),
+            KeyCode::Char('u') if ctrl => self.input.kill_before(),
+            KeyCode::Char('k') if ctrl => self.input.kill_after(),
             KeyCode::Char('w') if ctrl => self.input.delete_word(),
             KeyCode::Char(c) if !ctrl && !key.modifiers.contains(KeyModifiers::ALT) => {
                 self.input.insert(c)
             }
             KeyCode::Backspace => self.input.backspace(),
             KeyCode::Delete => self.input.delete(),
-            KeyCode::Left => self.input.cursor = self.input.cursor.saturating_sub(1),
-            KeyCode::Right => {
-                self.input.cursor = (self.input.cursor + 1).min(self.input.chars.len())
-            }
-            KeyCode::Home => self.input.cursor = 0,
-            KeyCode::End => self.input.cursor = self.input.chars.len(),
+            KeyCode::Left => self.input.left(),
+            KeyCode::Right => self.input.right(),
+            KeyCode::Home => self.input.home(),
+            KeyCode::End => self.input.end(),
             KeyCode::Up => self.input.older(),
             KeyCode::Down => self.input.newer(),
             KeyCode::Tab => {
