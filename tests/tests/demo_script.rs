@@ -98,6 +98,13 @@ fn policy(index: usize, request: &Value) -> PolicyResult {
     Ok(json!({ "reasoning": "Start what can start now.", "actions": actions, "plan_complete": complete }).to_string())
 }
 
+/// Whether the log holds no action sent, by a model or a direct command.
+fn nothing_sent(lines: &[LogLine]) -> bool {
+    !lines
+        .iter()
+        .any(|l| matches!(l.record, Record::Direct { .. } | Record::ActionSent { .. }))
+}
+
 /// Every name an `enum` of the request's schema offers.
 fn enum_names(value: &Value) -> Vec<String> {
     match value {
@@ -362,12 +369,7 @@ async fn a_step_waiting_on_an_instruction_the_mission_gave_up_fails_at_once() ->
         "the step waited {took:?} after the mission gave up"
     );
     let lines = log::read(&log_path)?;
-    assert!(
-        !lines
-            .iter()
-            .any(|l| matches!(l.record, Record::Direct { .. } | Record::ActionSent { .. })),
-        "something was sent"
-    );
+    assert!(nothing_sent(&lines), "something was sent");
     // A failed run still closes with what happened: three Coordinator requests, nothing sent.
     let tally = log::Tally::of(&lines);
     assert_eq!(
@@ -412,12 +414,7 @@ async fn an_instruction_the_coordinator_declines_is_answered_with_its_reason() -
     );
     assert!(started.elapsed() < Duration::from_secs(120));
     let lines = log::read(&log_path)?;
-    assert!(
-        !lines
-            .iter()
-            .any(|l| matches!(l.record, Record::Direct { .. } | Record::ActionSent { .. })),
-        "something was sent"
-    );
+    assert!(nothing_sent(&lines), "something was sent");
     assert!(
         lines.iter().any(|l| matches!(&l.record, Record::Event { text }
             if text.starts_with("instruction declined by the Coordinator: There is no the_airport"))),
