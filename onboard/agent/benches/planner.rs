@@ -17,6 +17,7 @@ use tacos_shared::scenario::Scenario;
 use tacos_shared::{DroneId, Vec3};
 
 const RADIUS: f64 = 60.0;
+/// Seconds between solves; `PLANNER_BENCH_PERIOD_S` overrides it (a starved planner).
 const REPLAN: f64 = 0.05;
 const DENSE: usize = 10;
 const MAX_SIM: f64 = 120.0;
@@ -35,7 +36,7 @@ struct Outcome {
     constraints: Vec<usize>,
 }
 
-fn run(n: usize, scenario: &Scenario) -> Result<Outcome, String> {
+fn run(n: usize, scenario: &Scenario, replan: f64) -> Result<Outcome, String> {
     let cfg = PlannerConfig::from_scenario(&scenario.limits, &scenario.world);
     let mut planners = (0..n)
         .map(|_| Planner::new(cfg.clone()))
@@ -106,7 +107,7 @@ fn run(n: usize, scenario: &Scenario) -> Result<Outcome, String> {
         for (i, plan) in plans.iter().enumerate() {
             dense[i].clear();
             for s in 0..=DENSE {
-                dense[i].push(plan.sample(now + REPLAN * s as f64 / DENSE as f64).position);
+                dense[i].push(plan.sample(now + replan * s as f64 / DENSE as f64).position);
             }
         }
         for s in 0..=DENSE {
@@ -123,7 +124,7 @@ fn run(n: usize, scenario: &Scenario) -> Result<Outcome, String> {
         for (i, plan) in plans.iter().enumerate() {
             published[i] = (now, plan.path().to_vec());
         }
-        now += REPLAN;
+        now += replan;
         for (i, plan) in plans.iter().enumerate() {
             let s = plan.sample(now);
             state[i] = (s.position, s.velocity);
@@ -153,8 +154,13 @@ fn main() {
             std::process::exit(1);
         }
     };
+    let replan = std::env::var("PLANNER_BENCH_PERIOD_S")
+        .ok()
+        .and_then(|s| s.parse::<f64>().ok())
+        .filter(|p| p.is_finite() && *p > 0.0)
+        .unwrap_or(REPLAN);
     for n in [6, 12, 20] {
-        let out = match run(n, &scenario) {
+        let out = match run(n, &scenario, replan) {
             Ok(o) => o,
             Err(e) => {
                 eprintln!("planner bench N={n}: {e}");

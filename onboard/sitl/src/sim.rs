@@ -97,8 +97,9 @@ pub struct Simulation {
     detector: Detector,
     rules: SafetyRules,
     stats: SafetyStats,
-    /// Whether the last step breached separation: a breach is logged when it begins.
-    breaching: bool,
+    /// Whether the last step breached separation, and an obstacle: a breach is logged when it
+    /// begins.
+    breaching: (bool, bool),
 }
 
 impl Simulation {
@@ -153,7 +154,7 @@ impl Simulation {
                 scenario.limits.safety_distance,
             ),
             stats: SafetyStats::default(),
-            breaching: false,
+            breaching: (false, false),
         }
     }
 
@@ -327,7 +328,7 @@ impl Simulation {
             t.step(dt, &self.bounds, &alive_airborne);
         }
         let breach = self.stats.update(&airborne, struck_ground, &self.rules);
-        if let (Some((i, j, distance)), false) = (breach, self.breaching) {
+        if let (Some((i, j, distance)), false) = (breach.separation, self.breaching.0) {
             let ((a, pa), (b, pb)) = (airborne_ids[i], airborne_ids[j]);
             tracing::warn!(
                 time = self.time,
@@ -340,7 +341,18 @@ impl Simulation {
                 pb.z
             );
         }
-        self.breaching = breach.is_some();
+        if let (Some((i, k, clearance)), false) = (breach.obstacle, self.breaching.1) {
+            let (drone, p) = airborne_ids[i];
+            let obstacle = self.rules.obstacles.get(k).map_or("?", |o| o.name.as_str());
+            tracing::warn!(
+                time = self.time,
+                "obstacle breach begins: {drone} at ({:.2}, {:.2}, {:.2}) is {clearance:.2} m from {obstacle}",
+                p.x,
+                p.y,
+                p.z
+            );
+        }
+        self.breaching = (breach.separation.is_some(), breach.obstacle.is_some());
 
         let observers: Vec<Observer<'_>> = fleet
             .iter()

@@ -44,18 +44,28 @@ impl SafetyRules {
     }
 }
 
+/// What one step broke, so the caller can say which drones and obstacles they were.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct StepBreaches {
+    /// The closest pair too close: indices into `airborne` and their distance.
+    pub separation: Option<(usize, usize, f64)>,
+    /// The vehicle deepest into an obstacle grown by the drone radius: its index into
+    /// `airborne`, the obstacle's index into `SafetyRules::obstacles`, and its clearance to the
+    /// obstacle itself (below the drone radius).
+    pub obstacle: Option<(usize, usize, f64)>,
+}
+
 impl SafetyStats {
     /// Folds in one simulation step; `airborne` are the world positions of the vehicles in the air,
     /// `struck_ground` whether a vehicle flew into the ground under power during the step (the
     /// ground counts as an obstacle). A step counts one separation breach however many pairs are
-    /// too close, and likewise for obstacles. Returns the closest pair too close this step, as
-    /// indices into `airborne` and their distance, so the caller can say which drones they were.
+    /// too close, and likewise for obstacles.
     pub fn update(
         &mut self,
         airborne: &[Vec3],
         struck_ground: bool,
         rules: &SafetyRules,
-    ) -> Option<(usize, usize, f64)> {
+    ) -> StepBreaches {
         let mut closest: Option<(usize, usize, f64)> = None;
         for (i, a) in airborne.iter().enumerate() {
             for (j, b) in airborne.iter().enumerate().skip(i + 1) {
@@ -69,18 +79,23 @@ impl SafetyStats {
         if closest.is_some() {
             self.separation_breaches += 1;
         }
-        let mut inside = false;
-        for p in airborne {
-            for o in &rules.obstacles {
-                self.min_obstacle_clearance =
-                    self.min_obstacle_clearance.min(o.clearance_lower_bound(p));
+        let mut deepest: Option<(usize, usize, f64)> = None;
+        for (i, p) in airborne.iter().enumerate() {
+            for (k, (o, grown)) in rules.obstacles.iter().zip(&rules.inflated).enumerate() {
+                let clearance = o.clearance_lower_bound(p);
+                self.min_obstacle_clearance = self.min_obstacle_clearance.min(clearance);
+                if grown.contains(p) && deepest.is_none_or(|(_, _, c)| clearance < c) {
+                    deepest = Some((i, k, clearance));
+                }
             }
-            inside |= rules.inflated.iter().any(|o| o.contains(p));
         }
-        if inside || struck_ground {
+        if deepest.is_some() || struck_ground {
             self.obstacle_breaches += 1;
         }
-        closest
+        StepBreaches {
+            separation: closest,
+            obstacle: deepest,
+        }
     }
 }
 
@@ -115,15 +130,24 @@ mod tests {
         assert_eq!((s.separation_breaches, s.obstacle_breaches), (0, 0));
         assert!(s.min_obstacle_clearance > 10.0 && s.min_obstacle_clearance.is_finite());
 
-        s.update(
+        let step = s.update(
             &[Vec3::new(20.0, 0.0, 5.0), Vec3::new(21.0, 0.0, 5.0)],
             false,
             &rules,
         );
         assert_eq!(s.separation_breaches, 1);
+        assert_eq!(step.separation.map(|(i, j, _)| (i, j)), Some((0, 1)));
+        assert_eq!(step.obstacle, None);
         // 5.3 m from the centre: outside the tower (5 m) but inside it grown by 0.5 m.
-        s.update(&[Vec3::new(5.3, 0.0, 0.0)], false, &rules);
+        let step = s.update(
+            &[Vec3::new(40.0, 0.0, 0.0), Vec3::new(5.3, 0.0, 0.0)],
+            false,
+            &rules,
+        );
         assert_eq!(s.obstacle_breaches, 1);
+        let (drone, obstacle, clearance) = step.obstacle.expect("the breach is named");
+        assert_eq!((drone, obstacle), (1, 0));
+        assert!(clearance > 0.0 && clearance <= 0.3 + 1e-9, "{clearance}");
         assert!(s.min_obstacle_clearance > 0.0 && s.min_obstacle_clearance <= 0.3 + 1e-9);
         // Running minima do not go back up.
         s.update(

@@ -212,11 +212,12 @@ impl QpWorkspace {
                 tol_gap_abs: 1e-6,
                 tol_gap_rel: 1e-6,
                 tol_feas: 1e-7,
-                // The KKT systems are small and well regularised: a few refinement steps to a
-                // looser tolerance than the default (1e-13, 10 steps) are plenty.
-                iterative_refinement_reltol: 1e-10,
-                iterative_refinement_abstol: 1e-10,
-                iterative_refinement_max_iter: 3,
+                // The KKT systems are small and well regularised: iterative refinement of each
+                // KKT solve took a third of the solve time in the planner bench's 20-drone
+                // swap (mean 4.5 → 3.0 ms, p95 12 → 7.6 ms without it), with the same
+                // iterations, no braking and the same clearances. The solver's own residual
+                // checks still decide when a solve has converged.
+                iterative_refinement_enable: false,
                 ..DefaultSettings::default()
             })
             .clone()
