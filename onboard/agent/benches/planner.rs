@@ -5,6 +5,8 @@
 //! perfectly in between. Each `plan()` call is timed; safety is checked on dense samples.
 //!
 //! Prints one line per N (6, 12, 20), the N = 20 line last. No assertions on speed.
+//! `PLANNER_BENCH_PERIOD_S=0.25` replans every 250 ms instead (a planner starved of CPU, as
+//! 20 onboards on two cores are where the swap crosses).
 //!
 //! `cargo bench -p tacos-onboard --bench planner` (release), or in the dev profile:
 //! `cargo build -p tacos-onboard --benches` then run `target/debug/deps/planner-*`.

@@ -23,6 +23,10 @@ struct Args {
     /// Seconds of ground silence before landing.
     #[arg(long, default_value_t = 30.0)]
     failsafe_land_s: f64,
+    /// Seconds without hearing any of the neighbours before holding where it is (a drone cut
+    /// off from its peers but not from the ground).
+    #[arg(long, default_value_t = 3.0)]
+    peers_silent_hold_s: f64,
     /// Refuse an action (land and hold aside) that arrives this many seconds later than the
     /// ground station's heartbeats take: the network held it, and the ground has moved on.
     #[arg(long, default_value_t = 2.0)]
@@ -52,6 +56,12 @@ fn run() -> anyhow::Result<()> {
     let mut cfg = OnboardConfig::new(args.bus, args.drone, scenario);
     cfg.failsafe_hold_s = args.failsafe_hold_s;
     cfg.failsafe_land_s = args.failsafe_land_s;
+    anyhow::ensure!(
+        args.peers_silent_hold_s > 0.0,
+        "--peers-silent-hold-s must be above 0 (got {})",
+        args.peers_silent_hold_s
+    );
+    cfg.peers_silent_hold_s = args.peers_silent_hold_s;
     anyhow::ensure!(
         args.max_action_late_s > 0.0,
         "--max-action-late-s must be above 0 (got {})",

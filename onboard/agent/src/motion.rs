@@ -228,12 +228,32 @@ impl Motion {
         }
     }
 
+    /// A neighbour is known while it was last seen airborne, or for `forget_path_after`.
+    fn known(&self, path: &PathMessage, now: f64) -> bool {
+        path.airborne || now - path.stamp <= self.cfg.forget_path_after
+    }
+
     /// The neighbours whose path is recent enough to plan against, aged to `now`.
     fn neighbours(&self, now: f64) -> impl Iterator<Item = NeighbourPath> + '_ {
         self.paths
             .values()
-            .filter(move |p| p.airborne || now - p.stamp <= self.cfg.forget_path_after)
+            .filter(move |p| self.known(p, now))
             .map(move |p| NeighbourPath::from_message(p, now))
+    }
+
+    /// How long since any neighbour this drone knows (one it plans against: see `neighbours`)
+    /// was last heard, by the newest of their paths' stamps; `None` while it knows none. Every
+    /// onboard publishes a path at the planner's rate whether it flies or stands, so a silence
+    /// from all of them means this drone is cut off from its peers (or they all died). A
+    /// neighbour last seen on the ground is forgotten after `forget_path_after`, and its
+    /// silence with it; one last seen airborne never is.
+    pub fn peers_silence(&self, now: f64) -> Option<f64> {
+        self.paths
+            .values()
+            .filter(|p| self.known(p, now))
+            .map(|p| p.stamp)
+            .reduce(f64::max)
+            .map(|newest| (now - newest).max(0.0))
     }
 
     /// The drones (me included) tracking `target` now, by their recent paths.

@@ -35,6 +35,8 @@ pub struct OnboardConfig {
     pub failsafe_hold_s: f64,
     /// Ground silent this long → land.
     pub failsafe_land_s: f64,
+    /// Every known neighbour silent this long → hold (see `Executor::set_peers_silent`).
+    pub peers_silent_hold_s: f64,
     /// An action of the followed ground arriving this much later than its heartbeats take is
     /// refused (land and hold aside): see `ground_follow`.
     pub max_action_late_s: f64,
@@ -54,6 +56,7 @@ impl OnboardConfig {
             status_rate_hz: 20.0,
             failsafe_hold_s: 3.0,
             failsafe_land_s: 30.0,
+            peers_silent_hold_s: 3.0,
             max_action_late_s: 2.0,
             writer_timeout_s: 1.0,
             motion: MotionConfig::default(),
@@ -303,6 +306,15 @@ async fn run_inner(
                     executor.set_failsafe(failsafe.stage(t), t);
                     if executor.failsafe() != before {
                         warn!(stage = ?executor.failsafe(), silence_s = failsafe.silence(t), "failsafe changed");
+                    }
+                    let peers_silence = motion.peers_silence(t);
+                    let peers_were_silent = executor.peers_silent();
+                    executor.set_peers_silent(peers_silence.is_some_and(|s| s >= cfg.peers_silent_hold_s));
+                    if executor.peers_silent() != peers_were_silent {
+                        match peers_silence {
+                            Some(s) if executor.peers_silent() => warn!(silence_s = s, "no neighbour heard: an airborne drone holds"),
+                            _ => info!("a neighbour is heard again"),
+                        }
                     }
                     if let Some((target, altitude)) = executor.following() {
                         let station = motion.station(target, altitude, t);

@@ -17,6 +17,7 @@ use tacos_shared::messages::{ActionProgress, ActionState, FailsafeStage, Failure
 use tacos_shared::px4_mode::Px4Mode;
 use tacos_shared::{DroneMode, Vec3};
 
+mod failsafe;
 mod landing;
 mod takeoff;
 mod view;
@@ -95,6 +96,8 @@ pub struct Executor {
     next_command_seq: u64,
     offboard_since: Option<f64>,
     failsafe: Option<FailsafeStage>,
+    /// No neighbour heard for the bound (see `failsafe`).
+    peers_silent: bool,
 }
 
 impl Executor {
@@ -112,6 +115,7 @@ impl Executor {
             next_command_seq: 1,
             offboard_since: None,
             failsafe: None,
+            peers_silent: false,
         }
     }
 
@@ -273,14 +277,8 @@ impl Executor {
             )));
             return true;
         }
-        // A ground that sends without beating is not in control: while the failsafe is on,
-        // only what makes the drone safer is taken.
-        if self.failsafe.is_some() && !matches!(command.action, Action::Land | Action::Hold) {
-            self.finish(ActionState::Failed(FailureReason::Failsafe(
-                "ground silent: only land and hold are taken until a ground station in \
-                 control is heard"
-                    .into(),
-            )));
+        if let Some(why) = self.failsafe_refusal(&command.action) {
+            self.finish(ActionState::Failed(FailureReason::Failsafe(why.into())));
             return true;
         }
         let Some(vehicle) = self.vehicle else {
@@ -425,33 +423,6 @@ impl Executor {
         }
     }
 
-    /// Sets the failsafe's stage (`None` = the ground is heard again) and makes the task what
-    /// the stage asks for, whatever happened before: called every tick, it acts on the state,
-    /// not on changes of stage, so a drone that is airborne while the ground has been silent
-    /// past a bound (it took off after the stage was set, or a task replaced the hold) holds or
-    /// lands all the same. Holding allows a landing; landing allows nothing else.
-    pub fn set_failsafe(&mut self, stage: Option<FailsafeStage>, now: f64) {
-        self.failsafe = stage;
-        let Some(stage) = stage else { return };
-        if !self.airborne() {
-            return;
-        }
-        let landing = matches!(self.task, Task::Land { .. });
-        match stage {
-            FailsafeStage::Holding if !landing && !matches!(self.task, Task::Hold) => {
-                self.fail(FailureReason::Failsafe("ground silent: holding".into()));
-                self.hold_point = self.vehicle.map(|v| v.position);
-                self.task = Task::Hold;
-                self.ensure_offboard();
-            }
-            FailsafeStage::Landing if !landing => {
-                self.fail(FailureReason::Failsafe("ground silent: landing".into()));
-                self.start_landing(now);
-            }
-            _ => {}
-        }
-    }
-
     /// Advances the task; returns the reference to stream and the commands to send.
     pub fn tick(&mut self, now: f64) -> TickOutput {
         let Some(vehicle) = self.vehicle else {
@@ -590,5 +561,7 @@ fn disarmed_in_flight() -> FailureReason {
     FailureReason::InvalidForMode("the vehicle disarmed: it is on the ground".into())
 }
 
+#[cfg(test)]
+mod failsafe_tests;
 #[cfg(test)]
 mod tests;

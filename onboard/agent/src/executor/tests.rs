@@ -3,12 +3,12 @@
 use super::*;
 use tacos_shared::scenario::Scenario;
 
-fn lab() -> Executor {
+pub(super) fn lab() -> Executor {
     let s = Scenario::builtin("city").expect("city");
     Executor::new(ExecutorConfig::new(s.limits, s.world))
 }
 
-fn state(position: Vec3, armed: bool, mode: Px4Mode) -> VehicleStateSample {
+pub(super) fn state(position: Vec3, armed: bool, mode: Px4Mode) -> VehicleStateSample {
     VehicleStateSample {
         link_ok: 1,
         armed: u32::from(armed),
@@ -29,7 +29,7 @@ fn accept(ex: &mut Executor, cmd: &CommandSample, now: f64) {
     ex.on_result(&r, now);
 }
 
-fn cmd(seq: u64, action: Action) -> ActionCommand {
+pub(super) fn cmd(seq: u64, action: Action) -> ActionCommand {
     ActionCommand {
         ground: 1,
         seq,
@@ -39,7 +39,7 @@ fn cmd(seq: u64, action: Action) -> ActionCommand {
     }
 }
 
-fn state_of(ex: &Executor) -> ActionState {
+pub(super) fn state_of(ex: &Executor) -> ActionState {
     ex.progress().map(|p| p.state.clone()).expect("an action")
 }
 
@@ -522,48 +522,6 @@ fn repeated_sequence_numbers_are_ignored() {
 }
 
 #[test]
-fn failsafe_holds_then_lands() {
-    let mut ex = lab();
-    let p = Vec3::new(-40.0, -100.0, 10.0);
-    ex.on_vehicle(&state(p, true, Px4Mode::Offboard));
-    ex.on_command(
-        &cmd(
-            1,
-            Action::Goto {
-                target: Vec3::new(-40.0, -60.0, 10.0),
-            },
-        ),
-        0.0,
-    );
-    ex.tick(0.5);
-    ex.set_failsafe(Some(FailsafeStage::Holding), 1.0);
-    assert!(matches!(
-        state_of(&ex),
-        ActionState::Failed(FailureReason::Failsafe(_))
-    ));
-    assert_eq!(
-        ex.tick(1.1).steering,
-        Some(Steering::Toward(Goal::fixed(p)))
-    );
-    ex.set_failsafe(Some(FailsafeStage::Landing), 5.0);
-    let out = ex.tick(5.0);
-    assert!(
-        out.commands.is_empty(),
-        "it first descends, apart from its neighbours"
-    );
-    assert_eq!(
-        out.steering,
-        Some(Steering::Toward(Goal::fixed(Vec3::new(-40.0, -100.0, 1.0))))
-    );
-    ex.on_vehicle(&state(
-        Vec3::new(-40.0, -100.0, 1.0),
-        true,
-        Px4Mode::Offboard,
-    ));
-    assert!(matches!(ex.tick(9.0).steering, Some(Steering::Sink { .. })));
-}
-
-#[test]
 fn a_landing_descends_through_the_planner_sinks_onto_the_floor_and_disarms() {
     let mut ex = lab();
     let high = Vec3::new(-50.0, -132.5, 10.0);
@@ -675,65 +633,6 @@ fn a_landing_descends_through_the_planner_sinks_onto_the_floor_and_disarms() {
         ex.tick(0.0).commands.first().and_then(|c| c.kind()),
         Some(CommandKind::Land)
     );
-}
-
-/// The failsafe acts on the state: a drone airborne while the ground has been silent past a
-/// bound holds or lands, whatever happened since the stage was set, and takes only land and
-/// hold until the ground is heard again.
-#[test]
-fn the_failsafe_acts_on_the_state_not_on_changes_of_stage() {
-    let mut ex = lab();
-    let ground = Vec3::new(-50.0, -132.5, 0.0);
-    ex.on_vehicle(&state(ground, false, Px4Mode::Hold));
-    // Silent long enough to land while on the ground: nothing to do yet.
-    ex.set_failsafe(Some(FailsafeStage::Landing), 40.0);
-    assert!(ex.tick(40.0).commands.is_empty());
-    // A take-off from a ground that does not beat is refused, with the reason.
-    assert!(ex.on_command(&cmd(1, Action::ArmTakeoff), 40.1));
-    match state_of(&ex) {
-        ActionState::Failed(FailureReason::Failsafe(why)) => {
-            assert!(why.contains("only land and hold"), "{why}")
-        }
-        other => panic!("a take-off was taken in the failsafe: {other:?}"),
-    }
-    // Airborne all the same (the pilot took it off by hand): the next tick lands it.
-    let up = Vec3::new(-50.0, -132.5, 5.0);
-    ex.on_vehicle(&state(up, true, Px4Mode::Offboard));
-    ex.set_failsafe(Some(FailsafeStage::Landing), 41.0);
-    assert_eq!(
-        ex.tick(41.0).steering,
-        Some(Steering::Toward(Goal::fixed(Vec3::new(-50.0, -132.5, 1.0)))),
-        "it descends to hand over to PX4's landing"
-    );
-    // Holding: a goto is refused and the drone keeps its hold; a landing is taken.
-    let mut ex = lab();
-    let p = Vec3::new(-40.0, -100.0, 10.0);
-    ex.on_vehicle(&state(p, true, Px4Mode::Offboard));
-    ex.set_failsafe(Some(FailsafeStage::Holding), 5.0);
-    let goto = Action::Goto {
-        target: Vec3::new(-40.0, -60.0, 10.0),
-    };
-    ex.on_command(&cmd(2, goto.clone()), 5.1);
-    assert!(matches!(
-        state_of(&ex),
-        ActionState::Failed(FailureReason::Failsafe(_))
-    ));
-    ex.set_failsafe(Some(FailsafeStage::Holding), 5.2);
-    assert_eq!(
-        ex.tick(5.2).steering,
-        Some(Steering::Toward(Goal::fixed(p)))
-    );
-    ex.on_command(&cmd(3, Action::Land), 5.3);
-    ex.set_failsafe(Some(FailsafeStage::Holding), 5.4);
-    assert_eq!(
-        ex.tick(5.4).steering,
-        Some(Steering::Toward(Goal::fixed(Vec3::new(-40.0, -100.0, 1.0)))),
-        "the landing goes on under the hold stage"
-    );
-    // Heard again: work is taken again.
-    ex.set_failsafe(None, 6.0);
-    ex.on_command(&cmd(4, goto), 6.1);
-    assert!(matches!(state_of(&ex), ActionState::Running { .. }));
 }
 
 /// An onboard restarted beside a vehicle flying in OFFBOARD takes it over: it holds where the

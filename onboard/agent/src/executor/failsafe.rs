@@ -1,0 +1,83 @@
+//! The executor's failsafes: what a silent ground station, or neighbours that have all fallen
+//! silent, make an airborne drone do, and which actions are still taken meanwhile.
+
+use super::{Executor, Task};
+use tacos_shared::action::Action;
+use tacos_shared::messages::{FailsafeStage, FailureReason};
+
+impl Executor {
+    /// Sets the failsafe's stage (`None` = the ground is heard again) and makes the task what
+    /// the stage asks for, whatever happened before: called every tick, it acts on the state,
+    /// not on changes of stage, so a drone that is airborne while the ground has been silent
+    /// past a bound (it took off after the stage was set, or a task replaced the hold) holds or
+    /// lands all the same. Holding allows a landing; landing allows nothing else.
+    pub fn set_failsafe(&mut self, stage: Option<FailsafeStage>, now: f64) {
+        self.failsafe = stage;
+        let Some(stage) = stage else { return };
+        if !self.airborne() {
+            return;
+        }
+        let landing = matches!(self.task, Task::Land { .. });
+        match stage {
+            FailsafeStage::Holding if !landing && !matches!(self.task, Task::Hold) => {
+                self.fail(FailureReason::Failsafe("ground silent: holding".into()));
+                self.hold_point = self.vehicle.map(|v| v.position);
+                self.task = Task::Hold;
+                self.ensure_offboard();
+            }
+            FailsafeStage::Landing if !landing => {
+                self.fail(FailureReason::Failsafe("ground silent: landing".into()));
+                self.start_landing(now);
+            }
+            _ => {}
+        }
+    }
+
+    /// Whether none of the neighbours this drone knows has been heard for the bound (the
+    /// runtime judges it from `Motion::peers_silence`). An airborne drone then stops where it
+    /// is and holds there through the planner, which keeps every neighbour where it was last
+    /// heard (with a margin growing with the silence): flying on, it would cross airspace the
+    /// others may have entered since. Like the ground's failsafe it acts on the state, every
+    /// tick, and a landing goes on. When a neighbour is heard again the drone stays in its
+    /// hold until the ground gives it work.
+    pub fn set_peers_silent(&mut self, silent: bool) {
+        self.peers_silent = silent;
+        if !silent || !self.airborne() {
+            return;
+        }
+        if !matches!(self.task, Task::Land { .. } | Task::Hold) {
+            self.fail(FailureReason::Failsafe(
+                "no neighbour heard: holding where it is".into(),
+            ));
+            self.hold_point = self.vehicle.map(|v| v.position);
+            self.task = Task::Hold;
+            self.ensure_offboard();
+        }
+    }
+
+    pub fn peers_silent(&self) -> bool {
+        self.peers_silent
+    }
+
+    /// Why `action` is refused on arrival because of a failsafe: only what makes the drone
+    /// safer (land, hold) is taken while one is on.
+    pub(super) fn failsafe_refusal(&self, action: &Action) -> Option<&'static str> {
+        if matches!(action, Action::Land | Action::Hold) {
+            return None;
+        }
+        if self.failsafe.is_some() {
+            // A ground that sends without beating is not in control.
+            return Some(
+                "ground silent: only land and hold are taken until a ground station in \
+                 control is heard",
+            );
+        }
+        if self.peers_silent && self.airborne() {
+            return Some(
+                "no neighbour heard: only land and hold are taken until one is heard, since \
+                 the others' whereabouts are unknown",
+            );
+        }
+        None
+    }
+}

@@ -1,0 +1,174 @@
+//! Tests of the executor's failsafes: a silent ground station, silent neighbours.
+
+use super::tests::{cmd, lab, state, state_of};
+use super::*;
+
+#[test]
+fn failsafe_holds_then_lands() {
+    let mut ex = lab();
+    let p = Vec3::new(-40.0, -100.0, 10.0);
+    ex.on_vehicle(&state(p, true, Px4Mode::Offboard));
+    ex.on_command(
+        &cmd(
+            1,
+            Action::Goto {
+                target: Vec3::new(-40.0, -60.0, 10.0),
+            },
+        ),
+        0.0,
+    );
+    ex.tick(0.5);
+    ex.set_failsafe(Some(FailsafeStage::Holding), 1.0);
+    assert!(matches!(
+        state_of(&ex),
+        ActionState::Failed(FailureReason::Failsafe(_))
+    ));
+    assert_eq!(
+        ex.tick(1.1).steering,
+        Some(Steering::Toward(Goal::fixed(p)))
+    );
+    ex.set_failsafe(Some(FailsafeStage::Landing), 5.0);
+    let out = ex.tick(5.0);
+    assert!(
+        out.commands.is_empty(),
+        "it first descends, apart from its neighbours"
+    );
+    assert_eq!(
+        out.steering,
+        Some(Steering::Toward(Goal::fixed(Vec3::new(-40.0, -100.0, 1.0))))
+    );
+    ex.on_vehicle(&state(
+        Vec3::new(-40.0, -100.0, 1.0),
+        true,
+        Px4Mode::Offboard,
+    ));
+    assert!(matches!(ex.tick(9.0).steering, Some(Steering::Sink { .. })));
+}
+
+/// The failsafe acts on the state: a drone airborne while the ground has been silent past a
+/// bound holds or lands, whatever happened since the stage was set, and takes only land and
+/// hold until the ground is heard again.
+#[test]
+fn the_failsafe_acts_on_the_state_not_on_changes_of_stage() {
+    let mut ex = lab();
+    let ground = Vec3::new(-50.0, -132.5, 0.0);
+    ex.on_vehicle(&state(ground, false, Px4Mode::Hold));
+    // Silent long enough to land while on the ground: nothing to do yet.
+    ex.set_failsafe(Some(FailsafeStage::Landing), 40.0);
+    assert!(ex.tick(40.0).commands.is_empty());
+    // A take-off from a ground that does not beat is refused, with the reason.
+    assert!(ex.on_command(&cmd(1, Action::ArmTakeoff), 40.1));
+    match state_of(&ex) {
+        ActionState::Failed(FailureReason::Failsafe(why)) => {
+            assert!(why.contains("only land and hold"), "{why}")
+        }
+        other => panic!("a take-off was taken in the failsafe: {other:?}"),
+    }
+    // Airborne all the same (the pilot took it off by hand): the next tick lands it.
+    let up = Vec3::new(-50.0, -132.5, 5.0);
+    ex.on_vehicle(&state(up, true, Px4Mode::Offboard));
+    ex.set_failsafe(Some(FailsafeStage::Landing), 41.0);
+    assert_eq!(
+        ex.tick(41.0).steering,
+        Some(Steering::Toward(Goal::fixed(Vec3::new(-50.0, -132.5, 1.0)))),
+        "it descends to hand over to PX4's landing"
+    );
+    // Holding: a goto is refused and the drone keeps its hold; a landing is taken.
+    let mut ex = lab();
+    let p = Vec3::new(-40.0, -100.0, 10.0);
+    ex.on_vehicle(&state(p, true, Px4Mode::Offboard));
+    ex.set_failsafe(Some(FailsafeStage::Holding), 5.0);
+    let goto = Action::Goto {
+        target: Vec3::new(-40.0, -60.0, 10.0),
+    };
+    ex.on_command(&cmd(2, goto.clone()), 5.1);
+    assert!(matches!(
+        state_of(&ex),
+        ActionState::Failed(FailureReason::Failsafe(_))
+    ));
+    ex.set_failsafe(Some(FailsafeStage::Holding), 5.2);
+    assert_eq!(
+        ex.tick(5.2).steering,
+        Some(Steering::Toward(Goal::fixed(p)))
+    );
+    ex.on_command(&cmd(3, Action::Land), 5.3);
+    ex.set_failsafe(Some(FailsafeStage::Holding), 5.4);
+    assert_eq!(
+        ex.tick(5.4).steering,
+        Some(Steering::Toward(Goal::fixed(Vec3::new(-40.0, -100.0, 1.0)))),
+        "the landing goes on under the hold stage"
+    );
+    // Heard again: work is taken again.
+    ex.set_failsafe(None, 6.0);
+    ex.on_command(&cmd(4, goto), 6.1);
+    assert!(matches!(state_of(&ex), ActionState::Running { .. }));
+}
+
+/// Every neighbour silent: an airborne drone stops its goto and holds where it is, takes only
+/// land and hold meanwhile, and takes work again once a neighbour is heard. On the ground it
+/// may still take off.
+#[test]
+fn silent_neighbours_make_an_airborne_drone_hold_and_take_only_land_and_hold() {
+    let mut ex = lab();
+    let pad = Vec3::new(-50.0, -132.5, 0.0);
+    ex.on_vehicle(&state(pad, false, Px4Mode::Hold));
+    ex.set_peers_silent(true);
+    assert!(ex.on_command(&cmd(1, Action::ArmTakeoff), 0.0));
+    assert!(
+        !matches!(state_of(&ex), ActionState::Failed(_)),
+        "a take-off on the ground is taken: {:?}",
+        state_of(&ex)
+    );
+
+    let mut ex = lab();
+    let p = Vec3::new(-40.0, -100.0, 10.0);
+    ex.on_vehicle(&state(p, true, Px4Mode::Offboard));
+    let goto = Action::Goto {
+        target: Vec3::new(-40.0, -60.0, 10.0),
+    };
+    ex.on_command(&cmd(1, goto.clone()), 0.0);
+    ex.set_peers_silent(false);
+    assert!(matches!(ex.tick(0.1).steering, Some(Steering::Toward(g)) if g.position.y == -60.0));
+    let moved = Vec3::new(-40.0, -95.0, 10.0);
+    ex.on_vehicle(&state(moved, true, Px4Mode::Offboard));
+    ex.set_peers_silent(true);
+    match state_of(&ex) {
+        ActionState::Failed(FailureReason::Failsafe(why)) => {
+            assert!(why.contains("no neighbour heard"), "{why}")
+        }
+        other => panic!("the goto went on with every neighbour silent: {other:?}"),
+    }
+    assert_eq!(
+        ex.tick(0.2).steering,
+        Some(Steering::Toward(Goal::fixed(moved))),
+        "it holds where it was when the silence was noticed"
+    );
+    // A goto is refused with the reason; a landing is taken and goes on.
+    ex.on_command(&cmd(2, goto.clone()), 0.3);
+    match state_of(&ex) {
+        ActionState::Failed(FailureReason::Failsafe(why)) => {
+            assert!(why.contains("only land and hold"), "{why}")
+        }
+        other => panic!("a goto was taken with every neighbour silent: {other:?}"),
+    }
+    ex.set_peers_silent(true);
+    assert_eq!(
+        ex.tick(0.4).steering,
+        Some(Steering::Toward(Goal::fixed(moved)))
+    );
+    // Heard again: the hold stays until the ground gives work, which is taken.
+    ex.set_peers_silent(false);
+    assert_eq!(
+        ex.tick(0.5).steering,
+        Some(Steering::Toward(Goal::fixed(moved)))
+    );
+    ex.on_command(&cmd(3, goto), 0.6);
+    assert!(matches!(state_of(&ex), ActionState::Running { .. }));
+    ex.on_command(&cmd(4, Action::Land), 0.7);
+    ex.set_peers_silent(true);
+    assert_eq!(
+        ex.tick(0.8).steering,
+        Some(Steering::Toward(Goal::fixed(Vec3::new(-40.0, -95.0, 1.0)))),
+        "a landing goes on with every neighbour silent"
+    );
+}
