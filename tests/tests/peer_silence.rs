@@ -119,7 +119,7 @@ async fn cut_off(sim: &mut SimSwarm) -> anyhow::Result<()> {
     println!("alfa's goto failed {failed_after:.2} s after the cut: {why}");
     anyhow::ensure!(why.contains("no neighbour heard"), "{why}");
     anyhow::ensure!(
-        failed_after >= HOLD_AFTER_S - 0.5 && failed_after < HOLD_AFTER_S + 3.0,
+        (HOLD_AFTER_S - 0.5..HOLD_AFTER_S + 3.0).contains(&failed_after),
         "the goto failed {failed_after:.2} s after the cut (bound {HOLD_AFTER_S} s)"
     );
 
