@@ -23,8 +23,8 @@ struct Args {
     /// Seconds of ground silence before landing.
     #[arg(long, default_value_t = 30.0)]
     failsafe_land_s: f64,
-    /// Seconds without hearing any of the neighbours before holding where it is (a drone cut
-    /// off from its peers but not from the ground).
+    /// Seconds without hearing any of its neighbours (two or more known) before an airborne
+    /// drone holds where it is: cut off from its peers, but not from the ground.
     #[arg(long, default_value_t = 3.0)]
     peers_silent_hold_s: f64,
     /// Refuse an action (land and hold aside) that arrives this many seconds later than the

@@ -242,18 +242,21 @@ impl Motion {
     }
 
     /// How long since any neighbour this drone knows (one it plans against: see `neighbours`)
-    /// was last heard, by the newest of their paths' stamps; `None` while it knows none. Every
-    /// onboard publishes a path at the planner's rate whether it flies or stands, so a silence
-    /// from all of them means this drone is cut off from its peers (or they all died). A
-    /// neighbour last seen on the ground is forgotten after `forget_path_after`, and its
-    /// silence with it; one last seen airborne never is.
+    /// was last heard, by the newest of their paths' stamps; `None` while it knows fewer than
+    /// two. Every onboard publishes a path at the planner's rate whether it flies or stands, so
+    /// two or more falling silent together means this drone is cut off from its peers. The
+    /// silence of a single neighbour cannot tell this drone's link from that neighbour's
+    /// failure, which the ground sees and answers (it replans without it) while the planner
+    /// keeps it where it was last heard. A neighbour last seen on the ground is forgotten after
+    /// `forget_path_after`, and its silence with it; one last seen airborne never is.
     pub fn peers_silence(&self, now: f64) -> Option<f64> {
-        self.paths
+        let stamps = self
+            .paths
             .values()
             .filter(|p| self.known(p, now))
-            .map(|p| p.stamp)
-            .reduce(f64::max)
-            .map(|newest| (now - newest).max(0.0))
+            .map(|p| p.stamp);
+        let (count, newest) = stamps.fold((0, f64::NEG_INFINITY), |(n, m), t| (n + 1, m.max(t)));
+        (count >= 2).then(|| (now - newest).max(0.0))
     }
 
     /// The drones (me included) tracking `target` now, by their recent paths.

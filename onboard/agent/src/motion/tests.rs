@@ -92,16 +92,20 @@ fn keeps_the_newest_path_per_neighbour_ignores_its_own_and_forgets_the_silent() 
     );
 }
 
-/// The silence of the peers is counted from the newest path of any neighbour still known,
-/// and there is none to count while none is known.
+/// The silence of the peers is counted from the newest path of the neighbours still known,
+/// once there are two or more of them.
 #[test]
 fn peers_silence_runs_from_the_newest_known_path() {
     let mut m = motion("alfa");
     let p = Vec3::new(10.0, 0.0, 10.0);
     assert_eq!(m.peers_silence(100.0), None, "no neighbour known");
     m.on_path(path("alfa", 100.0, p, None));
-    assert_eq!(m.peers_silence(100.0), None, "its own path is no neighbour");
     m.on_path(path("bravo", 100.0, p, None));
+    assert_eq!(
+        m.peers_silence(105.0),
+        None,
+        "one neighbour's silence is its own failure as much as this drone's link"
+    );
     m.on_path(path("charlie", 102.0, p, None));
     assert_eq!(m.peers_silence(101.0), Some(0.0));
     assert_eq!(
@@ -109,15 +113,17 @@ fn peers_silence_runs_from_the_newest_known_path() {
         Some(3.5),
         "from charlie's, the newest"
     );
-    // Neighbours last seen on the ground are forgotten after a while, and then nobody is left
-    // to be silent; airborne ones are never forgotten and their silence keeps growing.
-    let mut landed = path("delta", 100.0, p, None);
-    landed.airborne = false;
-    let mut alone = motion("alfa");
-    alone.on_path(landed);
-    assert_eq!(alone.peers_silence(105.0), Some(5.0));
-    assert_eq!(alone.peers_silence(111.0), None, "forgotten: none known");
+    // Airborne neighbours are never forgotten, and their silence keeps growing; those last
+    // seen on the ground are forgotten after a while, and then there is none to be silent.
     assert_eq!(m.peers_silence(1000.0), Some(898.0));
+    let mut landed = motion("alfa");
+    for drone in ["delta", "echo"] {
+        let mut on_the_ground = path(drone, 100.0, p, None);
+        on_the_ground.airborne = false;
+        landed.on_path(on_the_ground);
+    }
+    assert_eq!(landed.peers_silence(105.0), Some(5.0));
+    assert_eq!(landed.peers_silence(111.0), None, "forgotten: none known");
 }
 
 #[test]
