@@ -137,16 +137,13 @@ async fn cut_off(sim: &mut SimSwarm) -> anyhow::Result<()> {
     );
 
     // Work other than land and hold is refused, with the reason.
-    let nearby = held.position + Vec3::new(0.0, 5.0, 0.0);
-    let refused = run_actions(
-        &sim.link,
-        &gate,
-        &[(alfa.clone(), Action::Goto { target: nearby })],
-        None,
-        STEP,
-    )
-    .await;
-    let why = failsafe_reason(refused)?;
+    let nearby = [(
+        alfa.clone(),
+        Action::Goto {
+            target: held.position + Vec3::new(0.0, 5.0, 0.0),
+        },
+    )];
+    let why = failsafe_reason(run_actions(&sim.link, &gate, &nearby, None, STEP).await)?;
     anyhow::ensure!(why.contains("only land and hold"), "{why}");
 
     // A neighbour is heard again: the same goto is taken and flown.
@@ -160,15 +157,7 @@ async fn cut_off(sim: &mut SimSwarm) -> anyhow::Result<()> {
     // may still meet the failsafe, and is asked again.
     let heard_by = Instant::now() + Duration::from_secs(5);
     loop {
-        let taken = run_actions(
-            &sim.link,
-            &gate,
-            &[(alfa.clone(), Action::Goto { target: nearby })],
-            None,
-            STEP,
-        )
-        .await;
-        match taken {
+        match run_actions(&sim.link, &gate, &nearby, None, STEP).await {
             Ok(()) => break,
             Err(DirectError::Failed {
                 reason: FailureReason::Failsafe(_),
