@@ -1,9 +1,9 @@
 //! A drone cut off from its peers but not from the ground: tacos-sitl, three tacos-px4 +
 //! tacos-onboard pairs and a ground link on loopback. All three take off and alfa flies a long
-//! goto; the onboards of both its neighbours die (the silence alfa would hear behind a broken radio between the
-//! drones). Alfa must stop and hold where it is, refuse work other than land and hold while no
-//! neighbour is heard, and take work again once one is heard. Checked in the simulator's
-//! truth and in what the ground is told.
+//! goto; the onboards of both its neighbours die (the silence alfa would hear behind a broken
+//! radio between the drones). Alfa must stop and hold where it is, refuse work other than land
+//! and hold while no neighbour is heard, and take work again once one is heard. Checked in the
+//! simulator's truth and in what the ground is told.
 
 use std::time::{Duration, Instant};
 use tacos_ground::direct::{DirectError, run_actions};

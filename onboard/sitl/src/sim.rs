@@ -11,7 +11,7 @@ use crate::observed::ObservedVehicle;
 use crate::streams::Streams;
 use crate::targets::Target;
 use crate::telemetry;
-use crate::truth::{SafetyRules, SafetyStats};
+use crate::truth::{SafetyRules, SafetyStats, StepBreaches};
 use crate::vehicle::{Vehicle, VehicleParams};
 use mavlink::MavHeader;
 use mavlink::dialects::common::MavMessage;
@@ -97,9 +97,8 @@ pub struct Simulation {
     detector: Detector,
     rules: SafetyRules,
     stats: SafetyStats,
-    /// Whether the last step breached separation, and an obstacle: a breach is logged when it
-    /// begins.
-    breaching: (bool, bool),
+    /// What the last step broke: a breach is logged when it begins.
+    last_breaches: StepBreaches,
 }
 
 impl Simulation {
@@ -154,7 +153,7 @@ impl Simulation {
                 scenario.limits.safety_distance,
             ),
             stats: SafetyStats::default(),
-            breaching: (false, false),
+            last_breaches: StepBreaches::default(),
         }
     }
 
@@ -328,7 +327,7 @@ impl Simulation {
             t.step(dt, &self.bounds, &alive_airborne);
         }
         let breach = self.stats.update(&airborne, struck_ground, &self.rules);
-        if let (Some((i, j, distance)), false) = (breach.separation, self.breaching.0) {
+        if let (Some((i, j, distance)), None) = (breach.separation, self.last_breaches.separation) {
             let ((a, pa), (b, pb)) = (airborne_ids[i], airborne_ids[j]);
             tracing::warn!(
                 time = self.time,
@@ -341,7 +340,7 @@ impl Simulation {
                 pb.z
             );
         }
-        if let (Some((i, k, clearance)), false) = (breach.obstacle, self.breaching.1) {
+        if let (Some((i, k, clearance)), None) = (breach.obstacle, self.last_breaches.obstacle) {
             let (drone, p) = airborne_ids[i];
             let obstacle = self.rules.obstacles.get(k).map_or("?", |o| o.name.as_str());
             tracing::warn!(
@@ -352,7 +351,7 @@ impl Simulation {
                 p.z
             );
         }
-        self.breaching = (breach.separation.is_some(), breach.obstacle.is_some());
+        self.last_breaches = breach;
 
         let observers: Vec<Observer<'_>> = fleet
             .iter()

@@ -20,10 +20,7 @@ impl Executor {
         let landing = matches!(self.task, Task::Land { .. });
         match stage {
             FailsafeStage::Holding if !landing && !matches!(self.task, Task::Hold) => {
-                self.fail(FailureReason::Failsafe("ground silent: holding".into()));
-                self.hold_point = self.vehicle.map(|v| v.position);
-                self.task = Task::Hold;
-                self.ensure_offboard();
+                self.fail_and_hold_here("ground silent: holding");
             }
             FailsafeStage::Landing if !landing => {
                 self.fail(FailureReason::Failsafe("ground silent: landing".into()));
@@ -46,13 +43,17 @@ impl Executor {
             return;
         }
         if !matches!(self.task, Task::Land { .. } | Task::Hold) {
-            self.fail(FailureReason::Failsafe(
-                "no neighbour heard: holding where it is".into(),
-            ));
-            self.hold_point = self.vehicle.map(|v| v.position);
-            self.task = Task::Hold;
-            self.ensure_offboard();
+            self.fail_and_hold_here("no neighbour heard: holding where it is");
         }
+    }
+
+    /// Fails the action for a failsafe and holds where the vehicle is now, under offboard
+    /// control (not at an older hold point, which `fail` would keep).
+    fn fail_and_hold_here(&mut self, why: &str) {
+        self.fail(FailureReason::Failsafe(why.into()));
+        self.hold_point = self.vehicle.map(|v| v.position);
+        self.task = Task::Hold;
+        self.ensure_offboard();
     }
 
     pub fn peers_silent(&self) -> bool {
