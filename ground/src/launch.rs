@@ -407,6 +407,17 @@ impl Stack {
         sent
     }
 
+    /// Freezes one process (SIGSTOP), as an overloaded computer descheduling it would, until
+    /// [`Stack::thaw`]. False when it is not running.
+    pub fn freeze(&self, role: Role, drone: Option<&DroneId>) -> bool {
+        self.signal(role, drone, libc::SIGSTOP)
+    }
+
+    /// Lets a frozen process go on (SIGCONT).
+    pub fn thaw(&self, role: Role, drone: Option<&DroneId>) -> bool {
+        self.signal(role, drone, libc::SIGCONT)
+    }
+
     /// Kills one process hard (SIGKILL), as a crash would; returns its exit once reaped.
     pub async fn crash(&mut self, role: Role, drone: Option<&DroneId>) -> Option<ChildExit> {
         if !self.signal(role, drone, libc::SIGKILL) {

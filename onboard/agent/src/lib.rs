@@ -10,6 +10,7 @@ pub mod ground_follow;
 pub mod motion;
 pub mod planner;
 pub mod runtime;
+pub mod stall;
 pub mod tracker;
 
 pub use runtime::{OnboardConfig, OnboardError, run};

@@ -154,6 +154,8 @@ pub struct Motion {
     /// Whether this drone's vehicle is airborne, as the executor says (`set_airborne`): told
     /// to neighbours in every path.
     airborne: bool,
+    /// Seconds this process was stalled since the newest path came in: not the peers' silence.
+    peers_deaf_s: f64,
 }
 
 impl Motion {
@@ -174,6 +176,7 @@ impl Motion {
             last_solve: None,
             last_path: None,
             stats: SolveStats::default(),
+            peers_deaf_s: 0.0,
             airborne: false,
         })
     }
@@ -206,7 +209,16 @@ impl Motion {
             Some(held) if held.stamp >= path.stamp => {}
             _ => {
                 self.paths.insert(path.drone.clone(), path);
+                self.peers_deaf_s = 0.0;
             }
+        }
+    }
+
+    /// `deaf_s` seconds this process could not listen (a stall: `crate::stall`) are left out of
+    /// the peers' silence until a newer path is heard.
+    pub fn excuse_peers(&mut self, deaf_s: f64) {
+        if deaf_s.is_finite() && deaf_s > 0.0 {
+            self.peers_deaf_s += deaf_s;
         }
     }
 
@@ -256,7 +268,7 @@ impl Motion {
             .filter(|p| self.known(p, now))
             .map(|p| p.stamp);
         let (count, newest) = stamps.fold((0, f64::NEG_INFINITY), |(n, m), t| (n + 1, m.max(t)));
-        (count >= 2).then(|| (now - newest).max(0.0))
+        (count >= 2).then(|| (now - newest - self.peers_deaf_s).max(0.0))
     }
 
     /// The drones (me included) tracking `target` now, by their recent paths.

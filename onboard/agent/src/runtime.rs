@@ -5,20 +5,22 @@
 //! `--sim-clock`, so that rates, deadlines, the failsafe and path stamps keep their meaning when a
 //! simulation runs faster than real time.
 
+mod ground_side;
+
 use crate::executor::{Executor, ExecutorConfig};
 use crate::failsafe::FailsafeTimer;
-use crate::ground_follow::{Beat, GroundFollower, Refusal};
+use crate::ground_follow::{GroundFollower, Refusal};
 use crate::motion::{Motion, MotionConfig, SolveDone, Steering};
 use crate::planner::{PlannerConfig, PlannerError};
+use crate::stall::StallWatch;
+use ground_side::GroundSide;
 use std::future::Future;
 use tacos_bus::{BusArgs, BusError};
 use tacos_ipc::{IpcError, IpcNode};
 use tacos_shared::ActionCommand;
 use tacos_shared::DroneId;
 use tacos_shared::ipc::SetpointSample;
-use tacos_shared::messages::{
-    ActionRefused, DroneStatus, GroundHeartbeat, PathMessage, TargetsMessage,
-};
+use tacos_shared::messages::{ActionRefused, DroneStatus, PathMessage, TargetsMessage};
 use tacos_shared::scenario::Scenario;
 use tracing::{Instrument, info, info_span, warn};
 
@@ -42,6 +44,9 @@ pub struct OnboardConfig {
     pub max_action_late_s: f64,
     /// No vehicle state from the writer for this long → autopilot link treated as lost.
     pub writer_timeout_s: f64,
+    /// Control ticks further apart than this mean the process stalled: the time lost is not
+    /// counted as the ground's or the peers' silence (see `crate::stall`).
+    pub stall_after_s: f64,
     /// The planner's rate, the neighbours' paths, the tracker.
     pub motion: MotionConfig,
 }
@@ -59,6 +64,7 @@ impl OnboardConfig {
             peers_silent_hold_s: 3.0,
             max_action_late_s: 2.0,
             writer_timeout_s: 1.0,
+            stall_after_s: 0.25,
             motion: MotionConfig::default(),
         }
     }
@@ -96,6 +102,14 @@ impl Malformed {
         if self.count.is_power_of_two() {
             warn!(error = %error, count = self.count, "malformed {} ignored", self.what);
         }
+    }
+}
+
+/// Takes in one neighbour's path sample.
+fn take_path(motion: &mut Motion, sample: &zenoh::sample::Sample, malformed: &mut Malformed) {
+    match tacos_bus::decode::<PathMessage>(sample) {
+        Ok(path) => motion.on_path(path),
+        Err(e) => malformed.note(&e),
     }
 }
 
@@ -169,21 +183,19 @@ async fn run_inner(
     // period up to a multiple of 20 ms); each starts from the state the last tick saw.
     let mut plan_timer = clock.ticker(cfg.motion.plan_period);
     let mut last_steering: Option<Steering> = None;
-    let mut failsafe = FailsafeTimer::new(cfg.failsafe_hold_s, cfg.failsafe_land_s, now());
     // A ground station silent for the hold time may be replaced by another.
-    let mut grounds = GroundFollower::new(cfg.failsafe_hold_s, cfg.max_action_late_s);
-    // The latest action of the followed ground refused for arriving late, told in the status.
-    let mut refused: Option<ActionRefused> = None;
-    // The other ground station last refused, logged once (heartbeats come several a second).
-    let mut refused_ground: Option<u64> = None;
+    let mut ground = GroundSide::new(
+        GroundFollower::new(cfg.failsafe_hold_s, cfg.max_action_late_s),
+        FailsafeTimer::new(cfg.failsafe_hold_s, cfg.failsafe_land_s, now()),
+    );
     let mut control = clock.ticker(1.0 / cfg.control_rate_hz);
+    let mut stalls = StallWatch::new(1.0 / cfg.control_rate_hz, cfg.stall_after_s);
     let status_every = (cfg.control_rate_hz / cfg.status_rate_hz).round().max(1.0) as u64;
     let status_key = keys.status(&drone);
 
     let mut ticks: u64 = 0;
     let mut status_counter: u64 = 0;
     let mut malformed_actions: u64 = 0;
-    let mut malformed_heartbeats = Malformed::new("ground heartbeat");
     let mut setpoint_seq: u64 = 0;
     let mut last_state_at: Option<f64> = None;
     let mut ipc_errors: u64 = 0;
@@ -196,7 +208,7 @@ async fn run_inner(
             sample = actions.recv_async() => {
                 let sample = sample.map_err(|_| OnboardError::SubscriberClosed(keys.action(&drone)))?;
                 match tacos_bus::decode::<ActionCommand>(&sample) {
-                    Ok(command) => match grounds.admit(&command, now()) {
+                    Ok(command) => match ground.grounds.admit(&command, now()) {
                         Ok(()) => {
                             if executor.on_command(&command, now()) {
                                 info!(seq = command.seq, action = %command.action, "action received");
@@ -206,7 +218,7 @@ async fn run_inner(
                         Err(refusal) => {
                             warn!(seq = command.seq, action = %command.action, "action refused: {refusal}");
                             if let Refusal::Late(why) = refusal {
-                                refused = Some(ActionRefused { seq: command.seq, why });
+                                ground.refused = Some(ActionRefused { seq: command.seq, why });
                                 publish_now = true;
                             }
                         }
@@ -220,42 +232,11 @@ async fn run_inner(
             }
             sample = heartbeats.recv_async() => {
                 let sample = sample.map_err(|_| OnboardError::SubscriberClosed(keys.ground_heartbeat()))?;
-                match tacos_bus::decode::<GroundHeartbeat>(&sample) {
-                    Ok(beat) => {
-                        let t = now();
-                        match grounds.on_heartbeat(beat.ground, beat.stamp, t) {
-                            Beat::Refused { followed } => {
-                                if refused_ground != Some(beat.ground) {
-                                    refused_ground = Some(beat.ground);
-                                    warn!(other = beat.ground, followed, "a second ground station is beating while the followed one is: it is refused until the followed one falls silent");
-                                }
-                                continue;
-                            }
-                            Beat::Adopted { previous } => {
-                                info!(ground = beat.ground, ?previous, "following ground station");
-                                // A late refusal names an action of the ground followed before.
-                                refused = None;
-                                publish_now = true;
-                            }
-                            Beat::Followed => {}
-                        }
-                        // At once, not at the next tick: an action that follows the beat must
-                        // not meet a failsafe the beat has just ended.
-                        failsafe.heard(t);
-                        if executor.failsafe().is_some() {
-                            executor.set_failsafe(failsafe.stage(t), t);
-                            info!("ground heard again: failsafe cleared");
-                        }
-                    }
-                    Err(e) => malformed_heartbeats.note(&e),
-                }
+                publish_now |= ground.on_heartbeat(&sample, &mut executor, now());
             }
             sample = paths.recv_async() => {
                 let sample = sample.map_err(|_| OnboardError::SubscriberClosed(keys.all_paths()))?;
-                match tacos_bus::decode::<PathMessage>(&sample) {
-                    Ok(path) => motion.on_path(path),
-                    Err(e) => malformed_paths.note(&e),
-                }
+                take_path(&mut motion, &sample, &mut malformed_paths);
             }
             done = async {
                 match solving.as_mut() {
@@ -290,6 +271,21 @@ async fn run_inner(
             }
             _ = control.tick() => {
                 let t = now();
+                if let Some(deaf_s) = stalls.tick(t) {
+                    ground.failsafe.excuse(deaf_s, t);
+                    motion.excuse_peers(deaf_s);
+                    if deaf_s >= 1.0 {
+                        warn!(deaf_s, "this onboard stalled: the time is not counted as silence");
+                    }
+                }
+                // The silences are judged on everything heard: a tick picked before the
+                // queued heartbeats and paths (after a stall, say) takes them in first.
+                while let Ok(Some(sample)) = heartbeats.try_recv() {
+                    publish_now |= ground.on_heartbeat(&sample, &mut executor, t);
+                }
+                while let Ok(Some(sample)) = paths.try_recv() {
+                    take_path(&mut motion, &sample, &mut malformed_paths);
+                }
                 let mut path_out = None;
                 let step = (|| -> Result<(), IpcError> {
                     for result in ports.results.drain()? {
@@ -303,9 +299,9 @@ async fn run_inner(
                         executor.on_writer_silent();
                     }
                     let before = executor.failsafe();
-                    executor.set_failsafe(failsafe.stage(t), t);
+                    executor.set_failsafe(ground.failsafe.stage(t), t);
                     if executor.failsafe() != before {
-                        warn!(stage = ?executor.failsafe(), silence_s = failsafe.silence(t), "failsafe changed");
+                        warn!(stage = ?executor.failsafe(), silence_s = ground.failsafe.silence(t), "failsafe changed");
                     }
                     let peers_silence = motion.peers_silence(t);
                     let peers_were_silent = executor.peers_silent();
@@ -386,8 +382,8 @@ async fn run_inner(
                 action: executor.progress().cloned(),
                 failsafe: executor.failsafe(),
                 malformed_actions,
-                ground: grounds.followed(),
-                refused: refused.clone(),
+                ground: ground.grounds.followed(),
+                refused: ground.refused.clone(),
             };
             if let Err(e) = tacos_bus::put(&session, &status_key, &status, false).await {
                 warn!(error = %e, "status not published");

@@ -126,6 +126,30 @@ fn peers_silence_runs_from_the_newest_known_path() {
     assert_eq!(landed.peers_silence(111.0), None, "forgotten: none known");
 }
 
+/// Time this process spent stalled is not the peers' silence, until a newer path comes in.
+#[test]
+fn a_stall_is_left_out_of_the_peers_silence() {
+    let mut m = motion("alfa");
+    let p = Vec3::new(10.0, 0.0, 10.0);
+    m.on_path(path("bravo", 100.0, p, None));
+    m.on_path(path("charlie", 101.0, p, None));
+    m.excuse_peers(12.0);
+    assert_eq!(
+        m.peers_silence(114.0),
+        Some(1.0),
+        "13 s since charlie, 12 of them deaf"
+    );
+    m.excuse_peers(f64::NAN);
+    m.excuse_peers(-3.0);
+    assert_eq!(m.peers_silence(114.0), Some(1.0), "nothing to excuse");
+    m.on_path(path("bravo", 113.5, p, None));
+    assert_eq!(
+        m.peers_silence(114.0),
+        Some(0.5),
+        "a newer path: counted from it alone"
+    );
+}
+
 #[test]
 fn stations_are_unseen_then_ahead_of_the_target_then_lost() {
     let mut m = motion("alfa");
