@@ -45,6 +45,9 @@ pub struct SessionReport {
 pub fn describe(update: &MissionUpdate) -> String {
     match update {
         MissionUpdate::Thinking { layer } => format!("{layer} thinking…"),
+        MissionUpdate::CallDropped { layer, by } => {
+            format!("{layer}: the call in flight was dropped, overtaken by {by}")
+        }
         MissionUpdate::Plan { reasoning, calls } => format!(
             "coordinator: {reasoning}\n           plan: {}",
             calls.join("; ")

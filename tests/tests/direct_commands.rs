@@ -1,12 +1,15 @@
 //! A pilot's direct command does not wait for a model: `land all` typed while the Supervisor's
 //! model call is still pending is checked at the gate and sent at once, the drones land while
-//! the call is held, and what the model proposes afterwards is never sent: the plan ends.
+//! the call is held, the call is dropped in flight (its reply could only be stale) and the plan
+//! ends; nothing the model proposes is sent.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 use tacos_ground::mission::log::{self, MissionLog, Record};
-use tacos_ground::mission::{EventTopic, Mission, MissionConfig, MissionUpdate, PilotInput};
+use tacos_ground::mission::{
+    EventTopic, Mission, MissionConfig, MissionUpdate, Overtaken, PilotInput,
+};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{BoxFuture, ChatReply, ChatRequest, LlmBackend, LlmError, Usage};
 use tacos_shared::action::Action;
@@ -146,24 +149,31 @@ async fn land_all_is_sent_while_a_model_call_is_pending_and_the_late_reply_is_no
             typed.elapsed().as_secs_f64() * 1e3
         );
 
-        // Release the model: its goto for alfa is older than the pilot's command. Whichever
-        // check catches it first (alfa is busy landing; the override), it is not sent, and the
-        // plan ends.
-        backend.release.notify_one();
-        let ended = within("the plan to end", Duration::from_secs(30), async {
+        // The command ended the plan, and the Supervisor's call in flight with it.
+        let (mut dropped, mut ended) = (None, None);
+        within("the call dropped and the plan ended", Duration::from_secs(30), async {
             while let Some(u) = updates.recv().await {
-                if let MissionUpdate::Event {
-                    topic: EventTopic::PlanEnded,
-                    text,
-                } = &u
-                {
-                    return text.clone();
+                match u {
+                    MissionUpdate::CallDropped { layer, by } => dropped = Some((layer, by)),
+                    MissionUpdate::Event {
+                        topic: EventTopic::PlanEnded,
+                        text,
+                    } => ended = Some(text),
+                    _ => {}
+                }
+                if dropped.is_some() && ended.is_some() {
+                    return;
                 }
             }
-            String::new()
         })
         .await?;
-        assert_eq!(ended, "plan ended: interrupted by a direct command");
+        assert_eq!(dropped, Some(("supervisor", Overtaken::DirectCommand)));
+        assert_eq!(
+            ended.as_deref(),
+            Some("plan ended: interrupted by a direct command")
+        );
+        // Released now, the model has no call left to answer.
+        backend.release.notify_one();
         within("all to land", Duration::from_secs(120), async {
             let mut version = link.changes();
             loop {
@@ -198,12 +208,22 @@ async fn land_all_is_sent_while_a_model_call_is_pending_and_the_late_reply_is_no
         let direct = lines
             .iter()
             .position(|l| matches!(&l.record, Record::Direct { text, .. } if text == "land all"));
-        let reply = lines.iter().position(
-            |l| matches!(&l.record, Record::LlmReply { layer, .. } if layer == "supervisor"),
+        let dropped = lines.iter().position(|l| {
+            matches!(&l.record, Record::Event { text } if text.contains("supervisor's call in flight was dropped"))
+        });
+        assert!(
+            direct.is_some() && dropped.is_some(),
+            "the command and the dropped call in the log"
         );
         assert!(
-            direct.is_some() && reply.is_some() && direct < reply,
-            "the command was logged before the model replied"
+            !lines.iter().any(
+                |l| matches!(&l.record, Record::LlmReply { layer, .. } if layer == "supervisor")
+            ),
+            "no Supervisor reply was taken in"
+        );
+        assert!(
+            !backend.returned.load(Ordering::SeqCst),
+            "the held call was dropped, not answered"
         );
         let _ = std::fs::remove_file(&log_path);
         anyhow::Ok(())

@@ -334,7 +334,7 @@ async fn fly(
                 last_news = clock.now();
                 match &update {
                     Some(MissionUpdate::Thinking { .. }) => thinking = true,
-                    Some(MissionUpdate::Plan { .. } | MissionUpdate::Cycle { .. } | MissionUpdate::Error(_) | MissionUpdate::PlanComplete { .. }) => thinking = false,
+                    Some(MissionUpdate::Plan { .. } | MissionUpdate::Cycle { .. } | MissionUpdate::Error(_) | MissionUpdate::PlanComplete { .. } | MissionUpdate::CallDropped { .. }) => thinking = false,
                     _ => {}
                 }
                 match update {

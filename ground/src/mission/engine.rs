@@ -7,6 +7,7 @@ mod caller;
 mod checks;
 mod coordinator;
 mod cycles;
+mod in_flight;
 mod plan_state;
 mod prompt_state;
 
@@ -21,15 +22,18 @@ use super::config::{MissionConfig, Mode};
 use super::directives;
 use super::input::MissionInputs;
 use super::log::{MissionLog, Record};
-use super::report::{EventTopic, MissionError, MissionStats, MissionUpdate};
+use super::report::{
+    EventTopic, MissionError, MissionStats, MissionUpdate, Overtaken, SharedStats,
+};
 use super::untrusted;
 use crate::link::GroundLink;
 use crate::safety::{CheckedAction, SafetyGate};
 use crate::swarm::{SwarmChange, membership_diff};
 use crate::task_guard::AbortOnDrop;
 use caller::Caller;
+use in_flight::{Coordination, InFlight};
 use plan_state::{ActivePlan, Monolithic};
-use std::collections::BTreeSet;
+use std::collections::{BTreeSet, VecDeque};
 use std::sync::Arc;
 use std::time::Duration;
 use tacos_llm::LlmBackend;
@@ -50,7 +54,18 @@ pub struct Mission {
     events: Vec<String>,
     plan: Option<ActivePlan>,
     mnl: Monolithic,
-    stats: MissionStats,
+    stats: SharedStats,
+    /// The model call running beside the engine (`in_flight`), if any.
+    in_flight: Option<InFlight>,
+    /// Work waiting for the Coordinator while a call is in flight, in order.
+    queued: VecDeque<Coordination>,
+    /// A Supervisor (or monolithic) cycle is to start once no call is in flight.
+    cycle_due: bool,
+    /// When the last cycle started (a cycle is due again after `cycle_timeout`).
+    last_cycle: std::time::Instant,
+    /// Bumped whenever the models' work is replaced or ends (a plan adopted or finished, a
+    /// direct command, a monolithic instruction): a cycle's reply from before is not used.
+    work_epoch: u64,
     /// Counts the direct commands carried out; a change the engine has not yet seen means a
     /// model's proposal is older than the pilot's command (see `mission::input`).
     overrides: watch::Receiver<u64>,
@@ -137,7 +152,9 @@ impl Mission {
             drones,
             aids: cfg.aids,
         });
+        let stats = SharedStats::default();
         let caller = Caller {
+            stats: stats.clone(),
             backend,
             link: link.clone(),
             log: log.clone(),
@@ -147,6 +164,7 @@ impl Mission {
             temperature: cfg.temperature,
             seed: cfg.seed,
         };
+        let link_now = link.clock().instant();
         let (commands, overrides) =
             DirectCommands::new(link.clone(), gate.clone(), log.clone(), updates.clone());
         Ok(Mission {
@@ -161,7 +179,12 @@ impl Mission {
             events: Vec::new(),
             plan: None,
             mnl: Monolithic::default(),
-            stats: MissionStats::default(),
+            stats,
+            in_flight: None,
+            queued: VecDeque::new(),
+            cycle_due: false,
+            last_cycle: link_now,
+            work_epoch: 0,
             // The engine's own, until `run_with` brings the pilot's.
             overrides,
             commands,
@@ -170,8 +193,8 @@ impl Mission {
         })
     }
 
-    pub fn stats(&self) -> &MissionStats {
-        &self.stats
+    pub fn stats(&self) -> MissionStats {
+        self.stats.snapshot()
     }
 
     /// True while a plan (or the monolithic model's work) is under way.
@@ -218,7 +241,7 @@ impl Mission {
             Ok(rx) => rx,
             Err(e) => {
                 self.tell(MissionUpdate::Error(e.to_string()));
-                return self.stats;
+                return self.stats();
             }
         };
         // Positions are sampled beside the engine, which waits minutes on a model call while
@@ -233,11 +256,10 @@ impl Mission {
             self.cfg.aids,
         )));
         let mut tick = tokio::time::interval(Duration::from_millis(250));
-        // After a model call, one tick, not a burst of the ones missed.
+        // After a busy spell, one tick, not a burst of the ones missed.
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-        let mut last_cycle = self.link.clock().instant();
+        self.last_cycle = self.link.clock().instant();
         loop {
-            let mut cycle_due = false;
             tokio::select! {
                 changed = wake.changed(), if wake_open => if changed.is_err() {
                     wake_open = false;
@@ -249,49 +271,52 @@ impl Mission {
                         if let Err(e) = self.pilot(&text).await {
                             self.tell(MissionUpdate::Error(e.to_string()));
                         }
-                        cycle_due = self.busy();
+                        self.cycle_due |= self.busy();
                     }
-                    None => break,
+                    None => {
+                        self.drop_call(Overtaken::SessionClosed);
+                        break;
+                    }
                 },
                 change = membership.recv() => match change {
                     Ok(change) => {
-                        if let Err(e) = self.membership_changed(change).await {
-                            self.tell(MissionUpdate::Error(e.to_string()));
-                        }
-                        cycle_due = self.busy();
+                        self.membership_changed(change);
+                        self.cycle_due |= self.busy();
                     }
                     Err(tokio::sync::broadcast::error::RecvError::Lagged(missed)) => {
-                        // Changes went by while a model thought: the view says where they led.
+                        // More changes went by than the channel holds: the view says where
+                        // they led.
                         tracing::warn!(missed, "membership changes missed; taken from the view");
                         let now_present = self.link.view().present_ids();
                         for change in membership_diff(&self.present, &now_present) {
-                            if let Err(e) = self.membership_changed(change).await {
-                                self.tell(MissionUpdate::Error(e.to_string()));
-                            }
+                            self.membership_changed(change);
                         }
-                        cycle_due = self.busy();
+                        self.cycle_due |= self.busy();
                     }
                     Err(tokio::sync::broadcast::error::RecvError::Closed) => break,
                 },
                 event = events.recv() => if let Some(event) = event && self.world_event(event) {
-                    cycle_due = self.busy();
+                    self.cycle_due |= self.busy();
                 },
+                answer = async {
+                    match self.in_flight.as_mut() {
+                        Some(flight) => flight.answer().await,
+                        None => std::future::pending().await,
+                    }
+                } => self.answered(answer).await,
                 _ = tick.tick() => {
-                    cycle_due = self.poll_outcomes() || (self.busy() && self.link.clock().instant().duration_since(last_cycle) >= self.cfg.cycle_timeout);
+                    let timed_out = self.busy()
+                        && self.link.clock().instant().duration_since(self.last_cycle) >= self.cfg.cycle_timeout;
+                    self.cycle_due |= self.poll_outcomes() || timed_out;
                 }
             }
             self.take_override();
-            if cycle_due && self.busy() {
-                last_cycle = self.link.clock().instant();
-                if let Err(e) = self.cycle().await {
-                    self.tell(MissionUpdate::Error(e.to_string()));
-                }
-            }
+            self.start_next_call().await;
         }
         self.log.note(Record::MissionEnd {
             outcome: "pilot closed the session".into(),
         });
-        self.stats
+        self.stats()
     }
 
     /// After a direct command: the models' plan ends. True when there was one.
@@ -300,6 +325,11 @@ impl Mission {
             return false;
         }
         self.overrides.borrow_and_update();
+        self.drop_call(Overtaken::DirectCommand);
+        // Replans were for the plan the command ends; the pilot's own lines stay.
+        self.queued.retain(|w| matches!(w, Coordination::Pilot(_)));
+        self.work_epoch += 1;
+        self.cycle_due = false;
         if let Some(plan) = self.plan.take() {
             self.finish_plan(plan, "interrupted by a direct command");
         }
@@ -360,6 +390,11 @@ impl Mission {
         self.commands.begin_instruction(text);
         match self.cfg.mode {
             Mode::Mnl => {
+                // A cycle in flight was asked without this instruction.
+                if self.in_flight.is_some() {
+                    self.drop_call(Overtaken::NewerWork);
+                }
+                self.work_epoch += 1;
                 self.mnl.instructions.push(text.to_owned());
                 self.mnl.active = true;
                 self.mnl.cycles = 0;
@@ -369,12 +404,13 @@ impl Mission {
             }
             Mode::Tacos | Mode::Wor => {
                 self.history.push(HistoryEntry::Pilot(text.to_owned()));
-                self.coordinate(text).await
+                self.want_coordination(Coordination::Pilot(text.to_owned()));
+                Ok(())
             }
         }
     }
 
-    async fn membership_changed(&mut self, change: SwarmChange) -> Result<(), MissionError> {
+    fn membership_changed(&mut self, change: SwarmChange) {
         match &change {
             SwarmChange::Joined(d) => self.present.insert(d.clone()),
             SwarmChange::Left(d) => self.present.remove(d),
@@ -383,7 +419,7 @@ impl Mission {
         let (topic, text) = match &change {
             SwarmChange::Joined(d) => (EventTopic::Joined, format!("{d} joined the swarm")),
             SwarmChange::Left(d) => (EventTopic::Failure, format!("{d} became unavailable")),
-            SwarmChange::Status(_) => return Ok(()),
+            SwarmChange::Status(_) => return,
         };
         self.event(topic, text.clone());
         // What the lost drone leaves undone, named in the replan's instruction so the
@@ -401,7 +437,6 @@ impl Mission {
             Mode::Mnl => {
                 self.mnl.executed.push(format!("event: {text}"));
                 self.mnl.claimed_done = false;
-                Ok(())
             }
             Mode::Tacos | Mode::Wor => {
                 self.history.push(HistoryEntry::Event(text.clone()));
@@ -415,9 +450,7 @@ impl Mission {
                     } else {
                         format!(" ({})", lost_work.join(", "))
                     };
-                    self.coordinate(&format!("(automatic replan) {text}: reassign its unfinished subtasks{subtasks} and keep the mission going")).await
-                } else {
-                    Ok(())
+                    self.want_coordination(Coordination::Replan(format!("(automatic replan) {text}: reassign its unfinished subtasks{subtasks} and keep the mission going")));
                 }
             }
         }
@@ -471,7 +504,7 @@ impl Mission {
                 action: checked.action().to_string(),
                 reason: e.to_string(),
             })?;
-        self.stats.actions_sent += 1;
+        self.stats.update(|s| s.actions_sent += 1);
         self.commands.moved(checked.drone());
         self.log.note(Record::action_sent(checked, task, seq));
         self.tell(MissionUpdate::Sent {

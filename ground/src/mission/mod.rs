@@ -27,4 +27,6 @@ pub use aids::{Aid, ModelAids};
 pub use config::{MissionConfig, Mode};
 pub use engine::{Mission, coordinator_messages, supervisor_messages};
 pub use input::{InputClosed, MissionInputs, PilotInput};
-pub use report::{EventTopic, MissionError, MissionStats, MissionUpdate, stats_when_done};
+pub use report::{
+    EventTopic, MissionError, MissionStats, MissionUpdate, Overtaken, stats_when_done,
+};

@@ -109,6 +109,33 @@ pub enum MissionUpdate {
         prompt_tokens: u32,
         completion_tokens: u32,
     },
+    /// A model call in flight was dropped: its reply, whenever it comes, is not used.
+    CallDropped {
+        layer: &'static str,
+        by: Overtaken,
+    },
+}
+
+/// What overtook a model call in flight, so that its reply would be stale.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Overtaken {
+    /// The pilot's direct command ended the plan the call was for.
+    DirectCommand,
+    /// A newer instruction or an automatic replan is waiting for the Coordinator: a Supervisor
+    /// (or monolithic) reply for the plan before it would act on an old picture.
+    NewerWork,
+    /// The pilot closed the session.
+    SessionClosed,
+}
+
+impl std::fmt::Display for Overtaken {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Overtaken::DirectCommand => "a direct command",
+            Overtaken::NewerWork => "a newer instruction or replan",
+            Overtaken::SessionClosed => "the session closing",
+        })
+    }
 }
 
 /// Counters for the evaluation harness.
@@ -125,6 +152,23 @@ pub struct MissionStats {
     pub prompt_tokens: u64,
     pub completion_tokens: u64,
     pub call_latency_total: Duration,
+}
+
+/// The mission's counters, shared with the model calls that run beside the engine (a call
+/// dropped in flight has counted what it did).
+#[derive(Debug, Clone, Default)]
+pub struct SharedStats(std::sync::Arc<std::sync::Mutex<MissionStats>>);
+
+impl SharedStats {
+    pub fn update(&self, f: impl FnOnce(&mut MissionStats)) {
+        // A panic while counting leaves counters, not invariants: go on with them.
+        let mut stats = self.0.lock().unwrap_or_else(|e| e.into_inner());
+        f(&mut stats);
+    }
+
+    pub fn snapshot(&self) -> MissionStats {
+        self.0.lock().unwrap_or_else(|e| e.into_inner()).clone()
+    }
 }
 
 /// The statistics of a mission task whose input has been closed: it ends after any model call

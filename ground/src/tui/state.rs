@@ -348,6 +348,13 @@ impl TerminalState {
                     format!("plan complete after {cycles} cycles"),
                 );
             }
+            MissionUpdate::CallDropped { layer, by } => {
+                self.status.thinking = None;
+                self.log(
+                    EventKind::Info,
+                    format!("{layer}'s call dropped: overtaken by {by}"),
+                );
+            }
             MissionUpdate::Error(text) => {
                 self.status.thinking = None;
                 self.chat_push(ChatEntry::Error(text.clone()));

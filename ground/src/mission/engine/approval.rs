@@ -2,6 +2,7 @@
 //! (`mission::approval`). Direct commands never wait for it; one ends a held plan.
 
 use super::Mission;
+use super::in_flight::Coordination;
 use crate::mission::approval::{self, HeldPlan, Verdict};
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionError};
@@ -86,7 +87,8 @@ impl Mission {
                 );
                 self.history
                     .push(tacos_prompts::render::HistoryEntry::Pilot(again.clone()));
-                Answered::Done(self.coordinate(&again).await)
+                self.want_coordination(Coordination::Pilot(again));
+                Answered::Done(Ok(()))
             }
         }
     }

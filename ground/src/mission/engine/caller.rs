@@ -4,14 +4,16 @@
 use crate::link::GroundLink;
 use crate::mission::aids::{Aid, ModelAids};
 use crate::mission::log::{MissionLog, Record, RefusedBy};
-use crate::mission::report::{MissionError, MissionStats, MissionUpdate};
+use crate::mission::report::{MissionError, MissionUpdate, SharedStats};
 use std::sync::Arc;
 use tacos_llm::{ChatMessage, ChatReply, ChatRequest, LlmBackend, LlmError, ResponseSchema};
 use tacos_prompts::ReplyError;
 use tacos_prompts::schema::Output;
 use tokio::sync::mpsc;
 
-/// Asks models: the backend, the repair loop's bounds, and where calls are recorded.
+/// Asks models: the backend, the repair loop's bounds, and where calls are recorded. A clone
+/// runs each call on its own task, beside the engine (`engine::in_flight`).
+#[derive(Clone)]
 pub(super) struct Caller {
     pub(super) backend: Arc<dyn LlmBackend>,
     /// Told of every call in flight, so a simulation holds real time meanwhile.
@@ -23,6 +25,7 @@ pub(super) struct Caller {
     pub(super) aids: ModelAids,
     pub(super) temperature: f32,
     pub(super) seed: Option<u64>,
+    pub(super) stats: SharedStats,
 }
 
 /// The result of checking one reply: what may be done, and why the rest may not.
@@ -44,7 +47,6 @@ impl Caller {
     #[allow(clippy::too_many_arguments)]
     pub(super) async fn ask<T, U>(
         &self,
-        stats: &mut MissionStats,
         layer: &'static str,
         mut messages: Vec<ChatMessage>,
         output: Output,
@@ -76,7 +78,7 @@ impl Caller {
                 attempt,
                 messages: serde_json::to_value(&messages).unwrap_or_default(),
             });
-            stats.model_calls += 1;
+            self.stats.update(|s| s.model_calls += 1);
             let in_flight = self.link.model_call();
             let reply = self.backend.chat(&request).await;
             drop(in_flight);
@@ -104,7 +106,7 @@ impl Caller {
                     return Err(MissionError::Llm { layer, error });
                 }
             };
-            self.account(stats, layer, attempt, &reply);
+            self.account(layer, attempt, &reply);
             let problems = match parse(&reply.content) {
                 Err(e) => vec![e.to_string()],
                 Ok(parsed) => {
@@ -115,7 +117,7 @@ impl Caller {
                         .iter()
                         .map(|r| (RefusedBy::SafetyGate, r));
                     for (by, r) in by_checks.chain(by_gate) {
-                        stats.gate_rejections += 1;
+                        self.stats.update(|s| s.gate_rejections += 1);
                         self.log.note(Record::GateRejected {
                             layer: layer.into(),
                             call: r.clone(),
@@ -203,16 +205,12 @@ impl Caller {
         Some(passed)
     }
 
-    pub(super) fn account(
-        &self,
-        stats: &mut MissionStats,
-        layer: &'static str,
-        attempt: u32,
-        reply: &ChatReply,
-    ) {
-        stats.prompt_tokens += u64::from(reply.usage.prompt_tokens);
-        stats.completion_tokens += u64::from(reply.usage.completion_tokens);
-        stats.call_latency_total += reply.latency;
+    pub(super) fn account(&self, layer: &'static str, attempt: u32, reply: &ChatReply) {
+        self.stats.update(|stats| {
+            stats.prompt_tokens += u64::from(reply.usage.prompt_tokens);
+            stats.completion_tokens += u64::from(reply.usage.completion_tokens);
+            stats.call_latency_total += reply.latency;
+        });
         self.log.note(Record::LlmReply {
             layer: layer.into(),
             attempt,

@@ -3,6 +3,7 @@
 use super::Mission;
 use super::caller::Checked;
 use super::checks::check_static;
+use super::in_flight::{Answered, CoordinatorAnswer, InFlight};
 use super::plan_state::{ActivePlan, PlanTask};
 use crate::mission::aids::Aid;
 use crate::mission::approval::HeldPlan;
@@ -33,8 +34,9 @@ impl Mission {
         }
     }
 
-    /// Runs the Coordinator for `instruction`; its plan replaces the current one (the pending
-    /// plan was in its prompt).
+    /// Starts the Coordinator's call for `instruction` beside the engine
+    /// ([`Self::coordinator_answered`] takes its reply); its plan will replace the current one
+    /// (the pending plan is in its prompt).
     pub(super) async fn coordinate(&mut self, instruction: &str) -> Result<(), MissionError> {
         let pending: Vec<(Call, TaskStatus)> = self
             .plan_lines()
@@ -131,21 +133,24 @@ impl Mission {
         self.tell(MissionUpdate::Thinking {
             layer: "coordinator",
         });
-        self.stats.coordinator_calls += 1;
+        self.stats.update(|s| s.coordinator_calls += 1);
         let scenario = self.gate.scenario().clone();
         let visible = self.visible_targets();
-        let checked = self
-            .caller
+        let caller = self.caller.clone();
+        let max_tokens = self.cfg.coordinator_max_tokens.max(token_budget);
+        let instruction = instruction.to_owned();
+        let on_the_ground = grounded.clone();
+        let call = async move {
+            let answer = caller
             .ask(
-                &mut self.stats,
                 "coordinator",
                 messages,
                 Output::Coordinator,
                 schema,
-                self.cfg.coordinator_max_tokens.max(token_budget),
+                max_tokens,
                 CoordinatorReply::parse,
                 true,
-                |reply: &CoordinatorReply| {
+                move |reply: &CoordinatorReply| {
                     let mut rejections = Vec::new();
                     let mut plan = Vec::new();
                     for call in &reply.plan {
@@ -201,7 +206,7 @@ impl Mission {
                     if !aids.is_on(Aid::ImpliedTakeoffs) {
                         // The rule the aid stands in for: a drone on the ground cannot fly a
                         // goto or a chase that no take-off precedes.
-                        for i in missing_takeoffs(&plan, &grounded).into_iter().rev() {
+                        for i in missing_takeoffs(&plan, &on_the_ground).into_iter().rev() {
                             let call = plan.remove(i);
                             rejections.push(format!(
                                 "{call}: {} is on the ground and the plan never takes it off: \
@@ -249,8 +254,26 @@ impl Mission {
                     }
                 },
             )
-            .await?;
-        let (reasoning, calls, refusal) = checked;
+            .await;
+            Answered::Coordinator {
+                instruction,
+                grounded,
+                answer,
+            }
+        };
+        self.in_flight = Some(InFlight::spawn("coordinator", call));
+        Ok(())
+    }
+
+    /// The Coordinator's checked reply to `instruction` (`grounded`: the drones on the ground
+    /// when it was asked): its plan is held for the pilot or adopted.
+    pub(super) fn coordinator_answered(
+        &mut self,
+        instruction: String,
+        grounded: Vec<String>,
+        answer: CoordinatorAnswer,
+    ) -> Result<(), MissionError> {
+        let (reasoning, calls, refusal) = answer?;
         if let Some(refusal) = refusal {
             if calls.is_empty() {
                 return Err(self.declined(reasoning, refusal));
@@ -272,7 +295,7 @@ impl Mission {
             let text = format!("{call}: repeats {}'s previous task: dropped", call.drone);
             self.event(EventTopic::Note, text);
         }
-        let calls = if aids.is_on(Aid::ImpliedTakeoffs) {
+        let calls = if self.cfg.aids.is_on(Aid::ImpliedTakeoffs) {
             self.with_implied_takeoffs(calls, &grounded)
         } else {
             calls
@@ -287,7 +310,7 @@ impl Mission {
         });
         if self.cfg.confirm {
             self.hold_for_approval(HeldPlan {
-                instruction: instruction.to_owned(),
+                instruction,
                 reasoning,
                 calls,
             });
@@ -341,6 +364,7 @@ impl Mission {
                 },
             })
             .collect();
+        self.work_epoch += 1;
         self.plan = Some(ActivePlan {
             reasoning,
             tasks,

@@ -5,6 +5,7 @@ use super::Mission;
 use super::caller::Checked;
 use super::checks::check_live;
 use super::coordinator::same_work;
+use super::in_flight::{Answered, CycleAnswer, InFlight};
 use super::plan_state::PlanTask;
 use crate::mission::config::Mode;
 use crate::mission::log::Record;
@@ -18,15 +19,15 @@ use tacos_shared::action::Action;
 use tacos_shared::{DroneId, DroneMode};
 
 impl Mission {
-    /// One Supervisor (or monolithic) cycle.
-    pub async fn cycle(&mut self) -> Result<(), MissionError> {
+    /// Starts one Supervisor (or monolithic) cycle, when there is a decision to make.
+    pub(super) fn cycle(&mut self) -> Result<(), MissionError> {
         match self.cfg.mode {
-            Mode::Mnl => self.monolithic_cycle().await,
-            Mode::Tacos | Mode::Wor => self.supervisor_cycle().await,
+            Mode::Mnl => self.monolithic_cycle(),
+            Mode::Tacos | Mode::Wor => self.supervisor_cycle(),
         }
     }
 
-    pub(super) async fn supervisor_cycle(&mut self) -> Result<(), MissionError> {
+    pub(super) fn supervisor_cycle(&mut self) -> Result<(), MissionError> {
         let Some(plan) = self.plan.as_ref() else {
             return Ok(());
         };
@@ -69,39 +70,30 @@ impl Mission {
             only: Some(startable),
             tasks: self.plan_lines(),
         };
-        let cycle = self
-            .ask_and_send(ask, |mission, call, drone, seq| {
-                let Some(plan) = mission.plan.as_mut() else {
-                    return;
-                };
-                plan.memory.push(format!("issued {call}"));
-                let sent = Some((drone, seq));
-                match plan.tasks.iter_mut().find(|t| t.call.task == call.task) {
-                    Some(t) => {
-                        t.call = call;
-                        t.status = TaskStatus::Running;
-                        t.sent = sent;
-                    }
-                    None => plan.tasks.push(PlanTask {
-                        call,
-                        status: TaskStatus::Running,
-                        sent,
-                        failures: 0,
-                    }),
+        self.start_cycle_call(ask, CycleKind::Supervisor, |mission, call, drone, seq| {
+            let Some(plan) = mission.plan.as_mut() else {
+                return;
+            };
+            plan.memory.push(format!("issued {call}"));
+            let sent = Some((drone, seq));
+            match plan.tasks.iter_mut().find(|t| t.call.task == call.task) {
+                Some(t) => {
+                    t.call = call;
+                    t.status = TaskStatus::Running;
+                    t.sent = sent;
                 }
-            })
-            .await?;
-        // The Supervisor's claim that the plan is complete is logged only: the plan is
-        // complete when its tasks are done (`poll_outcomes`).
-        if let Some(plan) = self.plan.as_mut() {
-            plan.cycles += 1;
-            let n = plan.cycles;
-            self.note_cycle(n, cycle);
-        }
+                None => plan.tasks.push(PlanTask {
+                    call,
+                    status: TaskStatus::Running,
+                    sent,
+                    failures: 0,
+                }),
+            }
+        });
         Ok(())
     }
 
-    pub(super) async fn monolithic_cycle(&mut self) -> Result<(), MissionError> {
+    pub(super) fn monolithic_cycle(&mut self) -> Result<(), MissionError> {
         if self.mnl.claimed_done {
             // The model said its actions carry out the instructions: wait for their outcomes.
             return Ok(());
@@ -147,103 +139,176 @@ impl Mission {
                 .map(|t| (t.call.clone(), t.status.clone()))
                 .collect(),
         };
-        let cycle = self
-            .ask_and_send(ask, |mission, call, drone, seq| {
+        let offered = callable.len() as u32;
+        self.start_cycle_call(
+            ask,
+            CycleKind::Monolithic { offered },
+            |mission, call, drone, seq| {
                 mission.mnl.tasks.push(PlanTask {
                     call,
                     status: TaskStatus::Running,
                     sent: Some((drone, seq)),
                     failures: 0,
                 });
-            })
-            .await?;
-        self.mnl.next_task += callable.len() as u32;
-        self.mnl.cycles += 1;
-        self.mnl.claimed_done = cycle.claim_stands();
-        self.note_cycle(self.mnl.cycles, cycle);
-        self.judge_monolithic();
+            },
+        );
         Ok(())
     }
 
-    /// The common part of a Supervisor and a monolithic cycle: ask the model (with the repair
-    /// loop), keep the calls that are among `only` (when given) and pass `check_live` and the
-    /// safety gate, send them, and hand each sent call to `issued` for the caller's bookkeeping.
-    pub(super) async fn ask_and_send(
+    /// The common part of a Supervisor and a monolithic cycle: starts the model's call (with the
+    /// repair loop) beside the engine, keeping the calls that are among `only` (when given) and
+    /// pass `check_live` and the safety gate as the reply comes. [`Self::cycle_answered`] sends
+    /// them and hands each sent call to `issued` for the caller's bookkeeping.
+    pub(super) fn start_cycle_call(
         &mut self,
         ask: CycleAsk,
+        kind: CycleKind,
         issued: fn(&mut Mission, Call, DroneId, u64),
-    ) -> Result<CycleOutcome, MissionError> {
+    ) {
         self.tell(MissionUpdate::Thinking { layer: ask.layer });
-        self.stats.supervisor_calls += 1;
+        self.stats.update(|s| s.supervisor_calls += 1);
         let max_tokens = self
             .cfg
             .supervisor_max_tokens
             .max(schema::token_budget(ask.output, self.swarm_ids().len()));
-        let (reasoning, claim, all_passed, accepted, later) = {
-            let (gate, link) = (&self.gate, &self.link);
-            let visible = self.visible_targets();
-            let (only, tasks) = (&ask.only, &ask.tasks);
-            self.caller
+        let (gate, link) = (self.gate.clone(), self.link.clone());
+        let visible = self.visible_targets();
+        let caller = self.caller.clone();
+        let work = CycleWork {
+            kind,
+            issued,
+            epoch: self.work_epoch,
+        };
+        let layer = ask.layer;
+        let call = async move {
+            let CycleAsk {
+                layer,
+                output,
+                messages,
+                schema,
+                parse,
+                only,
+                tasks,
+            } = ask;
+            let answer = caller
                 .ask(
-                    &mut self.stats,
-                    ask.layer,
-                    ask.messages,
-                    ask.output,
-                    ask.schema,
+                    layer,
+                    messages,
+                    output,
+                    schema,
                     max_tokens,
-                    ask.parse,
+                    parse,
                     false,
-                    |reply: &CycleReply| {
+                    move |reply: &CycleReply| {
                         let (firsts, later) = first_call_per_drone(&reply.actions);
-                        let (calls, mut rejections) = match only {
+                        let (calls, mut rejections) = match &only {
                             Some(startable) => match_startable(&firsts, startable),
                             None => (firsts, Vec::new()),
                         };
                         let (accepted, live, gate_refusals) =
-                            check_live(&calls, gate, link, &visible, tasks);
+                            check_live(&calls, &gate, &link, &visible, &tasks);
                         rejections.extend(live);
                         Checked {
-                            accepted: (
-                                reply.reasoning.clone(),
-                                reply.claim,
-                                rejections.is_empty()
+                            accepted: CycleChoice {
+                                reasoning: reply.reasoning.clone(),
+                                claim: reply.claim,
+                                all_passed: rejections.is_empty()
                                     && gate_refusals.is_empty()
                                     && later.is_empty(),
                                 accepted,
                                 later,
-                            ),
+                            },
                             rejections,
                             gate_refusals,
                             narrowed: None,
                         }
                     },
                 )
-                .await?
+                .await;
+            Answered::Cycle { work, answer }
         };
-        if !later.is_empty() {
+        self.in_flight = Some(InFlight::spawn(layer, call));
+    }
+
+    /// A cycle's checked reply: its calls sent (each checked by the gate again, against the
+    /// swarm as it is now), the cycle counted. A reply for work that has since ended or been
+    /// replaced is dropped, and nothing of it is sent.
+    pub(super) async fn cycle_answered(
+        &mut self,
+        work: CycleWork,
+        answer: CycleAnswer,
+    ) -> Result<(), MissionError> {
+        let choice = answer?;
+        if work.epoch != self.work_epoch {
+            let calls: Vec<String> = choice.accepted.iter().map(|(c, _)| c.to_string()).collect();
+            self.event(
+                EventTopic::Note,
+                format!(
+                    "a reply for work that ended meanwhile was dropped, nothing of it sent: [{}]",
+                    calls.join("; ")
+                ),
+            );
+            return Ok(());
+        }
+        if !choice.later.is_empty() {
             let text = format!(
                 "later steps in the same reply, left for a later cycle: {}",
-                later.join("; ")
+                choice.later.join("; ")
             );
             self.event(EventTopic::Note, text);
         }
         let mut sent = Vec::new();
-        for (call, checked) in accepted {
+        let mut all_passed = choice.all_passed;
+        for (call, checked) in choice.accepted {
+            // Checked when the reply came; the swarm may have moved on since.
+            let now = self.link.clock().instant();
+            let checked = {
+                let view = self.link.view();
+                self.gate
+                    .check(&view, checked.drone().as_str(), checked.action(), now)
+            };
+            let checked = match checked {
+                Ok(checked) => checked,
+                Err(why) => {
+                    all_passed = false;
+                    self.event(EventTopic::Note, format!("{call}: not sent: {why}"));
+                    continue;
+                }
+            };
             let seq = self.send(&checked, Some(call.task.clone())).await?;
             sent.push(call.to_string());
-            issued(self, call, checked.drone().clone(), seq);
+            (work.issued)(self, call, checked.drone().clone(), seq);
         }
-        Ok(CycleOutcome {
-            reasoning,
-            claim,
+        let cycle = CycleOutcome {
+            reasoning: choice.reasoning,
+            claim: choice.claim,
             all_passed,
             sent,
-        })
+        };
+        match work.kind {
+            CycleKind::Supervisor => {
+                // The Supervisor's claim that the plan is complete is logged only: the plan is
+                // complete when its tasks are done (`poll_outcomes`).
+                if let Some(plan) = self.plan.as_mut() {
+                    plan.cycles += 1;
+                    let n = plan.cycles;
+                    self.note_cycle(n, cycle);
+                }
+            }
+            CycleKind::Monolithic { offered } => {
+                self.mnl.next_task += offered;
+                self.mnl.cycles += 1;
+                self.mnl.claimed_done = cycle.claim_stands();
+                self.note_cycle(self.mnl.cycles, cycle);
+                self.judge_monolithic();
+            }
+        }
+        Ok(())
     }
 
     /// Counts a cycle, logs it with the model's claim, and reports it.
     pub(super) fn note_cycle(&mut self, plan_cycle: u32, cycle: CycleOutcome) {
-        self.stats.cycles_total += 1;
+        self.stats.update(|s| s.cycles_total += 1);
         self.log.note(Record::SupervisorCycle {
             plan_cycle,
             actions: cycle.sent.clone(),
@@ -266,7 +331,7 @@ impl Mission {
         }
         self.mnl.active = false;
         let cycles = self.mnl.cycles;
-        self.stats.cycles_per_plan.push(cycles);
+        self.stats.update(|s| s.cycles_per_plan.push(cycles));
         self.log.note(Record::PlanComplete { cycles });
         self.tell(MissionUpdate::PlanComplete { cycles });
     }
@@ -306,6 +371,33 @@ impl Mission {
         }
         out
     }
+}
+
+/// Which cycle a call is for, and what its answer completes.
+pub(super) enum CycleKind {
+    Supervisor,
+    /// `offered`: the numbered callables offered, whose ids the next cycle does not reuse.
+    Monolithic {
+        offered: u32,
+    },
+}
+
+/// What a cycle's reply is for, carried beside its call.
+pub(super) struct CycleWork {
+    kind: CycleKind,
+    issued: fn(&mut Mission, Call, DroneId, u64),
+    /// `Mission::work_epoch` when the call started: a reply from before a plan was adopted or
+    /// ended is for other work.
+    epoch: u64,
+}
+
+/// A cycle's reply as checked: the calls that passed, and what the pilot is told.
+pub(super) struct CycleChoice {
+    reasoning: String,
+    claim: bool,
+    all_passed: bool,
+    accepted: Vec<(Call, crate::safety::CheckedAction)>,
+    later: Vec<String>,
 }
 
 /// One cycle's question to its model: the Supervisor's or the monolithic model's.

@@ -378,6 +378,7 @@ impl Mission {
     }
 
     pub(super) fn finish_plan(&mut self, plan: ActivePlan, how: &str) {
+        self.work_epoch += 1;
         for t in plan.tasks.iter().filter(|t| t.status == TaskStatus::Done) {
             self.history.push(HistoryEntry::Executed {
                 call: t.call.clone(),
@@ -385,7 +386,7 @@ impl Mission {
             });
         }
         if how == "complete" {
-            self.stats.cycles_per_plan.push(plan.cycles);
+            self.stats.update(|s| s.cycles_per_plan.push(plan.cycles));
             self.log.note(Record::PlanComplete {
                 cycles: plan.cycles,
             });
