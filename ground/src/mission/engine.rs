@@ -6,6 +6,7 @@ mod approval;
 mod caller;
 mod checks;
 mod coordinator;
+mod cycle_call;
 mod cycles;
 mod in_flight;
 mod plan_state;

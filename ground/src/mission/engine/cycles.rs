@@ -5,6 +5,7 @@ use super::Mission;
 use super::caller::Checked;
 use super::checks::check_live;
 use super::coordinator::same_work;
+use super::cycle_call::{CycleAsk, CycleChoice, CycleKind, CycleOutcome, CycleReply, CycleWork};
 use super::in_flight::{Answered, CycleAnswer, InFlight};
 use super::plan_state::PlanTask;
 use crate::mission::config::Mode;
@@ -14,7 +15,7 @@ use tacos_llm::ChatMessage;
 use tacos_prompts::offer::{Callable, callable_schema, startable_schema};
 use tacos_prompts::render::{self, TaskStatus};
 use tacos_prompts::schema::{self, Output};
-use tacos_prompts::{ActionName, Call, MonolithicReply, ReplyError, SupervisorReply, texts};
+use tacos_prompts::{ActionName, Call, MonolithicReply, SupervisorReply, texts};
 use tacos_shared::action::Action;
 use tacos_shared::{DroneId, DroneMode};
 
@@ -370,95 +371,6 @@ impl Mission {
             });
         }
         out
-    }
-}
-
-/// Which cycle a call is for, and what its answer completes.
-pub(super) enum CycleKind {
-    Supervisor,
-    /// `offered`: the numbered callables offered, whose ids the next cycle does not reuse.
-    Monolithic {
-        offered: u32,
-    },
-}
-
-/// What a cycle's reply is for, carried beside its call.
-pub(super) struct CycleWork {
-    kind: CycleKind,
-    issued: fn(&mut Mission, Call, DroneId, u64),
-    /// `Mission::work_epoch` when the call started: a reply from before a plan was adopted or
-    /// ended is for other work.
-    epoch: u64,
-}
-
-/// A cycle's reply as checked: the calls that passed, and what the pilot is told.
-pub(super) struct CycleChoice {
-    reasoning: String,
-    claim: bool,
-    all_passed: bool,
-    accepted: Vec<(Call, crate::safety::CheckedAction)>,
-    later: Vec<String>,
-}
-
-/// One cycle's question to its model: the Supervisor's or the monolithic model's.
-pub(super) struct CycleAsk {
-    pub(super) layer: &'static str,
-    pub(super) output: Output,
-    pub(super) messages: Vec<ChatMessage>,
-    pub(super) schema: serde_json::Value,
-    pub(super) parse: fn(&str) -> Result<CycleReply, ReplyError>,
-    /// The calls the reply may choose from (the Supervisor's startable calls); `None`: any call
-    /// that passes the live checks (the monolithic model, which has no plan).
-    pub(super) only: Option<Vec<Call>>,
-    /// The tasks issued so far, so a running or finished task is not issued again.
-    pub(super) tasks: Vec<(Call, TaskStatus)>,
-}
-
-/// A Supervisor or monolithic reply: reasoning, calls to issue now, and the model's claim that
-/// the work is complete (`plan_complete` or `done`).
-pub(super) struct CycleReply {
-    pub(super) reasoning: String,
-    pub(super) actions: Vec<Call>,
-    pub(super) claim: bool,
-}
-
-impl From<SupervisorReply> for CycleReply {
-    fn from(r: SupervisorReply) -> Self {
-        CycleReply {
-            reasoning: r.reasoning,
-            actions: r.actions,
-            claim: r.plan_complete,
-        }
-    }
-}
-
-impl From<MonolithicReply> for CycleReply {
-    fn from(r: MonolithicReply) -> Self {
-        CycleReply {
-            reasoning: r.reasoning,
-            actions: r.actions,
-            claim: r.done,
-        }
-    }
-}
-
-/// What a cycle did.
-pub(super) struct CycleOutcome {
-    pub(super) reasoning: String,
-    /// The model claimed the work complete.
-    pub(super) claim: bool,
-    /// Every call of the accepted reply passed the checks and was issued (none was a later
-    /// step left for a later cycle).
-    pub(super) all_passed: bool,
-    pub(super) sent: Vec<String>,
-}
-
-impl CycleOutcome {
-    /// A claim of completion counts only from a reply whose every call passed and was issued:
-    /// a reply that names a rejected call or a later step and says "done" meant that call to be
-    /// part of the work.
-    pub(super) fn claim_stands(&self) -> bool {
-        self.claim && self.all_passed
     }
 }
 

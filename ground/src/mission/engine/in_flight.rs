@@ -8,7 +8,7 @@
 //! (`Mission::work_epoch`). Whatever is dropped is logged and told.
 
 use super::Mission;
-use super::cycles::{CycleChoice, CycleWork};
+use super::cycle_call::{CycleChoice, CycleWork};
 use crate::mission::log::Record;
 use crate::mission::report::{MissionError, MissionUpdate, Overtaken};
 use crate::task_guard::AbortOnDrop;
