@@ -41,9 +41,11 @@ pub struct SessionReport {
     pub log_path: PathBuf,
 }
 
-/// One line of text for an update, as the headless modes print it.
-pub fn describe(update: &MissionUpdate) -> String {
-    match update {
+/// One line of text for an update, as the headless modes print it; none for a reply still being
+/// written (the whole reply is printed when it is in).
+pub fn describe(update: &MissionUpdate) -> Option<String> {
+    let text = match update {
+        MissionUpdate::Writing { .. } => return None,
         MissionUpdate::Thinking { layer } => format!("{layer} thinking…"),
         MissionUpdate::CallDropped { layer, by } => {
             format!("{layer}: the call in flight was dropped, overtaken by {by}")
@@ -86,7 +88,8 @@ pub fn describe(update: &MissionUpdate) -> String {
             "{layer} answered in {:.1} s ({prompt_tokens} + {completion_tokens} tokens)",
             latency.as_secs_f64()
         ),
-    }
+    };
+    Some(text)
 }
 
 /// Runs the session; returns when every line was carried out (or stdin closed).
@@ -136,7 +139,9 @@ pub async fn run_session(
                 Err(_) => break Err(format!("not carried out within {:?}", opts.line_timeout)),
                 Ok(None) => break Err("the mission stopped".to_owned()),
                 Ok(Some(update)) => {
-                    say(&describe(&update));
+                    if let Some(text) = describe(&update) {
+                        say(&text);
+                    }
                     match update {
                         MissionUpdate::PlanComplete { .. } => break Ok(()),
                         MissionUpdate::Error(reason) => break Err(reason),
@@ -208,7 +213,11 @@ pub async fn run_session(
                     _ => break,
                 },
                 update = updates.recv() => match update {
-                    Some(u) => say(&describe(&u)),
+                    Some(u) => {
+                        if let Some(text) = describe(&u) {
+                            say(&text);
+                        }
+                    }
                     None => break,
                 },
             }

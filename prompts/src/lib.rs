@@ -5,6 +5,7 @@
 //! Nothing here talks to a network or decides anything; `tacos-ground` does.
 
 pub mod offer;
+pub mod partial;
 pub mod render;
 pub mod reply;
 pub mod schema;

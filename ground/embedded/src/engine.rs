@@ -132,6 +132,9 @@ const REPEAT_WINDOW: usize = 64;
 /// is a choice among names, numbers or punctuation.
 const FREE_TEXT_TOKENS: usize = 4096;
 
+/// How often the text being written is told (`Engine::generate`'s `written`).
+pub const WRITTEN_EVERY: std::time::Duration = std::time::Duration::from_millis(200);
+
 fn gen_err(context: &str) -> impl Fn(candle_core::Error) -> LlmError + '_ {
     move |e| LlmError::Generation(format!("{context}: {e}"))
 }
@@ -291,11 +294,14 @@ impl Engine {
     }
 
     /// One chat completion. `cancel` is polled between steps: when set, the call stops with
-    /// `LlmError::Generation("cancelled")`.
+    /// `LlmError::Generation("cancelled")`. `written` is told the text so far as it grows, at
+    /// most every [`WRITTEN_EVERY`] (decoding the whole text each time costs far less than a
+    /// step).
     pub fn generate(
         &self,
         request: &ChatRequest,
         cancel: &AtomicBool,
+        written: Option<&dyn Fn(String)>,
     ) -> Result<Generation, LlmError> {
         let prompt = self.prompt_tokens(request)?;
         let window = self.decoder.window;
@@ -306,7 +312,7 @@ impl Engine {
             )));
         }
         let mut cache = self.take_cache(&prompt);
-        let result = self.generate_with(request, &prompt, &mut cache, cancel);
+        let result = self.generate_with(request, &prompt, &mut cache, cancel, written);
         // A cache left by a failed step may be inconsistent; a finished or cancelled one is not.
         if result.is_ok() || matches!(&result, Err(LlmError::Truncated(_))) {
             self.keep_cache(cache);
@@ -320,6 +326,7 @@ impl Engine {
         prompt: &[u32],
         cache: &mut KvCache,
         cancel: &AtomicBool,
+        written: Option<&dyn Fn(String)>,
     ) -> Result<Generation, LlmError> {
         let max_tokens = request.max_tokens as usize;
         let window = self.decoder.window;
@@ -348,6 +355,7 @@ impl Engine {
         // counts.
         let mut chosen: Vec<u32> = Vec::new();
         let mut forced = 0u32;
+        let mut told_at = Instant::now();
         let finished = loop {
             if cancel.load(Ordering::Relaxed) {
                 return Err(LlmError::Generation("cancelled".to_string()));
@@ -404,6 +412,12 @@ impl Engine {
                 }
             }
             out.extend_from_slice(&feed);
+            if let Some(written) = written
+                && told_at.elapsed() >= WRITTEN_EVERY
+            {
+                told_at = Instant::now();
+                written(self.tokenizer.decode(&out));
+            }
             if matcher.as_ref().is_some_and(Matcher::is_stopped) {
                 break out.len() <= max_tokens;
             }

@@ -40,7 +40,9 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
-use tacos_llm::{BoxFuture, ChatReply, ChatRequest, LlmBackend, LlmError, Usage};
+use tacos_llm::{
+    BoxFuture, ChatReply, ChatRequest, LlmBackend, LlmError, Progress, Streamed, Usage,
+};
 
 pub use catalogue::{EmbeddedModel, ModelSpec};
 pub use engine::WeightFormat;
@@ -206,13 +208,14 @@ impl Inner {
         &self,
         request: &ChatRequest,
         cancel: &AtomicBool,
+        written: Option<&dyn Fn(String)>,
     ) -> Result<(ChatReply, GenerationStats), LlmError> {
         let started = Instant::now();
         let engine = self.engine()?;
         self.waiting.fetch_add(1, Ordering::SeqCst);
         let _one_at_a_time = lock(&self.gate);
         self.waiting.fetch_sub(1, Ordering::SeqCst);
-        let g = engine.generate(request, cancel)?;
+        let g = engine.generate(request, cancel, written)?;
         let latency = started.elapsed();
         tracing::debug!(
             prompt_tokens = g.prompt_tokens,
@@ -326,24 +329,58 @@ impl EmbeddedBackend {
         &self,
         request: &ChatRequest,
     ) -> Result<(ChatReply, GenerationStats), LlmError> {
-        self.inner.generate(request, &AtomicBool::new(false))
+        self.inner.generate(request, &AtomicBool::new(false), None)
+    }
+
+    /// A call on the blocking pool, cancelled when dropped; `written` gets the text so far.
+    async fn generate_off_thread(
+        &self,
+        request: &ChatRequest,
+        written: Option<tokio::sync::mpsc::UnboundedSender<String>>,
+    ) -> Result<ChatReply, LlmError> {
+        let inner = self.inner.clone();
+        let request = request.clone();
+        let cancel = Arc::new(AtomicBool::new(false));
+        let _cancel_on_drop = CancelOnDrop(cancel.clone());
+        let joined = tokio::task::spawn_blocking(move || {
+            let tell = |text: String| {
+                if let Some(tx) = &written {
+                    let _ = tx.send(text);
+                }
+            };
+            let tell: Option<&dyn Fn(String)> = written.as_ref().map(|_| &tell as _);
+            inner.generate(&request, &cancel, tell)
+        })
+        .await;
+        match joined {
+            Ok(result) => result.map(|(reply, _)| reply),
+            Err(e) => Err(LlmError::Generation(format!(
+                "the model thread failed: {e}"
+            ))),
+        }
     }
 }
 
 impl LlmBackend for EmbeddedBackend {
     fn chat<'a>(&'a self, request: &'a ChatRequest) -> BoxFuture<'a, Result<ChatReply, LlmError>> {
+        Box::pin(self.generate_off_thread(request, None))
+    }
+
+    /// Token by token: the model's thread sends the text so far, told here as it comes.
+    fn chat_streamed<'a>(
+        &'a self,
+        request: &'a ChatRequest,
+        progress: Progress<'a>,
+    ) -> BoxFuture<'a, Result<ChatReply, LlmError>> {
         Box::pin(async move {
-            let inner = self.inner.clone();
-            let request = request.clone();
-            let cancel = Arc::new(AtomicBool::new(false));
-            let _cancel_on_drop = CancelOnDrop(cancel.clone());
-            let joined =
-                tokio::task::spawn_blocking(move || inner.generate(&request, &cancel)).await;
-            match joined {
-                Ok(result) => result.map(|(reply, _)| reply),
-                Err(e) => Err(LlmError::Generation(format!(
-                    "the model thread failed: {e}"
-                ))),
+            let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel::<String>();
+            let call = self.generate_off_thread(request, Some(tx));
+            tokio::pin!(call);
+            loop {
+                tokio::select! {
+                    result = &mut call => return result,
+                    Some(text) = rx.recv() => progress(Streamed { reasoning: "", content: &text }),
+                }
             }
         })
     }

@@ -189,6 +189,60 @@ async fn free_text_without_schema() {
     }
 }
 
+/// Streamed token by token: the text so far is told as it grows, each a start of the next,
+/// and the reply is the same as unstreamed (greedy).
+#[tokio::test]
+async fn a_streamed_reply_grows_to_the_reply() {
+    let req = ChatRequest {
+        messages: vec![ChatMessage::user(
+            "List the phonetic alphabet from alfa to juliett, one word per line.",
+        )],
+        schema: None,
+        max_tokens: 60,
+        temperature: 0.0,
+        seed: Some(1),
+        reasoning_effort: None,
+    };
+    let b = backend();
+    let told = std::sync::Mutex::new(Vec::<String>::new());
+    let progress = |so_far: tacos_llm::Streamed<'_>| {
+        told.lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .push(so_far.content.to_owned());
+    };
+    let streamed = b.chat_streamed(&req, &progress).await;
+    let told = told.into_inner().unwrap_or_else(|e| e.into_inner());
+    let whole = b.chat(&req).await;
+    match (streamed, whole) {
+        (Ok(streamed), Ok(whole)) => {
+            assert_eq!(
+                streamed.content, whole.content,
+                "streaming changed the reply"
+            );
+            assert!(
+                !told.is_empty(),
+                "nothing was told while {} tokens were written",
+                streamed.usage.completion_tokens
+            );
+            for pair in told.windows(2) {
+                assert!(pair[1].starts_with(&pair[0]), "{told:?}");
+            }
+            let last = told.last().map(String::as_str).unwrap_or_default();
+            assert!(
+                streamed.content.starts_with(last.trim()),
+                "{last:?} / {:?}",
+                streamed.content
+            );
+        }
+        (Err(a), Err(b)) => assert_eq!(
+            (a.clone(), b),
+            (LlmError::Truncated(60), LlmError::Truncated(60)),
+            "{told:?}"
+        ),
+        other => panic!("streamed and unstreamed disagree: {other:?}"),
+    }
+}
+
 #[test]
 fn tokenizer_round_trips_and_splits_digits() {
     let b = backend();

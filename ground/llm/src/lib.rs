@@ -115,9 +115,34 @@ pub enum LlmError {
 
 pub type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + Send + 'a>>;
 
+/// A reply as it is being generated: the text so far.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Streamed<'a> {
+    /// The chain of thought so far, from servers that send it apart.
+    pub reasoning: &'a str,
+    /// The answer so far (JSON text being written, when a schema was given); a `<think>` block
+    /// a server sends inline is still in it.
+    pub content: &'a str,
+}
+
+/// Told the reply so far each time it grows.
+pub type Progress<'a> = &'a (dyn Fn(Streamed<'_>) + Send + Sync);
+
 /// A language model that answers chat requests.
 pub trait LlmBackend: Send + Sync {
     fn chat<'a>(&'a self, request: &'a ChatRequest) -> BoxFuture<'a, Result<ChatReply, LlmError>>;
+
+    /// As [`Self::chat`], telling `progress` the reply so far each time it grows, so that a pilot
+    /// sees the reasoning while it is written. A backend that cannot stream tells nothing and
+    /// answers as `chat`.
+    fn chat_streamed<'a>(
+        &'a self,
+        request: &'a ChatRequest,
+        progress: Progress<'a>,
+    ) -> BoxFuture<'a, Result<ChatReply, LlmError>> {
+        let _ = progress;
+        self.chat(request)
+    }
 
     /// Backend and model, for the status bar and the mission log (e.g. `openai http://…/v1 gpt-oss:20b`).
     fn describe(&self) -> String;

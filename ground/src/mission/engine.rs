@@ -327,8 +327,19 @@ impl Mission {
         }
         self.overrides.borrow_and_update();
         self.drop_call(Overtaken::DirectCommand);
-        // Replans were for the plan the command ends; the pilot's own lines stay.
-        self.queued.retain(|w| matches!(w, Coordination::Pilot(_)));
+        // Whatever waited for the Coordinator was typed (or raised) before the command, which
+        // overrides it: an instruction queued behind `land all` must not take the drones up again.
+        for work in std::mem::take(&mut self.queued) {
+            let text = match work {
+                Coordination::Pilot(line) => {
+                    format!("instruction {line:?} dropped: a direct command came after it")
+                }
+                Coordination::Replan(why) => {
+                    format!("replan dropped ({why}): a direct command ended the plan")
+                }
+            };
+            self.event(EventTopic::PlanEnded, text);
+        }
         self.work_epoch += 1;
         self.cycle_due = false;
         if let Some(plan) = self.plan.take() {

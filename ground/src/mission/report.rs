@@ -109,6 +109,13 @@ pub enum MissionUpdate {
         prompt_tokens: u32,
         completion_tokens: u32,
     },
+    /// A reply as it is being written (a streaming backend; at most a few a second): the
+    /// reasoning and the complete calls so far. Shown, never acted on.
+    Writing {
+        layer: &'static str,
+        reasoning: String,
+        calls: Vec<String>,
+    },
     /// A model call in flight was dropped: its reply, whenever it comes, is not used.
     CallDropped {
         layer: &'static str,

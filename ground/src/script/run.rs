@@ -232,7 +232,9 @@ impl Runner {
     }
 
     fn update(&mut self, update: &MissionUpdate) {
-        self.say(&describe(update));
+        if let Some(text) = describe(update) {
+            self.say(&text);
+        }
         match update {
             MissionUpdate::PlanComplete { .. } => self.seen.plans_complete_since_say += 1,
             MissionUpdate::Plan { .. } => self.seen.plans_since_fail += 1,

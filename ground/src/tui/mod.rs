@@ -6,6 +6,7 @@
 //! screen: it only exchanges messages with the mission, which runs in its own task, so the
 //! screen stays live while a model thinks.
 
+mod chat;
 mod input_line;
 mod map;
 pub mod panes;

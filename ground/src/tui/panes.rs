@@ -3,11 +3,13 @@
 //! Every function draws from a `&TerminalState` into a buffer and nothing else, so each pane can
 //! be rendered on ratatui's `TestBackend` and compared with an expected screen.
 
+use super::chat::paragraph_lines;
+pub use super::chat::{chat_lines, wrap};
 pub use super::map::{
     DRONE_MARKER, TARGET_MARKER, ellipse_footprint, landmark_symbol, map_bounds, mode_color,
     render_map,
 };
-use super::state::{ChatEntry, DroneRow, EventKind, Focus, TerminalState};
+use super::state::{DroneRow, EventKind, Focus, TerminalState};
 use ratatui::Frame;
 use ratatui::buffer::Buffer;
 use ratatui::layout::{Constraint, Layout, Position, Rect};
@@ -257,166 +259,6 @@ pub fn render_swarm(state: &TerminalState, area: Rect, buf: &mut Buffer) {
 }
 
 // ---- chat and event log --------------------------------------------------------------------
-
-/// Greedy word wrap to `width` columns; words longer than a line are cut.
-pub fn wrap(text: &str, width: usize) -> Vec<String> {
-    let width = width.max(1);
-    let mut lines = Vec::new();
-    for paragraph in text.split('\n') {
-        let mut line = String::new();
-        let mut used = 0;
-        for word in paragraph.split_whitespace() {
-            let mut word: Vec<char> = word.chars().collect();
-            loop {
-                let len = Span::raw(word.iter().collect::<String>()).width();
-                let gap = usize::from(used > 0);
-                if used + gap + len <= width {
-                    if gap == 1 {
-                        line.push(' ');
-                    }
-                    line.extend(word.iter());
-                    used += gap + len;
-                    break;
-                }
-                if used > 0 {
-                    lines.push(std::mem::take(&mut line));
-                    used = 0;
-                    continue;
-                }
-                // A word wider than the line: cut it.
-                let cut = word.len().min(width);
-                let head: String = word.drain(..cut).collect();
-                lines.push(head);
-                if word.is_empty() {
-                    break;
-                }
-            }
-        }
-        lines.push(line);
-    }
-    lines
-}
-
-/// A prefixed, wrapped paragraph: the first line starts with `prefix`, the rest are indented to
-/// its width.
-fn paragraph_lines(
-    out: &mut Vec<Line<'static>>,
-    prefix: &str,
-    prefix_style: Style,
-    text: &str,
-    text_style: Style,
-    width: usize,
-) {
-    let indent = Span::raw(prefix).width();
-    let body = width.saturating_sub(indent).max(1);
-    for (i, chunk) in wrap(text, body).into_iter().enumerate() {
-        let lead = if i == 0 {
-            Span::styled(prefix.to_owned(), prefix_style)
-        } else {
-            Span::raw(" ".repeat(indent))
-        };
-        out.push(Line::from(vec![lead, Span::styled(chunk, text_style)]));
-    }
-}
-
-/// The chat as wrapped lines for an inner width.
-pub fn chat_lines(state: &TerminalState, width: usize) -> Vec<Line<'static>> {
-    let mut out = Vec::new();
-    let bold = |c: Color| Style::new().fg(c).add_modifier(Modifier::BOLD);
-    for entry in &state.chat {
-        match entry {
-            ChatEntry::Pilot(text) => paragraph_lines(
-                &mut out,
-                "pilot › ",
-                bold(Color::Cyan),
-                text,
-                Style::new(),
-                width,
-            ),
-            ChatEntry::Coordinator { reasoning, calls } => {
-                paragraph_lines(
-                    &mut out,
-                    "coordinator › ",
-                    bold(Color::Magenta),
-                    reasoning,
-                    Style::new(),
-                    width,
-                );
-                if calls.is_empty() {
-                    paragraph_lines(
-                        &mut out,
-                        "  plan: ",
-                        Style::new().fg(Color::Magenta),
-                        "(empty)",
-                        Style::new().fg(Color::DarkGray),
-                        width,
-                    );
-                }
-                for (i, call) in calls.iter().enumerate() {
-                    paragraph_lines(
-                        &mut out,
-                        &format!("  {:>2}. ", i + 1),
-                        Style::new().fg(Color::Magenta),
-                        call,
-                        Style::new().fg(Color::Yellow),
-                        width,
-                    );
-                }
-            }
-            ChatEntry::Supervisor {
-                cycle,
-                reasoning,
-                actions,
-            } => {
-                paragraph_lines(
-                    &mut out,
-                    &format!("supervisor #{cycle} › "),
-                    bold(Color::Blue),
-                    reasoning,
-                    Style::new(),
-                    width,
-                );
-                if actions.is_empty() {
-                    paragraph_lines(
-                        &mut out,
-                        "  → ",
-                        Style::new().fg(Color::Blue),
-                        "no action this cycle",
-                        Style::new().fg(Color::DarkGray),
-                        width,
-                    );
-                }
-                for action in actions {
-                    paragraph_lines(
-                        &mut out,
-                        "  → ",
-                        Style::new().fg(Color::Blue),
-                        action,
-                        Style::new().fg(Color::Green),
-                        width,
-                    );
-                }
-            }
-            ChatEntry::PlanComplete { cycles } => paragraph_lines(
-                &mut out,
-                "✓ ",
-                bold(Color::Green),
-                &format!("plan complete after {cycles} supervisor cycles"),
-                Style::new().fg(Color::Green),
-                width,
-            ),
-            ChatEntry::Error(text) => paragraph_lines(
-                &mut out,
-                "✗ ",
-                bold(Color::Red),
-                text,
-                Style::new().fg(Color::Red),
-                width,
-            ),
-        }
-    }
-    out
-}
 
 /// Renders the lines that fit, `back` lines up from the end (clamped); a scrolled view says how
 /// many lines are below it.

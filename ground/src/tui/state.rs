@@ -100,6 +100,14 @@ pub enum ChatEntry {
     Error(String),
 }
 
+/// A reply being written: its layer, its reasoning and its complete calls so far.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Writing {
+    pub layer: String,
+    pub reasoning: String,
+    pub calls: Vec<String>,
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum EventKind {
     /// A drone lost, a fault, an action that failed.
@@ -177,6 +185,8 @@ pub struct TerminalState {
     pub trails: BTreeMap<String, VecDeque<(Instant, Vec3)>>,
     pub targets: Vec<TargetMark>,
     pub chat: VecDeque<ChatEntry>,
+    /// A model's reply as it is being written, shown below the chat until it is in.
+    pub writing: Option<Writing>,
     pub events: VecDeque<EventLine>,
     pub status: Status,
     pub input: InputLine,
@@ -202,6 +212,7 @@ impl TerminalState {
             trails: BTreeMap::new(),
             targets: Vec::new(),
             chat: VecDeque::new(),
+            writing: None,
             events: VecDeque::new(),
             status: Status {
                 backend: backend.into(),
@@ -260,7 +271,28 @@ impl TerminalState {
     /// Takes in one update of the mission, in the order the engine sent them.
     pub fn apply_update(&mut self, update: &MissionUpdate, now: Instant) {
         self.tick(now);
+        // A reply in progress is shown until anything else comes of the call.
+        if !matches!(
+            update,
+            MissionUpdate::Writing { .. }
+                | MissionUpdate::Sent { .. }
+                | MissionUpdate::Outcome { .. }
+                | MissionUpdate::Event { .. }
+        ) {
+            self.writing = None;
+        }
         match update {
+            MissionUpdate::Writing {
+                layer,
+                reasoning,
+                calls,
+            } => {
+                self.writing = Some(Writing {
+                    layer: (*layer).to_owned(),
+                    reasoning: reasoning.clone(),
+                    calls: calls.clone(),
+                });
+            }
             MissionUpdate::Thinking { layer } => {
                 self.status.thinking = Some(((*layer).to_owned(), self.now));
             }

@@ -3,7 +3,9 @@
 //!
 //! One request is `POST {base_url}/chat/completions` with:
 //!
-//! - `model`, `messages`, `temperature`, `stream: false`;
+//! - `model`, `messages`, `temperature`, `stream: false` (`true` for
+//!   [`LlmBackend::chat_streamed`]: server-sent events assembled by [`SseAssembler`] into the same
+//!   reply, so one parser judges both);
 //! - the token limit as `max_tokens` by default. Ollama's, vLLM's and llama.cpp's OpenAI endpoints
 //!   all read `max_tokens`; OpenAI's own reasoning models (o-series, gpt-5) refuse it and want
 //!   `max_completion_tokens`, which vLLM also reads but older Ollama builds ignore. Pick with
@@ -39,10 +41,13 @@ use std::fmt;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
-use crate::{BoxFuture, ChatReply, ChatRequest, LlmBackend, LlmError, Usage};
+use crate::{BoxFuture, ChatReply, ChatRequest, LlmBackend, LlmError, Progress, Streamed, Usage};
 
 mod config;
+mod stream;
 mod wire;
+
+pub use stream::SseAssembler;
 
 pub use config::*;
 use wire::*;
@@ -102,13 +107,22 @@ impl OpenAiBackend {
         self.endpoint.as_str()
     }
 
-    async fn chat_with_retries(&self, request: &ChatRequest) -> Result<ChatReply, LlmError> {
-        let wire = WireRequest::new(&self.config, request);
+    /// One call with its retries; streamed when `progress` is given (a retry starts the
+    /// progress over).
+    async fn chat_with_retries(
+        &self,
+        request: &ChatRequest,
+        progress: Option<Progress<'_>>,
+    ) -> Result<ChatReply, LlmError> {
+        let mut wire = WireRequest::new(&self.config, request);
+        if progress.is_some() {
+            wire = wire.streamed();
+        }
         let started = Instant::now();
         let mut attempt: u32 = 0;
         loop {
             attempt = attempt.saturating_add(1);
-            let failure = match self.attempt(&wire).await {
+            let failure = match self.attempt(&wire, progress).await {
                 Ok(body) => return self.parse_reply(&body, request, started.elapsed()),
                 Err(failure) => failure,
             };
@@ -129,17 +143,45 @@ impl OpenAiBackend {
         }
     }
 
-    /// One HTTP exchange: the body of a 2xx reply, or what went wrong and whether to retry.
-    async fn attempt(&self, wire: &WireRequest<'_>) -> Result<Vec<u8>, Failure> {
+    /// One HTTP exchange: the body of a 2xx reply (a streamed one assembled into the same shape:
+    /// `stream`), or what went wrong and whether to retry.
+    async fn attempt(
+        &self,
+        wire: &WireRequest<'_>,
+        progress: Option<Progress<'_>>,
+    ) -> Result<Vec<u8>, Failure> {
         let mut builder = self.client.post(self.endpoint.clone()).json(wire);
         if let Some(key) = &self.config.api_key {
             builder = builder.bearer_auth(key);
         }
         let exchange = async {
-            let response = builder.send().await?;
+            let mut response = builder.send().await?;
             let status = response.status();
             let retry_after = retry_after(response.headers());
-            let body = response.bytes().await?;
+            let body = match progress {
+                Some(progress) if status.is_success() => {
+                    let mut sse = SseAssembler::default();
+                    let mut broken = None;
+                    while let Some(bytes) = response.chunk().await? {
+                        match sse.push(&bytes) {
+                            Ok(true) => progress(Streamed {
+                                reasoning: sse.reasoning(),
+                                content: sse.content(),
+                            }),
+                            Ok(false) => {}
+                            Err(e) => {
+                                broken = Some(e);
+                                break;
+                            }
+                        }
+                    }
+                    match broken {
+                        Some(e) => Err(e),
+                        None => sse.finish(),
+                    }
+                }
+                _ => Ok(response.bytes().await?.to_vec()),
+            };
             Ok::<_, reqwest::Error>((status, retry_after, body))
         };
         let (status, retry_after, body) = match tokio::time::timeout(self.config.timeout, exchange)
@@ -149,8 +191,14 @@ impl OpenAiBackend {
             Ok(Err(e)) => return Err(Failure::from_reqwest(&e, self.config.timeout)),
             Ok(Ok(exchange)) => exchange,
         };
+        // A stream that broke off is not retried: the server answered, as a bad body is.
+        let body = body.map_err(|error| Failure {
+            error,
+            retryable: false,
+            retry_after: None,
+        })?;
         if status.is_success() {
-            return Ok(body.to_vec());
+            return Ok(body);
         }
         let code = status.as_u16();
         let error = LlmError::Http {
@@ -295,7 +343,15 @@ impl OpenAiBackend {
 
 impl LlmBackend for OpenAiBackend {
     fn chat<'a>(&'a self, request: &'a ChatRequest) -> BoxFuture<'a, Result<ChatReply, LlmError>> {
-        Box::pin(self.chat_with_retries(request))
+        Box::pin(self.chat_with_retries(request, None))
+    }
+
+    fn chat_streamed<'a>(
+        &'a self,
+        request: &'a ChatRequest,
+        progress: Progress<'a>,
+    ) -> BoxFuture<'a, Result<ChatReply, LlmError>> {
+        Box::pin(self.chat_with_retries(request, Some(progress)))
     }
 
     fn describe(&self) -> String {

@@ -171,6 +171,14 @@ pub(super) struct WireRequest<'a> {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub(super) response_format: Option<WireResponseFormat<'a>>,
     pub(super) stream: bool,
+    /// With `stream`: ask for the token counts in the last chunk.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub(super) stream_options: Option<WireStreamOptions>,
+}
+
+#[derive(Serialize)]
+pub(super) struct WireStreamOptions {
+    pub(super) include_usage: bool,
 }
 
 impl<'a> WireRequest<'a> {
@@ -196,6 +204,18 @@ impl<'a> WireRequest<'a> {
                 },
             }),
             stream: false,
+            stream_options: None,
+        }
+    }
+
+    /// The same request, streamed (`stream: true`, the usage in the last chunk).
+    pub(super) fn streamed(self) -> Self {
+        WireRequest {
+            stream: true,
+            stream_options: Some(WireStreamOptions {
+                include_usage: true,
+            }),
+            ..self
         }
     }
 }

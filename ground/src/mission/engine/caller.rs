@@ -5,11 +5,18 @@ use crate::link::GroundLink;
 use crate::mission::aids::{Aid, ModelAids};
 use crate::mission::log::{MissionLog, Record, RefusedBy};
 use crate::mission::report::{MissionError, MissionUpdate, SharedStats};
-use std::sync::Arc;
-use tacos_llm::{ChatMessage, ChatReply, ChatRequest, LlmBackend, LlmError, ResponseSchema};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use tacos_llm::{
+    ChatMessage, ChatReply, ChatRequest, LlmBackend, LlmError, ResponseSchema, Streamed,
+};
 use tacos_prompts::ReplyError;
+use tacos_prompts::partial::partial_reply;
 use tacos_prompts::schema::Output;
 use tokio::sync::mpsc;
+
+/// How often a reply being written is told to the pilot.
+const WRITING_EVERY: Duration = Duration::from_millis(250);
 
 /// Asks models: the backend, the repair loop's bounds, and where calls are recorded. A clone
 /// runs each call on its own task, beside the engine (`engine::in_flight`).
@@ -80,7 +87,10 @@ impl Caller {
             });
             self.stats.update(|s| s.model_calls += 1);
             let in_flight = self.link.model_call();
-            let reply = self.backend.chat(&request).await;
+            let reply = self
+                .backend
+                .chat_streamed(&request, &self.writing_told(layer))
+                .await;
             drop(in_flight);
             let reply = match reply {
                 Ok(reply) => reply,
@@ -203,6 +213,34 @@ impl Caller {
             format!("{layer}: the repair round failed ({why}); what passed the round before stays"),
         );
         Some(passed)
+    }
+
+    /// Tells the pilot a reply as it is being written (`MissionUpdate::Writing`), at most every
+    /// [`WRITING_EVERY`]: its reasoning (the server's, or the `reasoning` field being written)
+    /// and its complete calls.
+    fn writing_told(&self, layer: &'static str) -> impl Fn(Streamed<'_>) + Send + Sync + use<> {
+        let updates = self.updates.clone();
+        let last_told: Mutex<Option<Instant>> = Mutex::new(None);
+        move |so_far: Streamed<'_>| {
+            let now = Instant::now();
+            {
+                let mut last = last_told.lock().unwrap_or_else(|e| e.into_inner());
+                if last.is_some_and(|t| now.duration_since(t) < WRITING_EVERY) {
+                    return;
+                }
+                *last = Some(now);
+            }
+            let read = partial_reply(so_far.content);
+            let reasoning = match so_far.reasoning.trim() {
+                "" => read.reasoning.unwrap_or_default(),
+                thought => thought.to_owned(),
+            };
+            let _ = updates.send(MissionUpdate::Writing {
+                layer,
+                reasoning,
+                calls: read.calls.iter().map(ToString::to_string).collect(),
+            });
+        }
     }
 
     pub(super) fn account(&self, layer: &'static str, attempt: u32, reply: &ChatReply) {

@@ -2,7 +2,8 @@
 //! that while a model thinks — minutes with a small CPU model — the engine goes on taking in
 //! outcomes, lost drones, detections and pilot lines. One call is in flight at a time; work for
 //! the Coordinator that comes meanwhile (a newer instruction, an automatic replan) waits in
-//! order and is never lost. A reply is used only if nothing overtook it: a direct command drops
+//! order, and only a direct command, which overrides what came before it, drops it. A reply is
+//! used only if nothing overtook it: a direct command drops
 //! any call in flight, newer work for the Coordinator drops a Supervisor (or monolithic) call,
 //! and a cycle's reply for a plan that has since ended is dropped when it comes
 //! (`Mission::work_epoch`). Whatever is dropped is logged and told.
