@@ -2,13 +2,15 @@
 //! drone lost meanwhile is told to the pilot at once, and a second instruction waits for the
 //! Coordinator instead of being lost or answered out of order; released, the first plan is
 //! adopted and the second call is asked with that plan pending and the lost drone unavailable.
-//! tacos-sitl, three tacos-px4 + tacos-onboard pairs and the mission engine on loopback.
+//! And `land all` typed while the call is held drops it and the instruction queued behind it:
+//! nothing takes the drones up again. tacos-sitl, three tacos-px4 + tacos-onboard pairs and the
+//! mission engine on loopback.
 
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tacos_ground::launch::Role;
 use tacos_ground::mission::log::MissionLog;
-use tacos_ground::mission::{EventTopic, Mission, MissionConfig, MissionUpdate};
+use tacos_ground::mission::{EventTopic, Mission, MissionConfig, MissionUpdate, Overtaken};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{BoxFuture, ChatReply, ChatRequest, LlmBackend, LlmError, Usage};
 use tacos_tests::{SimSwarm, id, within};
@@ -89,7 +91,17 @@ async fn a_lost_drone_and_a_new_instruction_are_taken_in_while_the_coordinator_t
     result
 }
 
-async fn while_thinking(sim: &mut SimSwarm) -> anyhow::Result<()> {
+/// The three drones in the air and a mission whose first Coordinator call is held.
+struct Held {
+    backend: Arc<HeldCoordinator>,
+    holding: watch::Receiver<bool>,
+    updates: mpsc::UnboundedReceiver<MissionUpdate>,
+    lines: mpsc::Sender<String>,
+    mission_task: tokio::task::JoinHandle<tacos_ground::mission::MissionStats>,
+    log_path: std::path::PathBuf,
+}
+
+async fn held_call(sim: &mut SimSwarm) -> anyhow::Result<Held> {
     let ids = [id("alfa"), id("bravo"), id("charlie")];
     let gate = SafetyGate::new(sim.scenario.clone());
     tacos_tests::all_ready(sim, &ids).await?;
@@ -104,7 +116,7 @@ async fn while_thinking(sim: &mut SimSwarm) -> anyhow::Result<()> {
         release: Notify::new(),
         coordinator_requests: Mutex::new(Vec::new()),
     });
-    let (updates_tx, mut updates) = mpsc::unbounded_channel();
+    let (updates_tx, updates) = mpsc::unbounded_channel();
     let mission = Mission::new(
         MissionConfig::default(),
         backend.clone(),
@@ -124,6 +136,25 @@ async fn while_thinking(sim: &mut SimSwarm) -> anyhow::Result<()> {
         holding.wait_for(|h| *h),
     )
     .await??;
+    Ok(Held {
+        backend,
+        holding,
+        updates,
+        lines,
+        mission_task,
+        log_path,
+    })
+}
+
+async fn while_thinking(sim: &mut SimSwarm) -> anyhow::Result<()> {
+    let Held {
+        backend,
+        holding,
+        mut updates,
+        lines,
+        mission_task,
+        log_path,
+    } = held_call(sim).await?;
 
     // A drone lost while the model thinks is told at once, not after the reply.
     let charlie = id("charlie");
@@ -221,6 +252,84 @@ async fn while_thinking(sim: &mut SimSwarm) -> anyhow::Result<()> {
         stats.coordinator_calls == 2 && stats.model_calls >= 2,
         "the calls are not all counted: {stats:?}"
     );
+    let _ = std::fs::remove_file(&log_path);
+    Ok(())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn land_all_drops_the_held_call_and_the_instruction_queued_behind_it() -> anyhow::Result<()> {
+    let mut sim = SimSwarm::start("concland", "city", 3).await?;
+    let result = land_while_thinking(&mut sim).await;
+    sim.stop().await;
+    result
+}
+
+async fn land_while_thinking(sim: &mut SimSwarm) -> anyhow::Result<()> {
+    let Held {
+        backend,
+        mut updates,
+        lines,
+        mission_task,
+        log_path,
+        ..
+    } = held_call(sim).await?;
+    lines.send("bravo, inspect car_12".into()).await?;
+    lines.send("land all".into()).await?;
+    let (mut dropped, mut queued_dropped) = (None, false);
+    within(
+        "the call and the queued instruction dropped",
+        Duration::from_secs(15),
+        async {
+            while let Some(u) = updates.recv().await {
+                match u {
+                    MissionUpdate::CallDropped { layer, by } => dropped = Some((layer, by)),
+                    MissionUpdate::Event {
+                        topic: EventTopic::PlanEnded,
+                        text,
+                    } if text.contains("bravo, inspect car_12") => queued_dropped = true,
+                    MissionUpdate::Error(e) => panic!("mission error: {e}"),
+                    _ => {}
+                }
+                if dropped.is_some() && queued_dropped {
+                    return;
+                }
+            }
+        },
+    )
+    .await?;
+    assert_eq!(dropped, Some(("coordinator", Overtaken::DirectCommand)));
+    // Every drone lands, and no Coordinator call follows: nothing takes them up again.
+    within("all to land", Duration::from_secs(90), async {
+        let ids = [id("alfa"), id("bravo"), id("charlie")];
+        let mut version = sim.link.changes();
+        loop {
+            let landed = {
+                let view = sim.link.view();
+                let now = std::time::Instant::now();
+                ids.iter().all(|d| {
+                    view.get(d)
+                        .is_some_and(|e| e.effective_mode(now) == tacos_shared::DroneMode::Idle)
+                })
+            };
+            if landed {
+                return;
+            }
+            let _ = version.recv().await;
+        }
+    })
+    .await?;
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let asked = backend
+        .coordinator_requests
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .len();
+    anyhow::ensure!(
+        asked == 1,
+        "{asked} Coordinator calls: the queued instruction was asked"
+    );
+    drop(lines);
+    within("the mission to end", Duration::from_secs(10), mission_task).await??;
     let _ = std::fs::remove_file(&log_path);
     Ok(())
 }
