@@ -3,14 +3,13 @@
 
 use crate::link::GroundLink;
 use crate::mission::log::MissionLog;
-use crate::mission::{EventTopic, Mission, MissionConfig, MissionStats, MissionUpdate, PilotInput};
+use crate::mission::{EventTopic, MissionConfig, MissionHandle, MissionStats, MissionUpdate};
 use crate::safety::SafetyGate;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tacos_llm::LlmBackend;
 use tokio::io::AsyncBufReadExt;
-use tokio::sync::mpsc;
 
 #[derive(Debug, Clone)]
 pub struct SessionOptions {
@@ -103,19 +102,11 @@ pub async fn run_session(
     let link_for_terminal = link.clone();
     let scenario = gate.scenario().clone();
     let description = backend.describe();
-    let (updates_tx, mut updates) = mpsc::unbounded_channel();
-    let (input, inputs) =
-        PilotInput::new(link.clone(), gate.clone(), log.clone(), updates_tx.clone());
-    let mission = Mission::new(
-        opts.mission.clone(),
-        backend,
-        gate,
-        link,
-        log.clone(),
-        updates_tx,
-    )
-    .await?;
-    let mission_task = tokio::spawn(mission.run_with(inputs));
+    let MissionHandle {
+        input,
+        mut updates,
+        task,
+    } = MissionHandle::start(opts.mission.clone(), backend, gate, link, log.clone()).await?;
     let start = Instant::now();
     let say = |text: &str| {
         if opts.verbose {
@@ -224,7 +215,7 @@ pub async fn run_session(
         }
     }
     drop(input);
-    let stats = crate::mission::stats_when_done(mission_task).await;
+    let stats = task.stats().await;
     result.map(|()| SessionReport {
         stats,
         log_path: log.path().to_owned(),

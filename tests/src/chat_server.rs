@@ -110,9 +110,15 @@ where
         503 => "Service Unavailable",
         _ => "Error",
     };
-    let body = reply.to_string();
+    // Asked to stream, a real server answers a success as server-sent events (errors stay JSON).
+    let (kind, body) = match serde_json::from_slice::<Value>(&body) {
+        Ok(request) if status == 200 && request["stream"] == true => {
+            ("text/event-stream", events(&reply))
+        }
+        _ => ("application/json", reply.to_string()),
+    };
     let response = format!(
-        "HTTP/1.1 {status} {reason}\r\ncontent-type: application/json\r\ncontent-length: {}\r\nconnection: close\r\n\r\n{body}",
+        "HTTP/1.1 {status} {reason}\r\ncontent-type: {kind}\r\ncontent-length: {}\r\nconnection: close\r\n\r\n{body}",
         body.len()
     );
     stream.write_all(response.as_bytes()).await?;
@@ -131,6 +137,33 @@ fn error_body(status: u16, message: &str) -> Value {
         _ => "server_error",
     };
     json!({ "error": { "code": status, "message": message, "type": kind } })
+}
+
+/// A completion as llama.cpp's server streams it: the content in pieces of a few characters,
+/// the finish reason, the usage in a last chunk without choices, then `[DONE]`.
+fn events(completion: &Value) -> String {
+    let model = &completion["model"];
+    let choice = &completion["choices"][0];
+    let content: Vec<char> = choice["message"]["content"]
+        .as_str()
+        .unwrap_or_default()
+        .chars()
+        .collect();
+    let mut out = String::new();
+    let mut event = |chunk: Value| out.push_str(&format!("data: {chunk}\n\n"));
+    for piece in content.chunks(12) {
+        let text: String = piece.iter().collect();
+        event(json!({ "object": "chat.completion.chunk", "model": model,
+            "choices": [{ "index": 0, "delta": { "content": text }, "finish_reason": null }] }));
+    }
+    event(json!({ "object": "chat.completion.chunk", "model": model,
+        "choices": [{ "index": 0, "delta": {}, "finish_reason": choice["finish_reason"] }] }));
+    event(
+        json!({ "object": "chat.completion.chunk", "model": model, "choices": [],
+        "usage": completion["usage"] }),
+    );
+    out.push_str("data: [DONE]\n\n");
+    out
 }
 
 fn completion(request: &Value, model: &str, content: &str) -> Value {

@@ -6,13 +6,12 @@ use serde_json::json;
 use std::sync::Arc;
 use std::time::Duration;
 use tacos_ground::mission::log::{self, MissionLog, Record};
-use tacos_ground::mission::{Mission, MissionConfig, MissionUpdate, PilotInput};
+use tacos_ground::mission::{MissionConfig, MissionHandle, MissionUpdate};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{ChatRequest, LlmError};
 use tacos_shared::action::Action;
 use tacos_tests::prompt_text::first_offered_per_drone;
 use tacos_tests::{PolicyBackend, SimSwarm, told, within};
-use tokio::sync::mpsc;
 
 const REJECTED: &str = "The pilot rejected your plan";
 
@@ -64,28 +63,16 @@ async fn a_held_plan_flies_only_once_approved_without_its_dropped_calls() -> any
         let log_path =
             std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm("approve")));
         let log = Arc::new(MissionLog::create(&log_path)?);
-        let (updates_tx, mut updates) = mpsc::unbounded_channel();
-        let (input, inputs) = PilotInput::new(
-            sim.link.clone(),
-            gate.clone(),
-            log.clone(),
-            updates_tx.clone(),
-        );
         let backend = Arc::new(PolicyBackend::new(policy));
         let cfg = MissionConfig {
             confirm: true,
             ..MissionConfig::default()
         };
-        let mission = Mission::new(
-            cfg,
-            backend.clone(),
-            gate,
-            sim.link.clone(),
-            log.clone(),
-            updates_tx,
-        )
-        .await?;
-        let mission_task = tokio::spawn(mission.run_with(inputs));
+        let MissionHandle {
+            input,
+            mut updates,
+            task,
+        } = MissionHandle::start(cfg, backend.clone(), gate, sim.link.clone(), log.clone()).await?;
 
         input
             .submit("alfa inspect car_11, bravo inspect car_1")
@@ -160,7 +147,7 @@ async fn a_held_plan_flies_only_once_approved_without_its_dropped_calls() -> any
         told(&mut updates, "confirm off").await?;
 
         drop(input);
-        within("the mission to end", Duration::from_secs(10), mission_task).await??;
+        within("the mission to end", Duration::from_secs(10), task.join()).await??;
         let lines = log::read(&log_path)?;
         assert_eq!(gotos_sent(&lines).len(), 1, "nothing else flew");
         assert!(

@@ -7,15 +7,13 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 use tacos_ground::mission::log::{self, MissionLog, Record};
-use tacos_ground::mission::{
-    EventTopic, Mission, MissionConfig, MissionUpdate, Overtaken, PilotInput,
-};
+use tacos_ground::mission::{EventTopic, MissionConfig, MissionHandle, MissionUpdate, Overtaken};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{BoxFuture, ChatReply, ChatRequest, LlmBackend, LlmError, Usage};
 use tacos_shared::action::Action;
 use tacos_shared::{DroneId, DroneMode};
 use tacos_tests::{SimSwarm, within};
-use tokio::sync::{Notify, mpsc, watch};
+use tokio::sync::{Notify, watch};
 
 /// A model whose Coordinator answers at once with a goto for alfa, and whose first Supervisor
 /// call is held until the test releases it (a slow model); every Supervisor reply proposes
@@ -92,19 +90,11 @@ async fn land_all_is_sent_while_a_model_call_is_pending_and_the_late_reply_is_no
             release: Notify::new(),
             returned: AtomicBool::new(false),
         });
-        let (updates_tx, mut updates) = mpsc::unbounded_channel();
-        let (input, inputs) =
-            PilotInput::new(link.clone(), gate.clone(), log.clone(), updates_tx.clone());
-        let mission = Mission::new(
-            MissionConfig::default(),
-            backend.clone(),
-            gate,
-            link.clone(),
-            log.clone(),
-            updates_tx,
-        )
-        .await?;
-        let mission_task = tokio::spawn(mission.run_with(inputs));
+        let MissionHandle {
+            input,
+            mut updates,
+            task,
+        } = MissionHandle::start(MissionConfig::default(), backend.clone(), gate, link.clone(), log.clone()).await?;
 
         input.submit("alfa, inspect car_11").await?;
         within(
@@ -193,7 +183,7 @@ async fn land_all_is_sent_while_a_model_call_is_pending_and_the_late_reply_is_no
         })
         .await?;
         drop(input);
-        within("the mission to end", Duration::from_secs(10), mission_task).await??;
+        within("the mission to end", Duration::from_secs(10), task.join()).await??;
 
         let lines = log::read(&log_path)?;
         let sent: Vec<(String, String)> = lines

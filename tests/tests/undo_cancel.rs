@@ -8,14 +8,13 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Duration;
 use tacos_ground::mission::log::{self, MissionLog, Record};
-use tacos_ground::mission::{EventTopic, Mission, MissionConfig, MissionUpdate, PilotInput};
+use tacos_ground::mission::{EventTopic, MissionConfig, MissionHandle, MissionUpdate};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{ChatRequest, LlmError};
 use tacos_shared::action::Action;
 use tacos_shared::{DroneId, Vec3};
 use tacos_tests::prompt_text::first_offered_per_drone;
 use tacos_tests::{PolicyBackend, SimSwarm, told, within};
-use tokio::sync::mpsc;
 
 /// Alfa to car_11 and bravo to car_1, as a Coordinator would plan "inspect the cars"; the
 /// Supervisor starts whatever the engine offers.
@@ -73,23 +72,18 @@ async fn cancel_holds_a_plan_s_drones_and_undo_flies_them_back() -> anyhow::Resu
         let log_path =
             std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm("undo")));
         let log = Arc::new(MissionLog::create(&log_path)?);
-        let (updates_tx, mut updates) = mpsc::unbounded_channel();
-        let (input, inputs) = PilotInput::new(
-            sim.link.clone(),
-            gate.clone(),
-            log.clone(),
-            updates_tx.clone(),
-        );
-        let mission = Mission::new(
+        let MissionHandle {
+            input,
+            mut updates,
+            task,
+        } = MissionHandle::start(
             MissionConfig::default(),
             Arc::new(PolicyBackend::new(policy)),
             gate,
             sim.link.clone(),
             log.clone(),
-            updates_tx,
         )
         .await?;
-        let mission_task = tokio::spawn(mission.run_with(inputs));
 
         // Nothing to undo before the models carried anything out.
         input.submit("undo").await?;
@@ -183,7 +177,7 @@ async fn cancel_holds_a_plan_s_drones_and_undo_flies_them_back() -> anyhow::Resu
         assert!(again.contains("undone already"), "{again}");
 
         drop(input);
-        within("the mission to end", Duration::from_secs(10), mission_task).await??;
+        within("the mission to end", Duration::from_secs(10), task.join()).await??;
         let lines = log::read(&log_path)?;
         // The undo's gotos are the points the drones were at, checked at the gate and sent.
         let gotos: Vec<String> = lines

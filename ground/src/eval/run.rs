@@ -10,9 +10,8 @@ use crate::direct::run_actions;
 use crate::launch::{Role, Stack, StackConfig};
 use crate::link::GroundLink;
 use crate::mission::log::{self, MissionLog};
-use crate::mission::{Mission, MissionConfig, MissionUpdate, Mode, ModelAids};
+use crate::mission::{MissionConfig, MissionHandle, MissionUpdate, Mode, ModelAids};
 use crate::safety::SafetyGate;
-use crate::task_guard::AbortOnDrop;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -21,7 +20,7 @@ use tacos_shared::action::Action;
 use tacos_shared::messages::{FaultRequest, SimTruth, WorldEvent};
 use tacos_shared::scenario::{self, Scenario};
 use tacos_shared::{DroneId, DroneMode, SwarmId};
-use tokio::sync::{Mutex, mpsc};
+use tokio::sync::Mutex;
 
 /// Everything one run needs.
 #[derive(Clone)]
@@ -233,7 +232,6 @@ async fn fly(
             .map_err(infra)?
             .timed_by(link.clock()),
     );
-    let (updates_tx, mut updates) = mpsc::unbounded_channel();
     let config = MissionConfig {
         mode: plan.mode,
         seed: Some(plan.seed),
@@ -242,20 +240,21 @@ async fn fly(
         cycle_timeout: plan.cycle_timeout,
         ..MissionConfig::default()
     };
-    let mission = Mission::new(
+    // The pilot's lines go in as a pilot types them. Dropping the task when the run ends,
+    // however it ends, stops the mission.
+    let MissionHandle {
+        input,
+        mut updates,
+        task: _mission,
+    } = MissionHandle::start(
         config,
         plan.backend.clone(),
         gate.clone(),
         link.clone(),
         log,
-        updates_tx,
     )
     .await
     .map_err(infra)?;
-    let (lines_tx, lines_rx) = mpsc::channel(8);
-    // Stops the mission's task when the run ends, however it ends. Every log record is written
-    // and flushed synchronously, so stopping at an await point never cuts one short.
-    let _mission = AbortOnDrop(tokio::spawn(mission.run(lines_rx)));
 
     let mut pilot = plan.task.pilot.iter().filter(|l| !l.trim().is_empty());
     // Mission time is the ground's clock: the simulator's, which runs faster than real time
@@ -265,7 +264,7 @@ async fn fly(
     let elapsed = || clock.now() - start;
     let deadline = start + plan.time_limit.as_secs_f64();
     if let Some(first) = pilot.next()
-        && lines_tx.send(first.clone()).await.is_err()
+        && input.submit(first).await.is_err()
     {
         return Err(Infra("the mission stopped at once".into()));
     }
@@ -350,7 +349,7 @@ async fn fly(
                     }
                     Some(MissionUpdate::PlanComplete { .. }) => match pilot.next() {
                         Some(line) => {
-                            if lines_tx.send(line.clone()).await.is_err() {
+                            if input.submit(line).await.is_err() {
                                 break Ok(());
                             }
                         }
@@ -396,7 +395,7 @@ async fn fly(
         }
     };
     // The outcome is decided: the mission (perhaps waiting on a model) is stopped at once.
-    drop(lines_tx);
+    drop(input);
     record.mission_s = Some(elapsed());
     outcome?;
     record.separation_breaches = seen.separation_breaches;

@@ -16,6 +16,7 @@ pub mod config;
 pub mod directives;
 pub mod engine;
 pub mod grounding;
+pub mod handle;
 pub mod input;
 pub mod log;
 pub mod report;
@@ -26,7 +27,6 @@ pub mod untrusted;
 pub use aids::{Aid, ModelAids};
 pub use config::{MissionConfig, Mode};
 pub use engine::{Mission, coordinator_messages, supervisor_messages};
+pub use handle::{MissionHandle, MissionTask};
 pub use input::{InputClosed, MissionInputs, PilotInput};
-pub use report::{
-    EventTopic, MissionError, MissionStats, MissionUpdate, Overtaken, stats_when_done,
-};
+pub use report::{EventTopic, MissionError, MissionStats, MissionUpdate, Overtaken};

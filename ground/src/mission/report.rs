@@ -177,12 +177,3 @@ impl SharedStats {
         self.0.lock().unwrap_or_else(|e| e.into_inner()).clone()
     }
 }
-
-/// The statistics of a mission task whose input has been closed: it ends after any model call
-/// in flight; a task that does not end within 5 s, or panicked, reports none.
-pub async fn stats_when_done(task: tokio::task::JoinHandle<MissionStats>) -> MissionStats {
-    match tokio::time::timeout(std::time::Duration::from_secs(5), task).await {
-        Ok(Ok(stats)) => stats,
-        _ => MissionStats::default(),
-    }
-}

@@ -5,7 +5,7 @@
 use super::parse::{Condition, DroneState, Script, StepKind, Victim, Who};
 use crate::link::GroundLink;
 use crate::mission::log::{MissionLog, Record};
-use crate::mission::{Mission, MissionConfig, MissionStats, MissionUpdate, PilotInput};
+use crate::mission::{MissionConfig, MissionHandle, MissionStats, MissionUpdate, PilotInput};
 use crate::pilot::describe;
 use crate::safety::SafetyGate;
 use crate::swarm::SwarmView;
@@ -412,19 +412,18 @@ pub async fn run_script(
     let events = link.watch_events().await?;
     let targets = link.watch_targets().await?;
     let truth = link.watch_truth().await?;
-    let (updates_tx, updates) = mpsc::unbounded_channel();
-    let (input, inputs) =
-        PilotInput::new(link.clone(), gate.clone(), log.clone(), updates_tx.clone());
-    let mission = Mission::new(
+    let MissionHandle {
+        input,
+        updates,
+        task,
+    } = MissionHandle::start(
         opts.mission.clone(),
         backend,
         gate,
         link.clone(),
         log.clone(),
-        updates_tx,
     )
     .await?;
-    let mission_task = tokio::spawn(mission.run_with(inputs));
     let mut runner = Runner {
         link,
         scenario,
@@ -463,7 +462,7 @@ pub async fn run_script(
     // Closing the input ends the mission (after any model call in flight).
     let Runner { input, .. } = runner;
     drop(input);
-    let stats = crate::mission::stats_when_done(mission_task).await;
+    let stats = task.stats().await;
     result.map(|()| ScriptReport {
         stats,
         log_path: log.path().to_owned(),

@@ -159,7 +159,8 @@ impl OpenAiBackend {
             let status = response.status();
             let retry_after = retry_after(response.headers());
             let body = match progress {
-                Some(progress) if status.is_success() => {
+                // A server that ignores `stream` answers with one JSON body: read as such.
+                Some(progress) if status.is_success() && is_event_stream(response.headers()) => {
                     let mut sse = SseAssembler::default();
                     let mut broken = None;
                     while let Some(bytes) = response.chunk().await? {
@@ -339,6 +340,14 @@ impl OpenAiBackend {
             model,
         })
     }
+}
+
+/// Whether a response is server-sent events (`text/event-stream`).
+fn is_event_stream(headers: &reqwest::header::HeaderMap) -> bool {
+    headers
+        .get(reqwest::header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.trim_start().starts_with("text/event-stream"))
 }
 
 impl LlmBackend for OpenAiBackend {
