@@ -239,6 +239,7 @@ mod tests {
                 autopilot_link: true,
                 action: None,
                 failsafe: None,
+                peers_silent: false,
                 malformed_actions: 0,
                 ground: None,
                 refused: None,

@@ -7,7 +7,7 @@ use serde::Serialize;
 use serde::de::DeserializeOwned;
 
 /// The current wire version. Bump when any message changes shape.
-pub const WIRE_VERSION: u8 = 4;
+pub const WIRE_VERSION: u8 = 5;
 
 /// Upper bound on what one message may allocate while decoding, so garbage cannot exhaust memory.
 pub const MAX_MESSAGE_BYTES: usize = 1 << 20;
@@ -121,6 +121,7 @@ mod tests {
                     ..ActionProgress::started(c)
                 }),
                 failsafe: Some(FailsafeStage::Holding),
+                peers_silent: false,
                 malformed_actions: 3,
                 ground: Some(counter / 2),
                 refused: cmd.map(|c| ActionRefused {

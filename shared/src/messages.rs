@@ -105,6 +105,9 @@ pub struct DroneStatus {
     /// The current (or last finished) action.
     pub action: Option<ActionProgress>,
     pub failsafe: Option<FailsafeStage>,
+    /// Airborne and hearing none of the neighbours it knows: holding where it is, taking only
+    /// land and hold until one is heard (the onboard's peer-silence hold).
+    pub peers_silent: bool,
     /// Actions that arrived malformed on this drone's key since it started.
     pub malformed_actions: u64,
     /// The ground station this drone follows (its epoch), once one is heard: a drone takes

@@ -99,6 +99,30 @@ impl SimSwarm {
         Ok(())
     }
 
+    /// Sends `drone` a goto `offset` from its home at take-off altitude through `gate`, and
+    /// waits for its outcome on a task of its own (the test goes on meanwhile).
+    pub fn goto_in_background(
+        &self,
+        gate: &tacos_ground::safety::SafetyGate,
+        drone: &DroneId,
+        offset: tacos_shared::Vec3,
+        step: Duration,
+    ) -> tokio::task::JoinHandle<Result<(), tacos_ground::direct::DirectError>> {
+        let home = self
+            .scenario
+            .drone(drone)
+            .map(|s| s.home)
+            .unwrap_or_default();
+        let target = home
+            + offset
+            + tacos_shared::Vec3::new(0.0, 0.0, self.scenario.limits.takeoff_altitude);
+        let (link, gate, drone) = (self.link.clone(), gate.clone(), drone.clone());
+        tokio::spawn(async move {
+            let goto = [(drone, tacos_shared::action::Action::Goto { target })];
+            tacos_ground::direct::run_actions(&link, &gate, &goto, None, step).await
+        })
+    }
+
     pub async fn stop(self) {
         self.stack.shutdown(Duration::from_secs(3)).await;
     }

@@ -30,6 +30,15 @@ const FIRST_PLAN: &str = r#"{"reasoning":"Alfa inspects car_11.","plan":[{"task"
 const SECOND_PLAN: &str = r#"{"reasoning":"Alfa goes on; bravo inspects car_12.","plan":[{"task":"T1","drone":"alfa","action":"goto","target":"car_11","xyz":null},{"task":"T2","drone":"bravo","action":"goto","target":"car_12","xyz":null}]}"#;
 const WAIT: &str = r#"{"reasoning":"Nothing to start yet.","actions":[],"plan_complete":false}"#;
 
+impl HeldCoordinator {
+    fn coordinator_calls(&self) -> usize {
+        self.coordinator_requests
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .len()
+    }
+}
+
 impl LlmBackend for HeldCoordinator {
     fn chat<'a>(&'a self, request: &'a ChatRequest) -> BoxFuture<'a, Result<ChatReply, LlmError>> {
         Box::pin(async move {
@@ -187,11 +196,7 @@ async fn while_thinking(sim: &mut SimSwarm) -> anyhow::Result<()> {
     // A second instruction waits for the Coordinator: no second call while the first is out.
     lines.send("bravo, inspect car_12".into()).await?;
     tokio::time::sleep(Duration::from_secs(1)).await;
-    let asked = backend
-        .coordinator_requests
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .len();
+    let asked = backend.coordinator_calls();
     anyhow::ensure!(
         asked == 1,
         "{asked} Coordinator calls while the first was held"
@@ -319,11 +324,7 @@ async fn land_while_thinking(sim: &mut SimSwarm) -> anyhow::Result<()> {
     })
     .await?;
     tokio::time::sleep(Duration::from_secs(1)).await;
-    let asked = backend
-        .coordinator_requests
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .len();
+    let asked = backend.coordinator_calls();
     anyhow::ensure!(
         asked == 1,
         "{asked} Coordinator calls: the queued instruction was asked"

@@ -6,11 +6,9 @@
 //! is frozen for 5 s.
 
 use std::time::{Duration, Instant};
-use tacos_ground::direct::run_actions;
 use tacos_ground::launch::Role;
 use tacos_ground::safety::SafetyGate;
 use tacos_shared::Vec3;
-use tacos_shared::action::Action;
 use tacos_tests::{SimSwarm, all_ready, id, truth_until, vehicle};
 
 const STEP: Duration = Duration::from_secs(60);
@@ -33,31 +31,9 @@ async fn stall_mid_goto(sim: &mut SimSwarm) -> anyhow::Result<()> {
     let gate = SafetyGate::new(sim.scenario.clone());
     let mut truth = sim.link.watch_truth().await?;
     all_ready(sim, &all).await?;
-    let takeoffs: Vec<_> = all
-        .iter()
-        .map(|d| (d.clone(), Action::ArmTakeoff))
-        .collect();
-    run_actions(&sim.link, &gate, &takeoffs, None, STEP).await?;
+    sim.take_off(&gate, &all).await?;
 
-    let home = sim
-        .scenario
-        .drone(&alfa)
-        .map(|s| s.home)
-        .unwrap_or_default();
-    let goal = home + Vec3::new(0.0, 60.0, sim.scenario.limits.takeoff_altitude);
-    let goto = {
-        let (link, gate, alfa) = (sim.link.clone(), gate.clone(), alfa.clone());
-        tokio::spawn(async move {
-            run_actions(
-                &link,
-                &gate,
-                &[(alfa, Action::Goto { target: goal })],
-                None,
-                STEP,
-            )
-            .await
-        })
-    };
+    let goto = sim.goto_in_background(&gate, &alfa, Vec3::new(0.0, 60.0, 0.0), STEP);
     truth_until(
         &mut truth,
         Duration::from_secs(15),

@@ -2,8 +2,8 @@
 //! tacos-onboard pairs and a ground link on loopback. All three take off and alfa flies a long
 //! goto; the onboards of both its neighbours die (the silence alfa would hear behind a broken
 //! radio between the drones). Alfa must stop and hold where it is, refuse work other than land
-//! and hold while no neighbour is heard, and take work again once one is heard. Checked in the
-//! simulator's truth and in what the ground is told.
+//! and hold while no neighbour is heard (its status saying so), and take work again once one is
+//! heard. Checked in the simulator's truth and in what the ground is told.
 
 use std::time::{Duration, Instant};
 use tacos_ground::direct::{DirectError, run_actions};
@@ -85,21 +85,8 @@ async fn cut_off(sim: &mut SimSwarm) -> anyhow::Result<()> {
         .drone(&alfa)
         .map(|s| s.home)
         .unwrap_or_default();
-    let altitude = sim.scenario.limits.takeoff_altitude;
-    let far = home + Vec3::new(0.0, 80.0, altitude);
-    let goto = {
-        let (link, gate, alfa) = (sim.link.clone(), gate.clone(), alfa.clone());
-        tokio::spawn(async move {
-            run_actions(
-                &link,
-                &gate,
-                &[(alfa, Action::Goto { target: far })],
-                None,
-                STEP,
-            )
-            .await
-        })
-    };
+    let far = home + Vec3::new(0.0, 80.0, sim.scenario.limits.takeoff_altitude);
+    let goto = sim.goto_in_background(&gate, &alfa, Vec3::new(0.0, 80.0, 0.0), STEP);
     truth_until(
         &mut truth,
         Duration::from_secs(15),
@@ -136,6 +123,17 @@ async fn cut_off(sim: &mut SimSwarm) -> anyhow::Result<()> {
         held.position
     );
 
+    // Its status says why it holds.
+    let told = sim
+        .link
+        .view()
+        .get(&alfa)
+        .and_then(|e| e.status.as_ref().map(|s| s.peers_silent));
+    anyhow::ensure!(
+        told == Some(true),
+        "alfa's status does not name the hold: {told:?}"
+    );
+
     // Work other than land and hold is refused, with the reason.
     let nearby = [(
         alfa.clone(),
@@ -168,5 +166,14 @@ async fn cut_off(sim: &mut SimSwarm) -> anyhow::Result<()> {
             Err(e) => anyhow::bail!("the goto after bravo came back: {e}"),
         }
     }
+    let told = sim
+        .link
+        .view()
+        .get(&alfa)
+        .and_then(|e| e.status.as_ref().map(|s| s.peers_silent));
+    anyhow::ensure!(
+        told == Some(false),
+        "alfa's status still names the hold: {told:?}"
+    );
     Ok(())
 }

@@ -161,6 +161,9 @@ fn state_text(row: &DroneRow) -> (String, Color) {
         Some(FailsafeStage::Landing) => text.push_str(" [failsafe land]"),
         None => {}
     }
+    if row.peers_silent {
+        text.push_str(" [no peer heard]");
+    }
     (text, color)
 }
 

@@ -49,6 +49,8 @@ pub struct DroneRow {
     pub action: Option<String>,
     pub state: Option<ActionState>,
     pub failsafe: Option<FailsafeStage>,
+    /// Holding because no neighbour is heard (`DroneStatus::peers_silent`).
+    pub peers_silent: bool,
     /// Seconds since the last status.
     pub link_age: Option<f64>,
 }
@@ -65,6 +67,7 @@ impl DroneRow {
             action: None,
             state: None,
             failsafe: None,
+            peers_silent: false,
             link_age: None,
         }
     }
@@ -419,6 +422,7 @@ impl TerminalState {
                 action: progress.map(|p| p.action.to_string()),
                 state: progress.map(|p| p.state.clone()),
                 failsafe: status.and_then(|s| s.failsafe),
+                peers_silent: status.is_some_and(|s| s.peers_silent),
                 link_age: entry.link_age(now),
             };
         }

@@ -46,6 +46,7 @@ fn status(
         autopilot_link: true,
         action,
         failsafe: None,
+        peers_silent: false,
         malformed_actions: 0,
         ground: None,
         refused: None,

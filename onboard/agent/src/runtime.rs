@@ -381,6 +381,7 @@ async fn run_inner(
                 autopilot_link: vehicle.is_some_and(|v| v.link_ok),
                 action: executor.progress().cloned(),
                 failsafe: executor.failsafe(),
+                peers_silent: executor.peers_silent(),
                 malformed_actions,
                 ground: ground.grounds.followed(),
                 refused: ground.refused.clone(),

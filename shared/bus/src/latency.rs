@@ -112,6 +112,7 @@ fn pong_message(ping: &Ping, received_us: u64, drone: &DroneId) -> Pong {
             autopilot_link: true,
             action: Some(ActionProgress::started(&ping.command)),
             failsafe: None,
+            peers_silent: false,
             malformed_actions: 0,
             ground: Some(ping.command.ground),
             refused: None,
