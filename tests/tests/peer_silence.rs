@@ -55,6 +55,14 @@ async fn settled(
     anyhow::bail!("{drone} did not settle within {bound:?}: last {window:?}")
 }
 
+/// Whether `drone`'s last status says it holds for want of a neighbour heard.
+fn peers_silent_told(sim: &SimSwarm, drone: &DroneId) -> Option<bool> {
+    sim.link
+        .view()
+        .get(drone)
+        .and_then(|e| e.status.as_ref().map(|s| s.peers_silent))
+}
+
 fn failsafe_reason(result: Result<(), DirectError>) -> anyhow::Result<String> {
     match result {
         Err(DirectError::Failed {
@@ -124,11 +132,7 @@ async fn cut_off(sim: &mut SimSwarm) -> anyhow::Result<()> {
     );
 
     // Its status says why it holds.
-    let told = sim
-        .link
-        .view()
-        .get(&alfa)
-        .and_then(|e| e.status.as_ref().map(|s| s.peers_silent));
+    let told = peers_silent_told(sim, &alfa);
     anyhow::ensure!(
         told == Some(true),
         "alfa's status does not name the hold: {told:?}"
@@ -166,11 +170,7 @@ async fn cut_off(sim: &mut SimSwarm) -> anyhow::Result<()> {
             Err(e) => anyhow::bail!("the goto after bravo came back: {e}"),
         }
     }
-    let told = sim
-        .link
-        .view()
-        .get(&alfa)
-        .and_then(|e| e.status.as_ref().map(|s| s.peers_silent));
+    let told = peers_silent_told(sim, &alfa);
     anyhow::ensure!(
         told == Some(false),
         "alfa's status still names the hold: {told:?}"

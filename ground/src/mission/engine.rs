@@ -403,9 +403,7 @@ impl Mission {
         match self.cfg.mode {
             Mode::Mnl => {
                 // A cycle in flight was asked without this instruction.
-                if self.in_flight.is_some() {
-                    self.drop_call(Overtaken::NewerWork);
-                }
+                self.drop_call(Overtaken::NewerWork);
                 self.work_epoch += 1;
                 self.mnl.instructions.push(text.to_owned());
                 self.mnl.active = true;

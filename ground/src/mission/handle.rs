@@ -39,8 +39,8 @@ impl MissionTask {
     /// The statistics once the engine ends, which it does when every copy of the input is
     /// dropped (a call in flight is dropped, counted). An engine that does not end within
     /// [`END_WAIT`], or panicked, reports none.
-    pub async fn stats(mut self) -> MissionStats {
-        match tokio::time::timeout(END_WAIT, &mut self.0.0).await {
+    pub async fn stats(self) -> MissionStats {
+        match tokio::time::timeout(END_WAIT, self.join()).await {
             Ok(Ok(stats)) => stats,
             _ => MissionStats::default(),
         }
