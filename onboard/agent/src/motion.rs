@@ -8,8 +8,8 @@
 //! can be aged on arrival.
 
 use crate::planner::{
-    Goal, NeighbourPath, Plan, PlanStatus, Planner, PlannerConfig, PlannerError, ReferenceState,
-    neighbours_in_range,
+    Downwash, Goal, NeighbourPath, Plan, PlanStatus, Planner, PlannerConfig, PlannerError,
+    ReferenceState, neighbours_in_range, recheck,
 };
 use crate::tracker::{Track, TrackerConfig, tracking_offset};
 use std::collections::HashMap;
@@ -78,6 +78,9 @@ pub struct SolveStats {
     pub solves: u64,
     pub relaxed: u64,
     pub braking: u64,
+    /// Finished plans not flown: they came closer to a neighbour's latest path than the plan
+    /// being flown (see [`crate::planner::recheck`]).
+    pub rejected: u64,
     /// Longest solve so far, seconds.
     pub slowest_s: f64,
 }
@@ -408,9 +411,11 @@ impl Motion {
         })
     }
 
-    /// Takes a finished solve back: its plan is sampled from now on, and its path is returned
-    /// for publishing. A solve overtaken by a still reference (take-off, landing) is dropped.
-    pub fn solve_done(&mut self, done: SolveDone) -> Option<PathMessage> {
+    /// Takes a finished solve back at `now`: its plan is sampled from now on, and its path is
+    /// returned for publishing. A solve overtaken by a still reference (take-off, landing) is
+    /// dropped, and so is a plan that comes closer to a neighbour's latest path than the planes
+    /// ask and than the plan being flown (see [`crate::planner::recheck`]).
+    pub fn solve_done(&mut self, done: SolveDone, now: f64) -> Option<PathMessage> {
         let mut planner = done.planner;
         self.stats.slowest_s = self.stats.slowest_s.max(done.took_s);
         if done.generation != self.generation {
@@ -422,6 +427,13 @@ impl Motion {
         // A non-finite vehicle state is the only error: keep sampling the last plan.
         let result = done.result.ok()?;
         self.stats.solves += 1;
+        if !self.recheck(&result.plan, now) {
+            self.stats.rejected += 1;
+            if let Some(planner) = self.planner.as_mut() {
+                planner.restore_previous(self.plan.clone());
+            }
+            return None;
+        }
         match result.status {
             PlanStatus::Solved => {}
             PlanStatus::Relaxed { .. } => self.stats.relaxed += 1,
@@ -439,6 +451,22 @@ impl Motion {
         Some(path)
     }
 
+    /// Whether `plan` may replace the plan being flown (see [`crate::planner::recheck`]).
+    fn recheck(&self, plan: &Plan, now: f64) -> bool {
+        let cfg = &self.planner_cfg;
+        let here = plan.sample(now).position;
+        let neighbours = neighbours_in_range(here, self.neighbours(now), cfg.neighbour_range);
+        let wanted = cfg.safety_distance + 2.0 * cfg.separation_margin;
+        recheck::may_replace(
+            plan,
+            self.plan.as_ref(),
+            now,
+            &neighbours,
+            &Downwash::new(cfg.downwash_factor),
+            wanted,
+        )
+    }
+
     /// `tick` with any due solve run at once, on this thread: for tests and benchmarks.
     pub fn step(
         &mut self,
@@ -454,7 +482,7 @@ impl Motion {
             && due
             && let Some(job) = self.solve_job(now, position, velocity, goal, tracking)
         {
-            path = self.solve_done(job.run());
+            path = self.solve_done(job.run(), now);
         }
         let out = self.tick(now, position, velocity, steering);
         MotionOutput {

@@ -247,7 +247,7 @@ async fn run_inner(
                 solving = None;
                 match done {
                     Ok(done) => {
-                        if let Some(path) = motion.solve_done(done)
+                        if let Some(path) = motion.solve_done(done, now())
                             && let Err(e) = tacos_bus::put(&session, &path_key, &path, false).await
                         {
                             warn!(error = %e, "path not published");
@@ -353,7 +353,7 @@ async fn run_inner(
                 if t - stats_logged_at >= 10.0 {
                     stats_logged_at = t;
                     let s = motion.stats();
-                    info!(solves = s.solves, relaxed = s.relaxed, braking = s.braking, slowest_ms = s.slowest_s * 1e3, "planner");
+                    info!(solves = s.solves, relaxed = s.relaxed, braking = s.braking, rejected = s.rejected, slowest_ms = s.slowest_s * 1e3, "planner");
                 }
                 if let Err(e) = step {
                     ipc_errors += 1;

@@ -324,10 +324,74 @@ fn solves_start_from_the_plan_being_flown_while_the_vehicle_follows_it() {
         (job.position, job.velocity),
         (planned.position, planned.velocity)
     );
-    m.solve_done(job.run());
+    m.solve_done(job.run(), 100.5);
     // A metre off the plan: from the vehicle's own state.
     let off = p + Vec3::new(1.0, 0.0, 0.0);
     let v = Vec3::new(0.3, 0.0, 0.0);
     let job = m.solve_job(100.6, off, v, goal, None).expect("a solve");
     assert_eq!((job.position, job.velocity), (off, v));
+}
+
+/// A solve that finishes after a neighbour published a path it would run into is not flown:
+/// the drone keeps the plan it flies (which that neighbour planned against) and solves again.
+#[test]
+fn a_finished_plan_that_runs_into_a_path_published_meanwhile_is_not_flown() {
+    let mut m = motion("alfa");
+    m.set_airborne(true);
+    let p = Vec3::new(-50.0, -132.5, 10.0);
+    let east = Goal::fixed(p + Vec3::new(40.0, 0.0, 0.0));
+    let north = Goal::fixed(p + Vec3::new(0.0, 40.0, 0.0));
+    assert!(
+        m.step(100.0, p, Vec3::zeros(), Steering::Toward(east), None)
+            .path
+            .is_some()
+    );
+    let flown = m
+        .tick(100.05, p, Vec3::zeros(), Steering::Toward(east))
+        .reference;
+    // A solve towards the north starts; while it runs, bravo publishes that it stands where
+    // the new plan will be in a second.
+    let job = m
+        .solve_job(100.05, flown.position, flown.velocity, north, None)
+        .expect("a solve");
+    let done = job.run();
+    let mut probe = motion("probe");
+    probe.set_airborne(true);
+    let ahead = {
+        let job = probe
+            .solve_job(100.05, flown.position, flown.velocity, north, None)
+            .expect("a solve");
+        let path = probe.solve_done(job.run(), 100.05).expect("a path");
+        path.positions[10]
+    };
+    m.on_path(path("bravo", 100.06, ahead, None));
+    assert_eq!(m.solve_done(done, 100.07), None, "not published");
+    assert_eq!(m.stats().rejected, 1);
+    // Still flying the eastward plan.
+    let now = m
+        .tick(100.1, p, Vec3::zeros(), Steering::Toward(north))
+        .reference;
+    let east_plan = m
+        .tick(100.1, p, Vec3::zeros(), Steering::Toward(east))
+        .reference;
+    assert_eq!(now, east_plan);
+    assert!(
+        now.velocity.x > 0.0 && now.velocity.y.abs() < 1e-6,
+        "{now:?}"
+    );
+    // The next solve knows bravo's path and keeps away from it (the refused plan went through
+    // it): flown.
+    let job = m
+        .solve_job(100.1, now.position, now.velocity, north, None)
+        .expect("a solve");
+    let path = m
+        .solve_done(job.run(), 100.12)
+        .expect("flown and published");
+    let closest = path
+        .positions
+        .iter()
+        .map(|q| (q - ahead).norm())
+        .fold(f64::INFINITY, f64::min);
+    assert!(closest >= m_safety() / 2.0, "{closest}");
+    assert_eq!(m.stats().rejected, 1);
 }

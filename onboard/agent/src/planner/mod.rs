@@ -36,6 +36,7 @@ mod config;
 pub mod constraints;
 pub mod plan;
 pub mod qp;
+pub mod recheck;
 mod route;
 
 #[cfg(test)]
@@ -216,6 +217,13 @@ impl Planner {
     /// The last plan returned (solved or braking).
     pub fn previous(&self) -> Option<&Plan> {
         self.previous.as_ref()
+    }
+
+    /// Takes back `plan` as the previous plan, after the one just solved was not flown (see
+    /// [`recheck`]): the next solve linearises around what the drone flies and its neighbours
+    /// read.
+    pub fn restore_previous(&mut self, plan: Option<Plan>) {
+        self.previous = plan;
     }
 
     /// Forgets the previous plan (the next solve linearises around the current position).
