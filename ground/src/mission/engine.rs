@@ -8,6 +8,7 @@ mod checks;
 mod coordinator;
 mod cycle_call;
 mod cycles;
+mod early;
 mod in_flight;
 mod plan_state;
 mod prompt_state;
@@ -32,7 +33,7 @@ use crate::safety::{CheckedAction, SafetyGate};
 use crate::swarm::{SwarmChange, membership_diff};
 use crate::task_guard::AbortOnDrop;
 use caller::Caller;
-use in_flight::{Coordination, InFlight};
+use in_flight::{Coordination, Heard, InFlight};
 use plan_state::{ActivePlan, Monolithic};
 use std::collections::{BTreeSet, VecDeque};
 use std::sync::Arc;
@@ -164,6 +165,7 @@ impl Mission {
             aids: cfg.aids,
             temperature: cfg.temperature,
             seed: cfg.seed,
+            on_written: None,
         };
         let link_now = link.clock().instant();
         let (commands, overrides) =
@@ -299,12 +301,15 @@ impl Mission {
                 event = events.recv() => if let Some(event) = event && self.world_event(event) {
                     self.cycle_due |= self.busy();
                 },
-                answer = async {
+                heard = async {
                     match self.in_flight.as_mut() {
-                        Some(flight) => flight.answer().await,
+                        Some(flight) => flight.heard().await,
                         None => std::future::pending().await,
                     }
-                } => self.answered(answer).await,
+                } => match heard {
+                    Heard::Answer(answer) => self.answered(answer).await,
+                    Heard::Early(early) => self.send_early(early).await,
+                },
                 _ = tick.tick() => {
                     let timed_out = self.busy()
                         && self.link.clock().instant().duration_since(self.last_cycle) >= self.cfg.cycle_timeout;

@@ -2,6 +2,7 @@
 //! a rejected reply back with the reasons.
 
 use crate::link::GroundLink;
+use super::early::OnWritten;
 use crate::mission::aids::{Aid, ModelAids};
 use crate::mission::log::{MissionLog, Record, RefusedBy};
 use crate::mission::report::{MissionError, MissionUpdate, SharedStats};
@@ -33,6 +34,8 @@ pub(super) struct Caller {
     pub(super) temperature: f32,
     pub(super) seed: Option<u64>,
     pub(super) stats: SharedStats,
+    /// Told the reply's text each time it grows: a cycle call's calls sent early (`early`).
+    pub(super) on_written: Option<OnWritten>,
 }
 
 /// The result of checking one reply: what may be done, and why the rest may not.
@@ -87,10 +90,15 @@ impl Caller {
             });
             self.stats.update(|s| s.model_calls += 1);
             let in_flight = self.link.model_call();
-            let reply = self
-                .backend
-                .chat_streamed(&request, &self.writing_told(layer))
-                .await;
+            let told = self.writing_told(layer);
+            let on_written = self.on_written.clone();
+            let progress = move |so_far: Streamed<'_>| {
+                if let Some(on_written) = &on_written {
+                    on_written(so_far.content);
+                }
+                told(so_far);
+            };
+            let reply = self.backend.chat_streamed(&request, &progress).await;
             drop(in_flight);
             let reply = match reply {
                 Ok(reply) => reply,

@@ -5,12 +5,14 @@ use super::Mission;
 use super::caller::Checked;
 use super::checks::check_live;
 use super::coordinator::same_work;
+use super::early::early_calls;
 use super::cycle_call::{CycleAsk, CycleChoice, CycleKind, CycleOutcome, CycleReply, CycleWork};
 use super::in_flight::{Answered, CycleAnswer, InFlight};
 use super::plan_state::PlanTask;
 use crate::mission::config::Mode;
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionError, MissionUpdate};
+use crate::safety::CheckedAction;
 use tacos_llm::ChatMessage;
 use tacos_prompts::offer::{Callable, callable_schema, startable_schema};
 use tacos_prompts::render::{self, TaskStatus};
@@ -174,7 +176,20 @@ impl Mission {
             .max(schema::token_budget(ask.output, self.swarm_ids().len()));
         let (gate, link) = (self.gate.clone(), self.link.clone());
         let visible = self.visible_targets();
-        let caller = self.caller.clone();
+        let judge = {
+            let (only, tasks) = (ask.only.clone(), ask.tasks.clone());
+            let (gate, link, visible) = (gate.clone(), link.clone(), visible.clone());
+            move |calls: &[Call]| {
+                let calls = match &only {
+                    Some(startable) => match_startable(calls, startable).0,
+                    None => calls.to_vec(),
+                };
+                check_live(&calls, &gate, &link, &visible, &tasks).0
+            }
+        };
+        let (on_written, early) = early_calls(judge, issued, self.work_epoch);
+        let mut caller = self.caller.clone();
+        caller.on_written = Some(on_written);
         let work = CycleWork {
             kind,
             issued,
@@ -228,16 +243,20 @@ impl Mission {
                 .await;
             Answered::Cycle { work, answer }
         };
-        self.in_flight = Some(InFlight::spawn(layer, call));
+        let mut flight = InFlight::spawn(layer, call);
+        flight.early = Some(early);
+        self.in_flight = Some(flight);
     }
 
     /// A cycle's checked reply: its calls sent (each checked by the gate again, against the
-    /// swarm as it is now), the cycle counted. A reply for work that has since ended or been
-    /// replaced is dropped, and nothing of it is sent.
+    /// swarm as it is now) but for those `sent_early` while it was written, the cycle counted.
+    /// A reply for work that has since ended or been replaced is dropped, and nothing of it is
+    /// sent.
     pub(super) async fn cycle_answered(
         &mut self,
         work: CycleWork,
         answer: CycleAnswer,
+        sent_early: Vec<Call>,
     ) -> Result<(), MissionError> {
         let choice = answer?;
         if work.epoch != self.work_epoch {
@@ -258,27 +277,18 @@ impl Mission {
             );
             self.event(EventTopic::Note, text);
         }
-        let mut sent = Vec::new();
+        let mut sent: Vec<String> = sent_early.iter().map(ToString::to_string).collect();
         let mut all_passed = choice.all_passed;
         for (call, checked) in choice.accepted {
-            // Checked when the reply came; the swarm may have moved on since.
-            let now = self.link.clock().instant();
-            let checked = {
-                let view = self.link.view();
-                self.gate
-                    .check(&view, checked.drone().as_str(), checked.action(), now)
-            };
-            let checked = match checked {
-                Ok(checked) => checked,
-                Err(why) => {
-                    all_passed = false;
-                    self.event(EventTopic::Note, format!("{call}: not sent: {why}"));
-                    continue;
-                }
-            };
-            let seq = self.send(&checked, Some(call.task.clone())).await?;
-            sent.push(call.to_string());
-            (work.issued)(self, call, checked.drone().clone(), seq);
+            if sent_early.iter().any(|c| c.drone == call.drone) {
+                continue;
+            }
+            let text = call.to_string();
+            if self.send_cycle_call(call, &checked, work.issued).await? {
+                sent.push(text);
+            } else {
+                all_passed = false;
+            }
         }
         let cycle = CycleOutcome {
             reasoning: choice.reasoning,
@@ -305,6 +315,33 @@ impl Mission {
             }
         }
         Ok(())
+    }
+
+    /// Sends one call a cycle's reply chose, checked by the gate again (it was checked when
+    /// the reply came; the swarm may have moved on since), and hands it to `issued`. False
+    /// when the gate now refuses it (told as a note).
+    pub(super) async fn send_cycle_call(
+        &mut self,
+        call: Call,
+        checked: &CheckedAction,
+        issued: fn(&mut Mission, Call, DroneId, u64),
+    ) -> Result<bool, MissionError> {
+        let now = self.link.clock().instant();
+        let checked = {
+            let view = self.link.view();
+            self.gate
+                .check(&view, checked.drone().as_str(), checked.action(), now)
+        };
+        let checked = match checked {
+            Ok(checked) => checked,
+            Err(why) => {
+                self.event(EventTopic::Note, format!("{call}: not sent: {why}"));
+                return Ok(false);
+            }
+        };
+        let seq = self.send(&checked, Some(call.task.clone())).await?;
+        issued(self, call, checked.drone().clone(), seq);
+        Ok(true)
     }
 
     /// Counts a cycle, logs it with the model's claim, and reports it.

@@ -10,6 +10,7 @@
 
 use super::Mission;
 use super::cycle_call::{CycleChoice, CycleWork};
+use super::early::{EarlyCall, EarlyCalls};
 use crate::mission::log::Record;
 use crate::mission::report::{MissionError, MissionUpdate, Overtaken};
 use crate::task_guard::AbortOnDrop;
@@ -35,10 +36,19 @@ pub(super) enum Answered {
     },
 }
 
+/// What a call in flight tells the engine.
+pub(super) enum Heard {
+    /// A call of a cycle's reply that passed while the reply is still being written.
+    Early(EarlyCall),
+    Answer(Result<Answered, tokio::task::JoinError>),
+}
+
 /// The model call in flight.
 pub(super) struct InFlight {
     pub(super) layer: &'static str,
     task: AbortOnDrop<Answered>,
+    /// A cycle call's calls that pass while its reply is still being written (`early`).
+    pub(super) early: Option<EarlyCalls>,
 }
 
 impl InFlight {
@@ -49,6 +59,7 @@ impl InFlight {
         InFlight {
             layer,
             task: AbortOnDrop(tokio::spawn(call)),
+            early: None,
         }
     }
 
@@ -57,8 +68,19 @@ impl InFlight {
         self.layer != "coordinator"
     }
 
-    pub(super) async fn answer(&mut self) -> Result<Answered, tokio::task::JoinError> {
-        (&mut self.task.0).await
+    /// The next thing heard from the call: a call of its reply sent early, or its answer.
+    pub(super) async fn heard(&mut self) -> Heard {
+        let early = async {
+            match self.early.as_mut() {
+                Some(calls) => calls.next().await,
+                None => None,
+            }
+        };
+        tokio::select! {
+            biased;
+            Some(call) = early => Heard::Early(call),
+            answer = &mut self.task.0 => Heard::Answer(answer),
+        }
     }
 }
 
@@ -134,10 +156,12 @@ impl Mission {
                 self.cycle_due = self.busy();
                 result.map_err(|e| e.to_string())
             }
-            Ok(Answered::Cycle { work, answer }) => self
-                .cycle_answered(work, answer)
-                .await
-                .map_err(|e| e.to_string()),
+            Ok(Answered::Cycle { work, answer }) => {
+                let sent_early = flight.early.map(|e| e.sent).unwrap_or_default();
+                self.cycle_answered(work, answer, sent_early)
+                    .await
+                    .map_err(|e| e.to_string())
+            }
         };
         if let Err(e) = result {
             self.tell(MissionUpdate::Error(e));

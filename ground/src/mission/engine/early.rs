@@ -1,0 +1,129 @@
+//! A cycle's calls sent while the rest of its reply is still being written. The Supervisor's
+//! (and the monolithic model's) schema puts the calls in a list after the reasoning; each call
+//! is complete long before the reply is, and a small model on a CPU writes for seconds more.
+//! So each call is judged as soon as it is whole in the streamed reply — the same checks as the
+//! whole reply (one call per drone, among the startable calls, the live checks and the safety
+//! gate) — and those that pass go to the engine, which checks them with the gate again against
+//! the swarm as it is then and sends them. The whole reply is still judged when it is in; the
+//! calls already sent are not sent again.
+
+use super::Mission;
+use super::cycles::first_call_per_drone;
+use crate::mission::report::{EventTopic, MissionUpdate};
+use crate::safety::CheckedAction;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use tacos_prompts::Call;
+use tacos_prompts::partial::partial_reply;
+use tacos_shared::DroneId;
+use tokio::sync::mpsc;
+
+/// A call that passed the checks while its reply was still being written.
+pub(super) struct EarlyCall {
+    pub(super) call: Call,
+    pub(super) checked: CheckedAction,
+    /// How long after the call started it was complete.
+    pub(super) after: Duration,
+}
+
+/// Told the reply's text each time it grows (see `Caller::on_written`).
+pub(super) type OnWritten = Arc<dyn Fn(&str) + Send + Sync>;
+
+/// The engine's side of a cycle call's early calls.
+pub(super) struct EarlyCalls {
+    /// `None` once the call's task has let go of its end.
+    calls: Option<mpsc::UnboundedReceiver<EarlyCall>>,
+    issued: fn(&mut Mission, Call, DroneId, u64),
+    /// `Mission::work_epoch` when the call started.
+    epoch: u64,
+    /// The calls sent so far.
+    pub(super) sent: Vec<Call>,
+}
+
+impl EarlyCalls {
+    /// The next early call; `None` when there will be no more.
+    pub(super) async fn next(&mut self) -> Option<EarlyCall> {
+        let call = match self.calls.as_mut() {
+            Some(calls) => calls.recv().await,
+            None => std::future::pending().await,
+        };
+        if call.is_none() {
+            self.calls = None;
+        }
+        call
+    }
+}
+
+/// A hook for a cycle call and the engine's end of what it finds. `judge` keeps the calls that
+/// pass the whole reply's checks (with their checked actions).
+pub(super) fn early_calls(
+    judge: impl Fn(&[Call]) -> Vec<(Call, CheckedAction)> + Send + Sync + 'static,
+    issued: fn(&mut Mission, Call, DroneId, u64),
+    epoch: u64,
+) -> (OnWritten, EarlyCalls) {
+    let (tx, rx) = mpsc::unbounded_channel();
+    let started = Instant::now();
+    // The drones given a call, and the calls judged (each is judged once).
+    let seen: Mutex<(Vec<String>, Vec<String>)> = Mutex::new((Vec::new(), Vec::new()));
+    let hook = move |content: &str| {
+        let calls = partial_reply(content).calls;
+        if calls.is_empty() {
+            return;
+        }
+        let mut seen = seen.lock().unwrap_or_else(|e| e.into_inner());
+        let (firsts, _) = first_call_per_drone(&calls);
+        let fresh: Vec<Call> = firsts
+            .into_iter()
+            .filter(|c| !seen.0.contains(&c.drone) && !seen.1.contains(&c.to_string()))
+            .collect();
+        if fresh.is_empty() {
+            return;
+        }
+        seen.1.extend(fresh.iter().map(ToString::to_string));
+        for (call, checked) in judge(&fresh) {
+            seen.0.push(call.drone.clone());
+            let after = started.elapsed();
+            let _ = tx.send(EarlyCall {
+                call,
+                checked,
+                after,
+            });
+        }
+    };
+    let early = EarlyCalls {
+        calls: Some(rx),
+        issued,
+        epoch,
+        sent: Vec::new(),
+    };
+    (Arc::new(hook), early)
+}
+
+impl Mission {
+    /// Sends a call that passed while its reply is still being written, if its work is still
+    /// current, with the gate's check again (as every cycle's call).
+    pub(super) async fn send_early(&mut self, early: EarlyCall) {
+        let Some(calls) = self.in_flight.as_ref().and_then(|f| f.early.as_ref()) else {
+            return;
+        };
+        if calls.epoch != self.work_epoch {
+            return;
+        }
+        let issued = calls.issued;
+        let text = early.call.to_string();
+        match self.send_cycle_call(early.call.clone(), &early.checked, issued).await {
+            Ok(true) => {
+                if let Some(calls) = self.in_flight.as_mut().and_then(|f| f.early.as_mut()) {
+                    calls.sent.push(early.call);
+                }
+                let text = format!(
+                    "{text}: sent {:.1} s into the call, while the reply was still being written",
+                    early.after.as_secs_f64()
+                );
+                self.event(EventTopic::Note, text);
+            }
+            Ok(false) => {}
+            Err(e) => self.tell(MissionUpdate::Error(e.to_string())),
+        }
+    }
+}
