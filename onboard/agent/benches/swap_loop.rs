@@ -57,6 +57,7 @@ struct Outcome {
     breach_samples: usize,
     first_breach: Option<String>,
     min_clearance: f64,
+    obstacle_breach_samples: usize,
     /// Closest pair of the references streamed, in the planner's downwash-scaled metric.
     min_planned_scaled: f64,
     solves: u64,
@@ -178,7 +179,11 @@ fn run(scenario: &Scenario, latency_max: f64, seed: u64) -> Result<Outcome, Stri
             .collect();
         for (i, p) in positions.iter().enumerate() {
             for o in &scenario.world.obstacles {
-                out.min_clearance = out.min_clearance.min(o.clearance_lower_bound(p));
+                let clearance = o.clearance_lower_bound(p);
+                out.min_clearance = out.min_clearance.min(clearance);
+                if clearance < scenario.limits.drone_radius {
+                    out.obstacle_breach_samples += 1;
+                }
             }
             for (j, q) in positions.iter().enumerate().skip(i + 1) {
                 let planned_d = metric.distance(&planned[i], &planned[j]);
@@ -248,11 +253,12 @@ fn main() {
         for seed in 0..seeds {
             match run(&scenario, latency, seed) {
                 Ok(o) => println!(
-                    "swap_loop N={N} latency_max_s={latency:.2} seed={seed} min_pair_m={:.3} min_planned_scaled_m={:.3} breach_samples={} min_clearance_m={:.3} solves={} relaxed={} braking={} rejected={} arrived={}/{N} sim_s={:.1}{}",
+                    "swap_loop N={N} latency_max_s={latency:.2} seed={seed} min_pair_m={:.3} min_planned_scaled_m={:.3} breach_samples={} min_clearance_m={:.3} obstacle_breach_samples={} solves={} relaxed={} braking={} rejected={} arrived={}/{N} sim_s={:.1}{}",
                     o.min_pair,
                     o.min_planned_scaled,
                     o.breach_samples,
                     o.min_clearance,
+                    o.obstacle_breach_samples,
                     o.solves,
                     o.relaxed,
                     o.braking,

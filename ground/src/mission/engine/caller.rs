@@ -1,8 +1,8 @@
 //! Asking a model: the request, the parse and check of its reply, and the repair loop that sends
 //! a rejected reply back with the reasons.
 
-use crate::link::GroundLink;
 use super::early::OnWritten;
+use crate::link::GroundLink;
 use crate::mission::aids::{Aid, ModelAids};
 use crate::mission::log::{MissionLog, Record, RefusedBy};
 use crate::mission::report::{MissionError, MissionUpdate, SharedStats};

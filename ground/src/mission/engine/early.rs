@@ -111,7 +111,10 @@ impl Mission {
         }
         let issued = calls.issued;
         let text = early.call.to_string();
-        match self.send_cycle_call(early.call.clone(), &early.checked, issued).await {
+        match self
+            .send_cycle_call(early.call.clone(), &early.checked, issued)
+            .await
+        {
             Ok(true) => {
                 if let Some(calls) = self.in_flight.as_mut().and_then(|f| f.early.as_mut()) {
                     calls.sent.push(early.call);
