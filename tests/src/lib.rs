@@ -14,6 +14,7 @@ pub mod chat_server;
 pub mod deploy;
 pub mod llama_server;
 pub mod netns;
+pub mod probes;
 pub mod prompt_text;
 
 /// A swarm id no other test (or run) uses.

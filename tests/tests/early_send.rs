@@ -96,7 +96,7 @@ impl LlmBackend for HeldMidReply {
     }
 }
 
-/// Waits for the action sent to `drone`, failing on a mission error.
+/// Waits for the action sent to `drone`, failing on a mission error or a refused call.
 async fn sent_to(
     updates: &mut mpsc::UnboundedReceiver<MissionUpdate>,
     drone: &str,
@@ -111,6 +111,7 @@ async fn sent_to(
                 }
             }
             MissionUpdate::Error(e) => panic!("mission error: {e}"),
+            MissionUpdate::Rejected { refusal, .. } => panic!("a call was refused: {refusal}"),
             _ => {}
         }
     }
@@ -168,6 +169,23 @@ async fn early_send(sim: &SimSwarm) -> anyhow::Result<()> {
         "alfa's action was sent only after the reply was whole"
     );
     anyhow::ensure!(seen == ["alfa"], "sent before the release: {seen:?}");
+    // Alfa busy with it before the reply is whole: its call in the whole reply is served, not
+    // a repeat to repair.
+    within("alfa under way", Duration::from_secs(10), async {
+        loop {
+            let busy = sim
+                .link
+                .view()
+                .get(&id("alfa"))
+                .and_then(|e| e.status.as_ref().map(|s| s.action.is_some()))
+                .unwrap_or(false);
+            if busy {
+                return;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await?;
 
     // Released: bravo's action, and alfa's not again.
     backend.release.notify_one();
@@ -184,6 +202,14 @@ async fn early_send(sim: &SimSwarm) -> anyhow::Result<()> {
     )
     .await?;
     anyhow::ensure!(seen == ["alfa", "bravo"], "sent: {seen:?}");
+    let supervisor_calls = *backend
+        .supervisor_calls
+        .lock()
+        .unwrap_or_else(|e| e.into_inner());
+    anyhow::ensure!(
+        supervisor_calls == 1,
+        "{supervisor_calls} Supervisor calls by bravo's send: the whole reply was sent back for repair"
+    );
 
     drop(lines);
     let stats = within("the mission to end", Duration::from_secs(10), mission_task).await??;

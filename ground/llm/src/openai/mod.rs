@@ -83,6 +83,10 @@ impl OpenAiBackend {
         let client = reqwest::Client::builder()
             .user_agent(concat!("tacos-llm/", env!("CARGO_PKG_VERSION")))
             .connect_timeout(config.timeout)
+            // A connection per call: calls are seconds apart and seconds long, and llama.cpp's
+            // server closes a connection after a streamed reply, so a pooled one failed the
+            // next call ("connection closed before message completed"; the first_action bench).
+            .pool_max_idle_per_host(0)
             .build()
             .map_err(|e| ConfigError::Client(error_chain(&e)))?;
         Ok(OpenAiBackend {

@@ -187,7 +187,7 @@ impl Mission {
                 check_live(&calls, &gate, &link, &visible, &tasks).0
             }
         };
-        let (on_written, early) = early_calls(judge, issued, self.work_epoch);
+        let (on_written, seen, early) = early_calls(judge, issued, self.work_epoch);
         let mut caller = self.caller.clone();
         caller.on_written = Some(on_written);
         let work = CycleWork {
@@ -217,6 +217,12 @@ impl Mission {
                     false,
                     move |reply: &CycleReply| {
                         let (firsts, later) = first_call_per_drone(&reply.actions);
+                        // The drones whose call went while the reply was written are served.
+                        let served = seen.handed_on();
+                        let firsts: Vec<Call> = firsts
+                            .into_iter()
+                            .filter(|c| !served.contains(&c.drone))
+                            .collect();
                         let (calls, mut rejections) = match &only {
                             Some(startable) => match_startable(&firsts, startable),
                             None => (firsts, Vec::new()),

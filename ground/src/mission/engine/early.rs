@@ -54,23 +54,37 @@ impl EarlyCalls {
     }
 }
 
-/// A hook for a cycle call and the engine's end of what it finds. `judge` keeps the calls that
-/// pass the whole reply's checks (with their checked actions).
+/// What the hook has seen of a reply: the drones whose call it handed on, and the calls it
+/// judged (each is judged once). Shared with the whole reply's check, which leaves the drones
+/// handed on out: their call is the engine's already, and the drone busy with it would make
+/// the same call look like a repeat.
+#[derive(Clone, Default)]
+pub(super) struct Seen(Arc<Mutex<(Vec<String>, Vec<String>)>>);
+
+impl Seen {
+    /// The drones whose call was handed on.
+    pub(super) fn handed_on(&self) -> Vec<String> {
+        self.0.lock().unwrap_or_else(|e| e.into_inner()).0.clone()
+    }
+}
+
+/// A hook for a cycle call, what it has seen, and the engine's end of what it finds. `judge`
+/// keeps the calls that pass the whole reply's checks (with their checked actions).
 pub(super) fn early_calls(
     judge: impl Fn(&[Call]) -> Vec<(Call, CheckedAction)> + Send + Sync + 'static,
     issued: fn(&mut Mission, Call, DroneId, u64),
     epoch: u64,
-) -> (OnWritten, EarlyCalls) {
+) -> (OnWritten, Seen, EarlyCalls) {
     let (tx, rx) = mpsc::unbounded_channel();
     let started = Instant::now();
-    // The drones given a call, and the calls judged (each is judged once).
-    let seen: Mutex<(Vec<String>, Vec<String>)> = Mutex::new((Vec::new(), Vec::new()));
+    let seen = Seen::default();
+    let shared = seen.clone();
     let hook = move |content: &str| {
         let calls = partial_reply(content).calls;
         if calls.is_empty() {
             return;
         }
-        let mut seen = seen.lock().unwrap_or_else(|e| e.into_inner());
+        let mut seen = shared.0.lock().unwrap_or_else(|e| e.into_inner());
         let (firsts, _) = first_call_per_drone(&calls);
         let fresh: Vec<Call> = firsts
             .into_iter()
@@ -96,7 +110,7 @@ pub(super) fn early_calls(
         epoch,
         sent: Vec::new(),
     };
-    (Arc::new(hook), early)
+    (Arc::new(hook), seen, early)
 }
 
 impl Mission {
