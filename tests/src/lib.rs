@@ -4,6 +4,7 @@
 use std::time::Duration;
 use tacos_ground::launch::{Stack, StackConfig};
 use tacos_ground::link::GroundLink;
+use tacos_ground::mission::log::MissionLog;
 use tacos_shared::SwarmId;
 use tacos_shared::messages::{SimTruth, VehicleTruth};
 use tacos_shared::scenario::Scenario;
@@ -16,6 +17,15 @@ pub mod llama_server;
 pub mod netns;
 pub mod probes;
 pub mod prompt_text;
+
+/// A mission log in a file of its own in the temporary directory, named after `tag`.
+pub fn temp_mission_log(
+    tag: &str,
+) -> anyhow::Result<(std::path::PathBuf, std::sync::Arc<MissionLog>)> {
+    let path = std::env::temp_dir().join(format!("{}.jsonl", unique_swarm(tag)));
+    let log = std::sync::Arc::new(MissionLog::create(&path)?);
+    Ok((path, log))
+}
 
 /// A swarm id no other test (or run) uses.
 pub fn unique_swarm(tag: &str) -> SwarmId {

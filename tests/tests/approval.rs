@@ -5,7 +5,7 @@
 use serde_json::json;
 use std::sync::Arc;
 use std::time::Duration;
-use tacos_ground::mission::log::{self, MissionLog, Record};
+use tacos_ground::mission::log::{self, Record};
 use tacos_ground::mission::{MissionConfig, MissionHandle, MissionUpdate};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{ChatRequest, LlmError};
@@ -60,9 +60,7 @@ async fn a_held_plan_flies_only_once_approved_without_its_dropped_calls() -> any
         let gate = SafetyGate::new(sim.scenario.clone());
         sim.take_off(&gate, &ids).await?;
 
-        let log_path =
-            std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm("approve")));
-        let log = Arc::new(MissionLog::create(&log_path)?);
+        let (log_path, log) = tacos_tests::temp_mission_log("approve")?;
         let backend = Arc::new(PolicyBackend::new(policy));
         let cfg = MissionConfig {
             confirm: true,

@@ -9,7 +9,6 @@
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tacos_ground::launch::Role;
-use tacos_ground::mission::log::MissionLog;
 use tacos_ground::mission::{EventTopic, Mission, MissionConfig, MissionUpdate, Overtaken};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{BoxFuture, ChatReply, ChatRequest, LlmBackend, LlmError, Usage};
@@ -116,9 +115,7 @@ async fn held_call(sim: &mut SimSwarm) -> anyhow::Result<Held> {
     tacos_tests::all_ready(sim, &ids).await?;
     sim.take_off(&gate, &ids).await?;
 
-    let log_path =
-        std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm("clog")));
-    let log = Arc::new(MissionLog::create(&log_path)?);
+    let (log_path, log) = tacos_tests::temp_mission_log("clog")?;
     let (holding_tx, mut holding) = watch::channel(false);
     let backend = Arc::new(HeldCoordinator {
         holding: holding_tx,

@@ -6,7 +6,7 @@
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
-use tacos_ground::mission::log::{self, MissionLog, Record};
+use tacos_ground::mission::log::{self, Record};
 use tacos_ground::mission::{EventTopic, MissionConfig, MissionHandle, MissionUpdate, Overtaken};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{BoxFuture, ChatReply, ChatRequest, LlmBackend, LlmError, Usage};
@@ -81,9 +81,7 @@ async fn land_all_is_sent_while_a_model_call_is_pending_and_the_late_reply_is_no
         // Set-up: all three in the air (through the gate, without a model).
         sim.take_off(&gate, &ids).await?;
 
-        let log_path =
-            std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm("dlog")));
-        let log = Arc::new(MissionLog::create(&log_path)?);
+        let (log_path, log) = tacos_tests::temp_mission_log("dlog")?;
         let (pending_tx, mut pending) = watch::channel(false);
         let backend = Arc::new(SlowSupervisor {
             pending: pending_tx,

@@ -5,8 +5,7 @@
 
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
-use tacos_ground::mission::log::MissionLog;
-use tacos_ground::mission::{Mission, MissionConfig, MissionUpdate};
+use tacos_ground::mission::{MissionConfig, MissionHandle, MissionUpdate};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{
     BoxFuture, ChatReply, ChatRequest, LlmBackend, LlmError, Progress, Streamed, Usage,
@@ -131,29 +130,27 @@ async fn early_send(sim: &SimSwarm) -> anyhow::Result<()> {
     tacos_tests::all_ready(sim, &ids).await?;
     sim.take_off(&gate, &ids).await?;
 
-    let log_path =
-        std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm("elog")));
-    let log = Arc::new(MissionLog::create(&log_path)?);
+    let (log_path, log) = tacos_tests::temp_mission_log("elog")?;
     let (holding_tx, mut holding) = watch::channel(false);
     let backend = Arc::new(HeldMidReply {
         holding: holding_tx,
         release: Notify::new(),
         supervisor_calls: Mutex::new(0),
     });
-    let (updates_tx, mut updates) = mpsc::unbounded_channel();
-    let mission = Mission::new(
+    let MissionHandle {
+        input,
+        mut updates,
+        task,
+    } = MissionHandle::start(
         MissionConfig::default(),
         backend.clone(),
         gate,
         sim.link.clone(),
         log,
-        updates_tx,
     )
     .await?;
-    let (lines, rx) = mpsc::channel(4);
-    let mission_task = tokio::spawn(mission.run(rx));
-    lines
-        .send("alfa, inspect car_11; bravo, inspect car_12".into())
+    input
+        .submit("alfa, inspect car_11; bravo, inspect car_12")
         .await?;
 
     // Alfa's action goes while the reply is held after its call.
@@ -211,8 +208,8 @@ async fn early_send(sim: &SimSwarm) -> anyhow::Result<()> {
         "{supervisor_calls} Supervisor calls by bravo's send: the whole reply was sent back for repair"
     );
 
-    drop(lines);
-    let stats = within("the mission to end", Duration::from_secs(10), mission_task).await??;
+    drop(input);
+    let stats = within("the mission to end", Duration::from_secs(10), task.join()).await??;
     anyhow::ensure!(stats.actions_sent == 2, "{stats:?}");
     let log = std::fs::read_to_string(&log_path)?;
     anyhow::ensure!(

@@ -13,7 +13,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 use tacos_embedded::{EmbeddedBackend, EmbeddedModel, EmbeddedOptions};
-use tacos_ground::mission::log::{self, MissionLog, Record};
+use tacos_ground::mission::log::{self, Record};
 use tacos_ground::mission::{Mission, MissionConfig, MissionUpdate, Mode};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{LlmBackend, OpenAiBackend, OpenAiConfig};
@@ -91,9 +91,7 @@ async fn take_off(
     let ids = sim.wait_on_the_ground(drones).await?;
     let mut truth = sim.link.watch_truth().await?;
 
-    let log_path =
-        std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm("emlog")));
-    let log = Arc::new(MissionLog::create(&log_path)?);
+    let (log_path, log) = tacos_tests::temp_mission_log("emlog")?;
     let (updates_tx, mut updates) = mpsc::unbounded_channel();
     let cfg = MissionConfig {
         mode: Mode::Tacos,

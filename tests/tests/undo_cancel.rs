@@ -7,7 +7,7 @@ use serde_json::json;
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Duration;
-use tacos_ground::mission::log::{self, MissionLog, Record};
+use tacos_ground::mission::log::{self, Record};
 use tacos_ground::mission::{EventTopic, MissionConfig, MissionHandle, MissionUpdate};
 use tacos_ground::safety::SafetyGate;
 use tacos_llm::{ChatRequest, LlmError};
@@ -69,9 +69,7 @@ async fn cancel_holds_a_plan_s_drones_and_undo_flies_them_back() -> anyhow::Resu
         sim.take_off(&gate, &ids).await?;
         let before = positions(&sim, &ids);
 
-        let log_path =
-            std::env::temp_dir().join(format!("{}.jsonl", tacos_tests::unique_swarm("undo")));
-        let log = Arc::new(MissionLog::create(&log_path)?);
+        let (log_path, log) = tacos_tests::temp_mission_log("undo")?;
         let MissionHandle {
             input,
             mut updates,

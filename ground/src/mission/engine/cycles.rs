@@ -6,7 +6,7 @@ use super::caller::Checked;
 use super::checks::check_live;
 use super::coordinator::same_work;
 use super::cycle_call::{CycleAsk, CycleChoice, CycleKind, CycleOutcome, CycleReply, CycleWork};
-use super::early::early_calls;
+use super::early::{Served, early_calls};
 use super::in_flight::{Answered, CycleAnswer, InFlight};
 use super::plan_state::PlanTask;
 use crate::mission::config::Mode;
@@ -255,14 +255,14 @@ impl Mission {
     }
 
     /// A cycle's checked reply: its calls sent (each checked by the gate again, against the
-    /// swarm as it is now) but for those `sent_early` while it was written, the cycle counted.
+    /// swarm as it is now) but for the drones `served` while it was written, the cycle counted.
     /// A reply for work that has since ended or been replaced is dropped, and nothing of it is
     /// sent.
     pub(super) async fn cycle_answered(
         &mut self,
         work: CycleWork,
         answer: CycleAnswer,
-        sent_early: Vec<Call>,
+        served: Served,
     ) -> Result<(), MissionError> {
         let choice = answer?;
         if work.epoch != self.work_epoch {
@@ -283,10 +283,10 @@ impl Mission {
             );
             self.event(EventTopic::Note, text);
         }
-        let mut sent: Vec<String> = sent_early.iter().map(ToString::to_string).collect();
-        let mut all_passed = choice.all_passed;
+        let mut sent: Vec<String> = served.sent.iter().map(ToString::to_string).collect();
+        let mut all_passed = choice.all_passed && served.refused == 0;
         for (call, checked) in choice.accepted {
-            if sent_early.iter().any(|c| c.drone == call.drone) {
+            if served.sent.iter().any(|c| c.drone == call.drone) {
                 continue;
             }
             let text = call.to_string();

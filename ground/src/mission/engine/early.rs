@@ -36,8 +36,15 @@ pub(super) struct EarlyCalls {
     issued: fn(&mut Mission, Call, DroneId, u64),
     /// `Mission::work_epoch` when the call started.
     epoch: u64,
-    /// The calls sent so far.
+    served: Served,
+}
+
+/// What became of the calls handed on early: sent, or refused by the gate when they were to
+/// go (their drones are left out of the whole reply all the same).
+#[derive(Default)]
+pub(super) struct Served {
     pub(super) sent: Vec<Call>,
+    pub(super) refused: usize,
 }
 
 impl EarlyCalls {
@@ -51,6 +58,10 @@ impl EarlyCalls {
             self.calls = None;
         }
         call
+    }
+
+    pub(super) fn served(self) -> Served {
+        self.served
     }
 }
 
@@ -108,7 +119,7 @@ pub(super) fn early_calls(
         calls: Some(rx),
         issued,
         epoch,
-        sent: Vec::new(),
+        served: Served::default(),
     };
     (Arc::new(hook), seen, early)
 }
@@ -131,7 +142,7 @@ impl Mission {
         {
             Ok(true) => {
                 if let Some(calls) = self.in_flight.as_mut().and_then(|f| f.early.as_mut()) {
-                    calls.sent.push(early.call);
+                    calls.served.sent.push(early.call);
                 }
                 let text = format!(
                     "{text}: sent {:.1} s into the call, while the reply was still being written",
@@ -139,7 +150,11 @@ impl Mission {
                 );
                 self.event(EventTopic::Note, text);
             }
-            Ok(false) => {}
+            Ok(false) => {
+                if let Some(calls) = self.in_flight.as_mut().and_then(|f| f.early.as_mut()) {
+                    calls.served.refused += 1;
+                }
+            }
             Err(e) => self.tell(MissionUpdate::Error(e.to_string())),
         }
     }

@@ -157,8 +157,8 @@ impl Mission {
                 result.map_err(|e| e.to_string())
             }
             Ok(Answered::Cycle { work, answer }) => {
-                let sent_early = flight.early.map(|e| e.sent).unwrap_or_default();
-                self.cycle_answered(work, answer, sent_early)
+                let served = flight.early.map(EarlyCalls::served).unwrap_or_default();
+                self.cycle_answered(work, answer, served)
                     .await
                     .map_err(|e| e.to_string())
             }
