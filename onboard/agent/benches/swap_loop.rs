@@ -64,6 +64,8 @@ struct Outcome {
     relaxed: u64,
     braking: u64,
     rejected: u64,
+    /// Longest any drone flew past its plan's end, seconds.
+    overran_s: f64,
     arrived: usize,
     sim_s: f64,
 }
@@ -219,6 +221,7 @@ fn run(scenario: &Scenario, latency_max: f64, seed: u64) -> Result<Outcome, Stri
         out.relaxed += s.relaxed;
         out.braking += s.braking;
         out.rejected += s.rejected;
+        out.overran_s = out.overran_s.max(s.overran_s);
     }
     out.arrived = drones.iter().filter(|d| d.arrived).count();
     out.sim_s = now;
@@ -253,7 +256,7 @@ fn main() {
         for seed in 0..seeds {
             match run(&scenario, latency, seed) {
                 Ok(o) => println!(
-                    "swap_loop N={N} latency_max_s={latency:.2} seed={seed} min_pair_m={:.3} min_planned_scaled_m={:.3} breach_samples={} min_clearance_m={:.3} obstacle_breach_samples={} solves={} relaxed={} braking={} rejected={} arrived={}/{N} sim_s={:.1}{}",
+                    "swap_loop N={N} latency_max_s={latency:.2} seed={seed} min_pair_m={:.3} min_planned_scaled_m={:.3} breach_samples={} min_clearance_m={:.3} obstacle_breach_samples={} solves={} relaxed={} braking={} rejected={} overran_s={:.2} arrived={}/{N} sim_s={:.1}{}",
                     o.min_pair,
                     o.min_planned_scaled,
                     o.breach_samples,
@@ -263,6 +266,7 @@ fn main() {
                     o.relaxed,
                     o.braking,
                     o.rejected,
+                    o.overran_s,
                     o.arrived,
                     o.sim_s,
                     o.first_breach

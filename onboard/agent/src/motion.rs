@@ -83,6 +83,10 @@ pub struct SolveStats {
     pub rejected: u64,
     /// Longest solve so far, seconds.
     pub slowest_s: f64,
+    /// Longest the planner's drone was flown past its plan's end, seconds: the reference then
+    /// stands at the plan's last point, and a vehicle that reaches it at speed overshoots
+    /// where no neighbour expects it.
+    pub overran_s: f64,
 }
 
 /// One tick's result: the setpoint to stream and, at the planner's rate, the path to publish.
@@ -336,6 +340,10 @@ impl Motion {
                 acceleration: Vec3::zeros(),
             },
             Steering::Toward(_) => {
+                if let Some(plan) = &self.plan {
+                    let overran = now - plan.end_time();
+                    self.stats.overran_s = self.stats.overran_s.max(overran);
+                }
                 return MotionOutput {
                     // Until the first solve lands (a few milliseconds), stay where it is.
                     reference: match &self.plan {
@@ -464,6 +472,7 @@ impl Motion {
             &neighbours,
             &Downwash::new(cfg.downwash_factor),
             wanted,
+            cfg.horizon() / 2.0,
         )
     }
 

@@ -43,7 +43,14 @@ pub fn closest_approach(
 }
 
 /// Whether a finished plan may be flown instead of `current`: it keeps `wanted` (the planes'
-/// distance) from every neighbour's latest path, or comes no closer to them than `current` does.
+/// distance) from every neighbour's latest path, or comes no closer to them than `current` does,
+/// or `current` has less than `keep_at_least` seconds left.
+///
+/// That last bound ends a run of refusals before the plan being flown runs out. Past its end
+/// the reference stands at its last point, and a vehicle that reaches it at speed brakes on
+/// beyond it, where no neighbour expects it. Seen in the 20-drone swap: a drone that refused 71
+/// and 90 plans in a row at the crowded centre, and a breach of 1.4–1.5 m with it; a refused
+/// plan is not published, so the neighbours go on planning against the old one.
 pub fn may_replace(
     new: &Plan,
     current: Option<&Plan>,
@@ -51,6 +58,7 @@ pub fn may_replace(
     neighbours: &[NeighbourPath],
     metric: &Downwash,
     wanted: f64,
+    keep_at_least: f64,
 ) -> bool {
     let until = new.end_time();
     let new_closest = closest_approach(new, now, until, neighbours, metric);
@@ -59,7 +67,8 @@ pub fn may_replace(
     }
     // Both over the new plan's span, the current one held at its end as it would be flown.
     current.is_none_or(|current| {
-        new_closest >= closest_approach(current, now, until, neighbours, metric)
+        current.end_time() - now < keep_at_least
+            || new_closest >= closest_approach(current, now, until, neighbours, metric)
     })
 }
 
@@ -126,46 +135,22 @@ mod tests {
         let current = Plan::hold(now, DT, STEPS, here);
         // Towards it at 2 m/s: 2 m away after 2 s.
         let closing = cruise(now, here, Vec3::new(2.0, 0.0, 0.0));
-        assert!(!may_replace(
-            &closing,
-            Some(&current),
-            now,
-            &bravo,
-            &metric,
-            wanted
-        ));
+        // Whether `new` replaces `current` when refusals end with `keep_at_least` s left.
+        let flown = |new: &Plan, current: Option<&Plan>, keep_at_least: f64| {
+            may_replace(new, current, now, &bravo, &metric, wanted, keep_at_least)
+        };
+        assert!(!flown(&closing, Some(&current), 0.0));
         // Away from it, or past it with room: flown.
         let away = cruise(now, here, Vec3::new(-2.0, 0.0, 0.0));
-        assert!(may_replace(
-            &away,
-            Some(&current),
-            now,
-            &bravo,
-            &metric,
-            wanted
-        ));
+        assert!(flown(&away, Some(&current), 0.0));
         let slow = cruise(now, here, Vec3::new(0.5, 0.0, 0.0));
-        assert!(may_replace(
-            &slow,
-            Some(&current),
-            now,
-            &bravo,
-            &metric,
-            wanted
-        ));
+        assert!(flown(&slow, Some(&current), 0.0));
         // With no plan flown yet, nothing better to keep.
-        assert!(may_replace(&closing, None, now, &bravo, &metric, wanted));
+        assert!(flown(&closing, None, 0.0));
         // A current plan that is itself closer (a crowd pressing in): the new one is flown
         // even though it does not keep the planes' distance.
         let worse = cruise(now, here, Vec3::new(2.5, 0.0, 0.0));
-        assert!(may_replace(
-            &closing,
-            Some(&worse),
-            now,
-            &bravo,
-            &metric,
-            wanted
-        ));
+        assert!(flown(&closing, Some(&worse), 0.0));
         // The current plan is compared as it would be flown: held at its end (here 1 m from
         // the neighbour, closer than the new one comes).
         let ended = cruise(
@@ -173,13 +158,11 @@ mod tests {
             Vec3::new(3.0, 0.0, 10.0),
             Vec3::new(1.0, 0.0, 0.0),
         );
-        assert!(may_replace(
-            &closing,
-            Some(&ended),
-            now,
-            &bravo,
-            &metric,
-            wanted
-        ));
+        assert!(flown(&closing, Some(&ended), 0.0));
+        // A current plan about to run out is kept no longer: 0.5 s left of a hold here, which
+        // keeps away from bravo, and the closing plan is flown once less than 1 s is left.
+        let running_out = Plan::hold(now - 1.5, DT, STEPS, here);
+        assert!(!flown(&closing, Some(&running_out), 0.4));
+        assert!(flown(&closing, Some(&running_out), 1.0));
     }
 }
