@@ -21,6 +21,9 @@ async fn a_stalled_onboard_does_not_count_its_stall_as_silence() -> anyhow::Resu
     let result = stall_mid_goto(&mut sim).await;
     // A frozen process ignores SIGTERM: let it go before the stack stops.
     sim.stack.thaw(Role::Onboard, Some(&id("alfa")));
+    if let Err(e) = &result {
+        eprintln!("{e:#}; logs: {}", sim.stack.config.log_dir.display());
+    }
     sim.stop().await;
     result
 }

@@ -40,6 +40,8 @@ pub mod recheck;
 mod route;
 
 #[cfg(test)]
+mod stale_reads;
+#[cfg(test)]
 mod tests;
 
 pub use config::PlannerConfig;
