@@ -40,8 +40,6 @@ pub mod recheck;
 mod route;
 
 #[cfg(test)]
-mod stale_reads;
-#[cfg(test)]
 mod tests;
 
 pub use config::PlannerConfig;

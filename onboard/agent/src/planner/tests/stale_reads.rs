@@ -2,23 +2,10 @@
 //! planners: each solve reads the neighbour's path as last heard, and a neighbour that has
 //! replaced that path since plans against a different pair of paths. The two separating planes
 //! then differ, each plan keeps to its own, and nothing keeps the plans apart. The same solves
-//! reading the same pair keep their distance; [`super::recheck`] refuses the plans that do not.
+//! reading the same pair keep their distance; [`crate::planner::recheck`] refuses the plans that do not.
 
-use super::recheck::{closest_approach, may_replace};
+use super::super::recheck::{closest_approach, may_replace};
 use super::*;
-use tacos_shared::scenario::Scenario;
-
-fn config() -> PlannerConfig {
-    let s = match Scenario::builtin("city") {
-        Ok(s) => s,
-        Err(e) => panic!("the built-in city is valid: {e}"),
-    };
-    PlannerConfig::from_scenario(&s.limits, &s.world)
-}
-
-fn id(name: &str) -> DroneId {
-    DroneId::new(name).unwrap_or_else(|e| panic!("{name}: {e}"))
-}
 
 /// `who`'s path as a neighbour hears it: `plan`, published `age_s` ago.
 fn heard(who: &str, plan: &Plan, age_s: f64) -> NeighbourPath {
@@ -56,7 +43,7 @@ fn solve_pair(
 ) -> (Plan, Plan) {
     let (alfa_at, bravo_at) = positions();
     let solve = |own: Vec3, goal: Vec3, reads: NeighbourPath| {
-        let mut planner = Planner::new(cfg.clone()).unwrap_or_else(|e| panic!("{e}"));
+        let mut planner = planner(cfg);
         planner.restore_previous(Some(Plan::hold(0.0, cfg.dt, cfg.horizon_steps, own)));
         planner
             .plan(0.0, own, Vec3::zeros(), &Goal::fixed(goal), &[reads])
@@ -77,7 +64,7 @@ fn positions() -> (Vec3, Vec3) {
 
 #[test]
 fn plans_solved_against_replaced_paths_come_too_close_and_the_recheck_refuses_them() {
-    let cfg = config();
+    let cfg = city_config();
     let metric = Downwash::new(cfg.downwash_factor);
     let (alfa_at, bravo_at) = positions();
     let hold = |at: Vec3| Plan::hold(0.0, cfg.dt, cfg.horizon_steps, at);
