@@ -564,4 +564,6 @@ fn disarmed_in_flight() -> FailureReason {
 #[cfg(test)]
 mod failsafe_tests;
 #[cfg(test)]
+mod landing_tests;
+#[cfg(test)]
 mod tests;
