@@ -2,6 +2,11 @@
 //! ports and rules; and its zenoh side (truth, fault injection, events). Unique ports and swarm
 //! ids per test; every wait has a deadline.
 
+#[path = "px4_over_udp/parameters.rs"]
+mod parameters;
+#[path = "px4_over_udp/zenoh_side.rs"]
+mod zenoh_side;
+
 use mavlink::MavHeader;
 use mavlink::dialects::common::{
     COMMAND_LONG_DATA, MISSION_ACK_DATA, MISSION_COUNT_DATA, MISSION_ITEM_INT_DATA,
@@ -335,6 +340,17 @@ fn statustext(m: &MavMessage) -> Option<String> {
     }
 }
 
+fn param_value(m: &MavMessage) -> Option<(String, f32, MavParamType)> {
+    match m {
+        MavMessage::PARAM_VALUE(p) => Some((
+            tacos_sitl::params::name_of(&p.param_id[..]),
+            p.param_value,
+            p.param_type,
+        )),
+        _ => None,
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn answers_like_px4_over_udp() {
     let socket = consecutive_sockets(1).await.remove(0);
@@ -567,308 +583,4 @@ async fn answers_like_px4_over_udp() {
     let heard = timeout(Duration::from_millis(500), stranger.recv_from(&mut buf)).await;
     assert!(heard.is_err(), "the second client was answered");
     sitl.stop().await;
-}
-
-fn param_value(m: &MavMessage) -> Option<(String, f32, MavParamType)> {
-    match m {
-        MavMessage::PARAM_VALUE(p) => Some((
-            tacos_sitl::params::name_of(&p.param_id[..]),
-            p.param_value,
-            p.param_type,
-        )),
-        _ => None,
-    }
-}
-
-/// What the writer does at link-up, over real UDP: parameters read and set (INT32 byte for
-/// byte), a fence uploaded and read back, each reply addressed to this client.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn parameters_and_the_geofence_over_udp() {
-    let socket = consecutive_sockets(1).await.remove(0);
-    let mavlink_port = socket.local_addr().expect("address").port();
-    let bus = BusArgs::loopback(
-        unique_swarm("setup"),
-        Some("tcp/127.0.0.1:0".into()),
-        vec![],
-    );
-    let sitl = Sitl::start(1, mavlink_port, bus);
-    let mut px4 = Client::new(socket, sitl.sitl_base_port, 1);
-    px4.wait_for(Duration::from_secs(10), "a heartbeat", |_, m| {
-        matches!(m, MavMessage::HEARTBEAT(_)).then_some(())
-    })
-    .await;
-    let id = tacos_sitl::params::param_id;
-    let read = |name: &str| {
-        MavMessage::PARAM_REQUEST_READ(PARAM_REQUEST_READ_DATA {
-            param_index: -1,
-            target_system: 1,
-            target_component: 1,
-            param_id: id(name),
-        })
-    };
-    let value_of = |name: &'static str| {
-        move |_: &MavHeader, m: &MavMessage| param_value(m).filter(|(n, _, _)| n == name)
-    };
-    px4.send(&read("COM_OBL_RC_ACT")).await;
-    let (_, raw, kind) = px4
-        .wait_for(
-            Duration::from_secs(2),
-            "COM_OBL_RC_ACT",
-            value_of("COM_OBL_RC_ACT"),
-        )
-        .await;
-    assert_eq!(
-        (raw.to_bits(), kind),
-        (0, MavParamType::MAV_PARAM_TYPE_INT32),
-        "PX4's default"
-    );
-    px4.send(&MavMessage::PARAM_SET(PARAM_SET_DATA {
-        param_value: f32::from_bits(5),
-        target_system: 1,
-        target_component: 1,
-        param_id: id("COM_OBL_RC_ACT"),
-        param_type: MavParamType::MAV_PARAM_TYPE_INT32,
-    }))
-    .await;
-    let (_, raw, _) = px4
-        .wait_for(
-            Duration::from_secs(2),
-            "the echo",
-            value_of("COM_OBL_RC_ACT"),
-        )
-        .await;
-    assert_eq!(raw.to_bits(), 5);
-    px4.send(&read("COM_OF_LOSS_T")).await;
-    let (_, value, kind) = px4
-        .wait_for(
-            Duration::from_secs(2),
-            "COM_OF_LOSS_T",
-            value_of("COM_OF_LOSS_T"),
-        )
-        .await;
-    assert_eq!((value, kind), (1.0, MavParamType::MAV_PARAM_TYPE_REAL32));
-
-    // The fence: count, a request per item, the ack; then the read-back.
-    let fence = MavMissionType::MAV_MISSION_TYPE_FENCE;
-    let corners = [(-1000, -1000), (-1000, 1000), (1000, 1000), (1000, -1000)];
-    let item = |seq: u16| {
-        let (dlat, dlon) = corners[usize::from(seq)];
-        MISSION_ITEM_INT_DATA {
-            param1: 4.0,
-            x: 473_977_420 + dlat,
-            y: 85_455_940 + dlon,
-            seq,
-            command: MavCmd::MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
-            target_system: 1,
-            target_component: 1,
-            frame: MavFrame::MAV_FRAME_GLOBAL,
-            autocontinue: 1,
-            mission_type: fence,
-            ..Default::default()
-        }
-    };
-    // PX4 addresses its mission messages to the client. The stand-in's pure link does that
-    // (`link::handle_from`), but the simulation does not pass it the sender yet, so for now
-    // they go to the broadcast address (0, 0).
-    let to_us = |target_system: u8, target_component: u8| {
-        let to = (u32::from(target_system), target_component);
-        assert!(
-            to == (GCS_SYSTEM, GCS_COMPONENT) || to == (0, 0),
-            "addressed to {to:?}"
-        );
-    };
-    px4.send(&MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
-        count: 4,
-        target_system: 1,
-        target_component: 1,
-        mission_type: fence,
-        opaque_id: 0,
-    }))
-    .await;
-    for seq in 0..4u16 {
-        let asked = px4
-            .wait_for(
-                Duration::from_secs(2),
-                "MISSION_REQUEST_INT",
-                |_, m| match m {
-                    MavMessage::MISSION_REQUEST_INT(r) if r.mission_type == fence => {
-                        Some((r.seq, r.target_system, r.target_component))
-                    }
-                    _ => None,
-                },
-            )
-            .await;
-        assert_eq!(asked.0, seq);
-        to_us(asked.1, asked.2);
-        px4.send(&MavMessage::MISSION_ITEM_INT(item(seq))).await;
-    }
-    let ack = px4
-        .wait_for(Duration::from_secs(2), "MISSION_ACK", |_, m| match m {
-            MavMessage::MISSION_ACK(a) if a.mission_type == fence => Some(a.clone()),
-            _ => None,
-        })
-        .await;
-    assert_eq!(ack.mavtype, MavMissionResult::MAV_MISSION_ACCEPTED);
-    to_us(ack.target_system, ack.target_component);
-    px4.send(&MavMessage::MISSION_REQUEST_LIST(
-        MISSION_REQUEST_LIST_DATA {
-            target_system: 1,
-            target_component: 1,
-            mission_type: fence,
-        },
-    ))
-    .await;
-    let count = px4
-        .wait_for(Duration::from_secs(2), "MISSION_COUNT", |_, m| match m {
-            MavMessage::MISSION_COUNT(c) if c.mission_type == fence => Some(c.count),
-            _ => None,
-        })
-        .await;
-    assert_eq!(count, 4);
-    for seq in 0..4u16 {
-        px4.send(&MavMessage::MISSION_REQUEST_INT(MISSION_REQUEST_INT_DATA {
-            seq,
-            target_system: 1,
-            target_component: 1,
-            mission_type: fence,
-        }))
-        .await;
-        let got = px4
-            .wait_for(Duration::from_secs(2), "MISSION_ITEM_INT", |_, m| match m {
-                MavMessage::MISSION_ITEM_INT(i) if i.mission_type == fence => Some(i.clone()),
-                _ => None,
-            })
-            .await;
-        let want = item(seq);
-        assert_eq!(
-            (got.seq, got.x, got.y, got.param1),
-            (seq, want.x, want.y, 4.0)
-        );
-        assert_eq!(got.command, want.command);
-    }
-    px4.send(&MavMessage::MISSION_ACK(MISSION_ACK_DATA {
-        target_system: 1,
-        target_component: 1,
-        mavtype: MavMissionResult::MAV_MISSION_ACCEPTED,
-        mission_type: fence,
-        opaque_id: 0,
-    }))
-    .await;
-    sitl.stop().await;
-}
-
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn publishes_truth_and_takes_faults_over_zenoh() {
-    let swarm = unique_swarm("zenoh");
-    let keys = Keys::new(&swarm);
-    let endpoint = format!("tcp/127.0.0.1:{}", free_tcp_port());
-    let test_bus = BusArgs::loopback(swarm.clone(), Some(endpoint.clone()), vec![]);
-    let session = test_bus.open().await.expect("test session");
-    let truth = tacos_bus::subscribe(&session, &keys.sim_truth())
-        .await
-        .expect("subscribe truth");
-    let events = tacos_bus::subscribe(&session, &keys.events())
-        .await
-        .expect("subscribe events");
-    let targets = tacos_bus::subscribe(&session, &keys.targets())
-        .await
-        .expect("subscribe targets");
-
-    let mut sockets = consecutive_sockets(2).await;
-    let mavlink_base = sockets[0].local_addr().expect("address").port();
-    let sim_bus = BusArgs::loopback(
-        swarm.clone(),
-        Some("tcp/127.0.0.1:0".into()),
-        vec![endpoint],
-    );
-    let sitl = Sitl::start(2, mavlink_base, sim_bus);
-    let bravo_socket = sockets.remove(1);
-    let bravo = Client::new(bravo_socket, sitl.sitl_base_port + 1, 2);
-    bravo
-        .wait_for(Duration::from_secs(10), "bravo's heartbeat", |h, m| {
-            matches!(m, MavMessage::HEARTBEAT(_)).then_some(h.system_id)
-        })
-        .await;
-
-    // Truth: both vehicles at their homes (world ENU), alive, landed.
-    let lab = Scenario::builtin("lab").expect("valid");
-    let deadline = Instant::now() + Duration::from_secs(10);
-    let first: SimTruth = loop {
-        let sample = timeout_at(deadline, truth.recv_async())
-            .await
-            .expect("truth in time")
-            .expect("subscriber open");
-        let t: SimTruth = tacos_bus::decode(&sample).expect("truth decodes");
-        if !t.vehicles.is_empty() {
-            break t;
-        }
-    };
-    assert_eq!(first.vehicles.len(), 2);
-    for (v, slot) in first.vehicles.iter().zip(&lab.drones) {
-        assert_eq!(v.drone, slot.id);
-        assert!(
-            (v.position - slot.home).norm() < 1e-9,
-            "{} at {:?}",
-            v.drone,
-            v.position
-        );
-        assert!(v.alive && v.landed && !v.armed && !v.link_down);
-    }
-    let sample = timeout(Duration::from_secs(5), targets.recv_async())
-        .await
-        .expect("targets in time")
-        .expect("open");
-    let t: TargetsMessage = tacos_bus::decode(&sample).expect("targets decode");
-    assert!(t.targets.is_empty(), "the lab's dog is hidden");
-
-    // Garbage on the fault key is ignored; a real request kills bravo.
-    let faults = keys.sim_faults();
-    session
-        .put(&faults, vec![0xde, 0xad])
-        .await
-        .expect("put garbage");
-    let request = FaultRequest {
-        drone: DroneId::new("bravo").expect("valid"),
-        fault: FaultKind::VehicleDies,
-    };
-    tacos_bus::put(&session, &faults, &request, true)
-        .await
-        .expect("put fault");
-    let sample = timeout(Duration::from_secs(5), events.recv_async())
-        .await
-        .expect("event in time")
-        .expect("open");
-    let event: WorldEvent = tacos_bus::decode(&sample).expect("event decodes");
-    assert!(
-        matches!(&event, WorldEvent::FaultInjected { drone, .. } if drone.as_str() == "bravo"),
-        "{event:?}"
-    );
-
-    let deadline = Instant::now() + Duration::from_secs(5);
-    loop {
-        let sample = timeout_at(deadline, truth.recv_async())
-            .await
-            .expect("truth shows the death")
-            .expect("open");
-        let t: SimTruth = tacos_bus::decode(&sample).expect("truth decodes");
-        if t.vehicles.get(1).is_some_and(|v| !v.alive) {
-            assert!(t.vehicles[0].alive, "alfa lives on");
-            break;
-        }
-    }
-    // Bravo is silent from now on. Drain what it sent before the fault (a live vehicle would
-    // keep this loop busy until the deadline), then expect nothing at all for 2.5 s: heartbeats
-    // are 1 Hz and LOCAL_POSITION_NED 30 Hz, so a live vehicle would be heard.
-    let mut buf = [0u8; 2048];
-    let drain_deadline = Instant::now() + Duration::from_secs(1);
-    while let Ok(Ok(_)) = timeout_at(drain_deadline, bravo.socket.recv_from(&mut buf)).await {}
-    let heard = timeout(
-        Duration::from_millis(2500),
-        bravo.socket.recv_from(&mut buf),
-    )
-    .await;
-    assert!(heard.is_err(), "a dead vehicle still talks");
-
-    sitl.stop().await;
-    session.close().await.expect("close");
 }
