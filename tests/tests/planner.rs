@@ -26,11 +26,11 @@ fn breaches(truth: &SimTruth) -> (u64, u64) {
 /// instead of 20, the slowest 400 ms; one CI run cut 0.24 m into a skyscraper's margin). At
 /// half speed every drone makes 16–20 solves per simulated second there.
 ///
-/// Known flaky (issue 18 item 7), so nextest retries it once (`.config/nextest.toml`): at half
-/// speed too, 1 run in 4 ended with a pair 2.92–3.00 m apart for a 3 m safety distance, two
-/// drones stacked 2.7 m apart vertically at the crossing, pushed 3.5 m below their goals' height
-/// (2 in 10 at real time). The planner bench flies the same swap with perfect tracking and
-/// keeps 3.86 m, so the gap is in tracking or in what the onboard feeds the planner; not found.
+/// Once flaky (issue 18 item 7), so nextest still retries it once (`.config/nextest.toml`): 1 run
+/// in 4 ended with a pair inside the safety distance. The cause was solves reading different
+/// pairs of paths (`planner/tests/stale_reads.rs`), now refused by the onboard's recheck of a
+/// finished plan (`planner/recheck.rs`), and a drone flown past the end of a plan it kept too
+/// long, now bounded there too.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn twenty_drones_swap_through_the_skyscrapers_without_a_breach() -> anyhow::Result<()> {
     let sim = SimSwarm::start_with("swap", "city", 20, |c| c.sim_speed = 0.5).await?;
