@@ -464,14 +464,13 @@ impl Motion {
         let cfg = &self.planner_cfg;
         let here = plan.sample(now).position;
         let neighbours = neighbours_in_range(here, self.neighbours(now), cfg.neighbour_range);
-        let wanted = cfg.safety_distance + 2.0 * cfg.separation_margin;
         recheck::may_replace(
             plan,
             self.plan.as_ref(),
             now,
             &neighbours,
             &Downwash::new(cfg.downwash_factor),
-            wanted,
+            cfg.planes_distance(),
             cfg.horizon() / 2.0,
         )
     }

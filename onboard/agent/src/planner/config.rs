@@ -171,6 +171,12 @@ impl PlannerConfig {
         self.horizon_steps as f64 * self.dt
     }
 
+    /// How far apart two plans that obey one separating plane are: the safety distance plus
+    /// each drone's margin. A finished plan is rechecked against it (`recheck::may_replace`).
+    pub fn planes_distance(&self) -> f64 {
+        self.safety_distance + 2.0 * self.separation_margin
+    }
+
     /// The workspace every control point must stay in: the bounds shrunk by the drone radius.
     pub fn shrunk_workspace(&self) -> Bounds {
         let r = Vec3::repeat(self.drone_radius);

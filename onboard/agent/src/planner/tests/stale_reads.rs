@@ -2,7 +2,8 @@
 //! planners: each solve reads the neighbour's path as last heard, and a neighbour that has
 //! replaced that path since plans against a different pair of paths. The two separating planes
 //! then differ, each plan keeps to its own, and nothing keeps the plans apart. The same solves
-//! reading the same pair keep their distance; [`crate::planner::recheck`] refuses the plans that do not.
+//! reading the same pair keep their distance; [`crate::planner::recheck`] refuses the plans
+//! that do not.
 
 use super::super::recheck::{closest_approach, may_replace};
 use super::*;
@@ -34,8 +35,8 @@ fn leaving(cfg: &PlannerConfig, start: f64, from: Vec3, direction: Vec3) -> Plan
     Plan::integrate(start, cfg.dt, from, Vec3::zeros(), accelerations)
 }
 
-/// alfa's and bravo's next plans, from rest `gap` apart on a line in the park and bound for
-/// each other's side, each solved against the path of the other it holds.
+/// alfa's and bravo's next plans, from rest at [`positions`] and bound for each other's side,
+/// each solved against the path of the other it holds.
 fn solve_pair(
     cfg: &PlannerConfig,
     alfa_reads: NeighbourPath,
@@ -97,7 +98,6 @@ fn plans_solved_against_replaced_paths_come_too_close_and_the_recheck_refuses_th
     );
 
     // The recheck, with the plan each would now hear from the other: neither is flown.
-    let wanted = cfg.safety_distance + 2.0 * cfg.separation_margin;
     let flown = |new: &Plan, current: &Plan, other: &str, theirs: &Plan| {
         may_replace(
             new,
@@ -105,7 +105,7 @@ fn plans_solved_against_replaced_paths_come_too_close_and_the_recheck_refuses_th
             0.0,
             &[heard(other, theirs, 0.0)],
             &metric,
-            wanted,
+            cfg.planes_distance(),
             cfg.horizon() / 2.0,
         )
     };
