@@ -23,7 +23,8 @@ pub struct DroneLine {
 }
 
 /// Where a plan task stands.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
 pub enum TaskStatus {
     NotStarted,
     Running,
@@ -43,7 +44,8 @@ impl TaskStatus {
 }
 
 /// What the Coordinator remembers of the mission.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
 pub enum HistoryEntry {
     Pilot(String),
     Plan { reasoning: String, plan: Vec<Call> },

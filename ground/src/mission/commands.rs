@@ -371,6 +371,7 @@ async fn logged_outcome(
         task: None,
         seq,
         outcome: outcome.clone(),
+        failure: failed.then(|| outcome.clone()),
     });
     (outcome, failed)
 }

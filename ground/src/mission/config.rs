@@ -1,6 +1,8 @@
 //! How a mission runs: the ablation mode, the small-model aids and the engine's bounds.
 
 use super::aids::ModelAids;
+use super::resume::MissionMemory;
+use std::path::PathBuf;
 use std::time::Duration;
 
 /// The ablation modes of the paper.
@@ -57,6 +59,15 @@ pub struct MissionConfig {
     /// Every Coordinator plan is held for the pilot's approval (`mission::approval`); the
     /// pilot turns it on and off with `confirm on` / `confirm off`.
     pub confirm: bool,
+    /// A mission to go on with, read from its log after the ground station restarted.
+    pub resume: Option<ResumeFrom>,
+}
+
+/// Where a resumed mission comes from and what it remembered (`mission::resume`).
+#[derive(Debug, Clone)]
+pub struct ResumeFrom {
+    pub path: PathBuf,
+    pub memory: MissionMemory,
 }
 
 impl Default for MissionConfig {
@@ -73,6 +84,7 @@ impl Default for MissionConfig {
             temperature: 0.0,
             seed: Some(7),
             confirm: false,
+            resume: None,
         }
     }
 }

@@ -27,6 +27,7 @@ use super::log::{MissionLog, Record};
 use super::report::{
     EventTopic, MissionError, MissionStats, MissionUpdate, Overtaken, SharedStats,
 };
+use super::resume::MissionMemory;
 use super::untrusted;
 use crate::link::GroundLink;
 use crate::safety::{CheckedAction, SafetyGate};
@@ -130,7 +131,7 @@ async fn warm_up(backend: Arc<dyn LlmBackend>, mode: Mode, aids: ModelAids) {
 
 impl Mission {
     pub async fn new(
-        cfg: MissionConfig,
+        mut cfg: MissionConfig,
         backend: Arc<dyn LlmBackend>,
         gate: SafetyGate,
         link: Arc<GroundLink>,
@@ -153,6 +154,7 @@ impl Mission {
             scenario: gate.scenario().name.clone(),
             drones,
             aids: cfg.aids,
+            format: super::resume::LOG_FORMAT,
         });
         let stats = SharedStats::default();
         let caller = Caller {
@@ -170,7 +172,8 @@ impl Mission {
         let link_now = link.clock().instant();
         let (commands, overrides) =
             DirectCommands::new(link.clone(), gate.clone(), log.clone(), updates.clone());
-        Ok(Mission {
+        let resume = cfg.resume.take();
+        let mut mission = Mission {
             cfg,
             caller,
             gate,
@@ -193,7 +196,11 @@ impl Mission {
             commands,
             present: BTreeSet::new(),
             held: None,
-        })
+        };
+        if let Some(resume) = resume {
+            mission.resume(&resume.path, resume.memory);
+        }
+        Ok(mission)
     }
 
     pub fn stats(&self) -> MissionStats {
@@ -418,7 +425,7 @@ impl Mission {
                 Ok(())
             }
             Mode::Tacos | Mode::Wor => {
-                self.history.push(HistoryEntry::Pilot(text.to_owned()));
+                self.remember(HistoryEntry::Pilot(text.to_owned()));
                 self.want_coordination(Coordination::Pilot(text.to_owned()));
                 Ok(())
             }
@@ -454,7 +461,7 @@ impl Mission {
                 self.mnl.claimed_done = false;
             }
             Mode::Tacos | Mode::Wor => {
-                self.history.push(HistoryEntry::Event(text.clone()));
+                self.remember(HistoryEntry::Event(text.clone()));
                 // Replan only when there is work that the change may affect.
                 if self.plan.is_some() || !lost_work.is_empty() {
                     self.log.note(Record::Replan {
@@ -490,12 +497,64 @@ impl Mission {
             WorldEvent::Detection { .. } => EventTopic::Detection,
             WorldEvent::FaultInjected { .. } => EventTopic::Failure,
         };
-        self.event(topic, text.clone());
+        self.log.note(Record::WorldEvent { text: text.clone() });
+        self.tell(MissionUpdate::Event {
+            topic,
+            text: text.clone(),
+        });
         match self.cfg.mode {
             Mode::Mnl => self.mnl.executed.push(format!("event: {text}")),
-            _ => self.history.push(HistoryEntry::Event(text)),
+            _ => self.remember(HistoryEntry::Event(text)),
         }
         true
+    }
+
+    /// Adds `entry` to the Coordinator's memory of the mission, and to the log it is resumed
+    /// from.
+    fn remember(&mut self, entry: HistoryEntry) {
+        self.log.note(Record::History {
+            entry: entry.clone(),
+        });
+        self.history.push(entry);
+    }
+
+    /// Goes on with a mission the ground station ran before it restarted: its history, world
+    /// events and plan in force (with what each task was sent as, so outcomes the drones
+    /// report now are matched to them). Before `run`; the first cycle is due at once.
+    pub fn resume(&mut self, from: &std::path::Path, memory: MissionMemory) {
+        self.log.note(Record::Resumed {
+            from: from.display().to_string(),
+            memory: memory.clone(),
+        });
+        let MissionMemory {
+            history,
+            world_events,
+            plan,
+        } = memory;
+        let text = format!(
+            "mission resumed from {}: {} history entries, {}",
+            from.display(),
+            history.len(),
+            match &plan {
+                Some(plan) => {
+                    let open = plan
+                        .tasks
+                        .iter()
+                        .filter(|t| t.status != TaskStatus::Done)
+                        .count();
+                    format!("a plan of {} tasks, {open} not done", plan.tasks.len())
+                }
+                None => "no plan in force".to_owned(),
+            }
+        );
+        self.history = history;
+        self.events = world_events;
+        self.plan = plan.map(ActivePlan::resumed);
+        self.cycle_due = self.plan.is_some();
+        self.tell(MissionUpdate::Event {
+            topic: EventTopic::Note,
+            text,
+        });
     }
 
     async fn send(

@@ -5,7 +5,12 @@
 //! a power cut loses at most some positions and model traffic. A reused path gets the new
 //! mission after the old one, from its own `mission_start` line.
 
+mod summary;
+
+pub use summary::{Tally, timeline};
+
 use super::aids::{Aid, ModelAids};
+use super::resume::{MissionMemory, PlanTask};
 use crate::jsonl;
 use crate::safety::{CheckedAction, DroneSeen};
 use serde::{Deserialize, Serialize};
@@ -13,6 +18,7 @@ use std::fs::File;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use tacos_bus::clock::Clock;
+use tacos_prompts::render::HistoryEntry;
 use tacos_shared::action::Action;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -26,6 +32,9 @@ pub enum Record {
         /// The small-model aids that were on; logs from before they were switches had them all.
         #[serde(default)]
         aids: ModelAids,
+        /// The log's format (`resume::LOG_FORMAT`); 0 in logs from before it was recorded.
+        #[serde(default)]
+        format: u32,
     },
     Pilot {
         text: String,
@@ -83,7 +92,11 @@ pub enum Record {
         drone: String,
         task: Option<String>,
         seq: u64,
+        /// As the pilot reads it.
         outcome: String,
+        /// Why a plan's task failed; none when it was done.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        failure: Option<String>,
     },
     SupervisorCycle {
         plan_cycle: u32,
@@ -114,6 +127,30 @@ pub enum Record {
     },
     MissionEnd {
         outcome: String,
+    },
+    /// The Coordinator's memory of the mission grew by `entry`.
+    History {
+        entry: HistoryEntry,
+    },
+    /// A world event taken in (a detection, an injected fault), as the prompts show it.
+    WorldEvent {
+        text: String,
+    },
+    /// A plan went in force: its tasks as adopted (a task the previous plan had running and
+    /// this one repeats keeps running).
+    PlanAdopted {
+        reasoning: String,
+        tasks: Vec<PlanTask>,
+    },
+    /// The plan in force ended without completing: given up, interrupted, replaced.
+    PlanEnded {
+        how: String,
+    },
+    /// The mission went on from the log `from` after the ground station restarted, with this
+    /// memory (`mission::resume`).
+    Resumed {
+        from: String,
+        memory: MissionMemory,
     },
 }
 
@@ -181,6 +218,11 @@ impl Record {
                 | Record::PlanComplete { .. }
                 | Record::Replan { .. }
                 | Record::MissionEnd { .. }
+                | Record::History { .. }
+                | Record::WorldEvent { .. }
+                | Record::PlanAdopted { .. }
+                | Record::PlanEnded { .. }
+                | Record::Resumed { .. }
         )
     }
 }
@@ -301,66 +343,6 @@ pub fn read_checked(path: &Path) -> Result<jsonl::Contents<Line>, LogError> {
     })
 }
 
-/// What a mission did, counted from its records: a run's closing summary, which therefore
-/// agrees with the log however the run ended (a model call still in flight included).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct Tally {
-    /// Requests to a model (repair rounds included).
-    pub model_calls: usize,
-    pub supervisor_cycles: usize,
-    /// Actions sent for a model's plan or cycle (they carry a task).
-    pub model_actions: usize,
-    /// Actions sent for the pilot's direct commands.
-    pub direct_actions: usize,
-    /// Calls of the models' replies that the engine's checks refused.
-    pub rejections: usize,
-    /// … and that the safety gate refused.
-    pub gate_refusals: usize,
-    /// Times a small-model aid changed what the engine did.
-    pub aids_fired: usize,
-}
-
-impl Tally {
-    pub fn of(lines: &[Line]) -> Tally {
-        let mut t = Tally::default();
-        for line in lines {
-            match &line.record {
-                Record::LlmRequest { .. } => t.model_calls += 1,
-                Record::SupervisorCycle { .. } => t.supervisor_cycles += 1,
-                Record::ActionSent { task: Some(_), .. } => t.model_actions += 1,
-                Record::ActionSent { task: None, .. } => t.direct_actions += 1,
-                Record::GateRejected {
-                    by: RefusedBy::Checks,
-                    ..
-                } => t.rejections += 1,
-                Record::GateRejected {
-                    by: RefusedBy::SafetyGate,
-                    ..
-                } => t.gate_refusals += 1,
-                Record::AidFired { .. } => t.aids_fired += 1,
-                _ => {}
-            }
-        }
-        t
-    }
-}
-
-impl std::fmt::Display for Tally {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(
-            f,
-            "{} model calls, {} supervisor cycles, {} actions sent by the models, {} by direct commands, {} calls refused by the checks and {} by the safety gate, {} small-model aids fired",
-            self.model_calls,
-            self.supervisor_cycles,
-            self.model_actions,
-            self.direct_actions,
-            self.rejections,
-            self.gate_refusals,
-            self.aids_fired
-        )
-    }
-}
-
 /// The lines of the last mission in a log that holds several (a reused `--log` path): from its
 /// last `mission_start` on; all of them when there is none.
 pub fn last_mission(lines: &[Line]) -> &[Line] {
@@ -371,116 +353,9 @@ pub fn last_mission(lines: &[Line]) -> &[Line] {
     &lines[start..]
 }
 
-/// The mission's timeline as text, one line per record (positions left out).
-pub fn timeline(lines: &[Line]) -> String {
-    use std::fmt::Write;
-    let mut out = String::new();
-    for l in lines {
-        let text = match &l.record {
-            Record::MissionStart {
-                mode,
-                backend,
-                scenario,
-                drones,
-                aids,
-            } => {
-                format!(
-                    "mission start: mode {mode}, {backend}, map {scenario}, drones {}, aids {aids}",
-                    drones.join(", ")
-                )
-            }
-            Record::Pilot { text } => format!("pilot: {text}"),
-            Record::Direct { text, outcome } => format!("direct command {text:?}: {outcome}"),
-            Record::LlmRequest { layer, attempt, .. } => {
-                format!("{layer}: request (attempt {attempt})")
-            }
-            Record::LlmReply {
-                layer,
-                latency_ms,
-                prompt_tokens,
-                completion_tokens,
-                ..
-            } => {
-                format!(
-                    "{layer}: reply in {latency_ms} ms ({prompt_tokens} prompt + {completion_tokens} completion tokens)"
-                )
-            }
-            Record::LlmError { layer, error, .. } => format!("{layer}: error: {error}"),
-            Record::Plan { reasoning, plan } => format!("plan: {reasoning} {plan}"),
-            Record::GateRejected {
-                layer,
-                call,
-                reason,
-                by,
-            } => {
-                let why = if reason.is_empty() {
-                    String::new()
-                } else {
-                    format!(": {reason}")
-                };
-                format!("{by} refused the {layer}'s {call}{why}")
-            }
-            Record::ActionSent {
-                drone, seq, action, ..
-            } => format!("sent #{seq} {action} to {drone}"),
-            Record::ActionOutcome {
-                drone,
-                seq,
-                outcome,
-                ..
-            } => format!("{drone} #{seq}: {outcome}"),
-            Record::SupervisorCycle {
-                plan_cycle,
-                actions,
-                plan_complete,
-            } => {
-                format!(
-                    "supervisor cycle {plan_cycle}: [{}]{}",
-                    actions.join("; "),
-                    if *plan_complete { " plan complete" } else { "" }
-                )
-            }
-            Record::PlanComplete { cycles } => {
-                format!("plan complete after {cycles} supervisor cycles")
-            }
-            Record::Replan { reason } => format!("replan: {reason}"),
-            Record::Event { text } => format!("event: {text}"),
-            Record::AidFired { aid, detail } => format!("aid {aid}: {detail}"),
-            Record::Position { .. } => continue,
-            Record::MissionEnd { outcome } => format!("mission end: {outcome}"),
-        };
-        let _ = writeln!(out, "[{:>7.1}s] {text}", l.t);
-    }
-    out
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn refusals_are_counted_by_who_refused() {
-        let line = |t: f64, record: Record| Line { t, record };
-        let refused = |by| Record::GateRejected {
-            layer: "supervisor".into(),
-            call: "T1 alfa goto(car_1): why".into(),
-            reason: String::new(),
-            by,
-        };
-        // A record from before `by` was written reads as the checks'.
-        let old: Line = serde_json::from_str(
-            r#"{"t": 3.0, "kind": "gate_rejected", "layer": "coordinator", "call": "T2 bravo land()", "reason": ""}"#,
-        )
-        .expect("an old record reads");
-        let lines = [
-            line(1.0, refused(RefusedBy::Checks)),
-            line(2.0, refused(RefusedBy::SafetyGate)),
-            old,
-        ];
-        let tally = Tally::of(&lines);
-        assert_eq!((tally.rejections, tally.gate_refusals), (2, 1));
-        assert!(timeline(&lines).contains("the safety gate refused the supervisor's T1 alfa"));
-    }
 
     #[test]
     fn a_reused_path_after_a_crash_reads_as_two_missions() {
@@ -493,6 +368,7 @@ mod tests {
             scenario: "city".into(),
             drones: vec!["alfa".into()],
             aids: ModelAids::small(),
+            format: crate::mission::resume::LOG_FORMAT,
         };
         let first = MissionLog::create(&path).expect("create");
         first.write(start("first")).expect("write");

@@ -21,11 +21,12 @@ pub mod input;
 pub mod log;
 pub mod report;
 pub mod resolve;
+pub mod resume;
 pub mod undo;
 pub mod untrusted;
 
 pub use aids::{Aid, ModelAids};
-pub use config::{MissionConfig, Mode};
+pub use config::{MissionConfig, Mode, ResumeFrom};
 pub use engine::{Mission, coordinator_messages, supervisor_messages};
 pub use handle::{MissionHandle, MissionTask};
 pub use input::{InputClosed, MissionInputs, PilotInput};

@@ -4,12 +4,13 @@ use super::Mission;
 use super::caller::Checked;
 use super::checks::check_static;
 use super::in_flight::{Answered, CoordinatorAnswer, InFlight};
-use super::plan_state::{ActivePlan, PlanTask};
+use super::plan_state::ActivePlan;
 use crate::mission::aids::Aid;
 use crate::mission::approval::HeldPlan;
 use crate::mission::grounding;
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionError, MissionUpdate};
+use crate::mission::resume::PlanTask;
 use std::collections::HashMap;
 use tacos_llm::ChatMessage;
 use tacos_prompts::render::{self, HistoryEntry, TaskStatus};
@@ -326,7 +327,7 @@ impl Mission {
         self.log.note(Record::Event {
             text: format!("instruction declined by the Coordinator: {refusal} ({reasoning})"),
         });
-        self.history.push(HistoryEntry::Event(format!(
+        self.remember(HistoryEntry::Event(format!(
             "the Coordinator declined the instruction: {refusal}"
         )));
         MissionError::Declined { refusal }
@@ -335,7 +336,7 @@ impl Mission {
     /// Makes `calls` the plan in force; tasks already running keep their status when the new
     /// plan repeats them.
     pub(super) fn adopt_plan(&mut self, reasoning: String, calls: Vec<Call>) {
-        self.history.push(HistoryEntry::Plan {
+        self.remember(HistoryEntry::Plan {
             reasoning: reasoning.clone(),
             plan: calls.clone(),
         });
@@ -347,7 +348,7 @@ impl Mission {
             .filter(|t| t.status == TaskStatus::Running)
             .map(|t| (same_work(&t.call), t))
             .collect();
-        let tasks = calls
+        let tasks: Vec<PlanTask> = calls
             .into_iter()
             .map(|call| match running.get(&same_work(&call)) {
                 Some(t) => PlanTask {
@@ -365,6 +366,10 @@ impl Mission {
             })
             .collect();
         self.work_epoch += 1;
+        self.log.note(Record::PlanAdopted {
+            reasoning: reasoning.clone(),
+            tasks: tasks.clone(),
+        });
         self.plan = Some(ActivePlan {
             reasoning,
             tasks,

@@ -8,6 +8,7 @@ use crate::mission::config::Mode;
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionUpdate};
 use crate::mission::resolve::{claimed_points, position_of, resolve};
+use crate::mission::resume::{PlanTask, SavedPlan};
 use crate::safety::SafetyGate;
 use crate::swarm::SwarmView;
 use std::time::{Duration, Instant};
@@ -18,15 +19,6 @@ use tacos_shared::messages::{ActionState, FailureReason, TargetObservation};
 use tacos_shared::{DroneId, DroneMode};
 
 #[derive(Debug, Clone)]
-pub(super) struct PlanTask {
-    pub(super) call: Call,
-    pub(super) status: TaskStatus,
-    pub(super) sent: Option<(DroneId, u64)>,
-    /// Times this task has failed; the plan is given up at `max_task_failures`.
-    pub(super) failures: u32,
-}
-
-#[derive(Debug, Clone)]
 pub(super) struct ActivePlan {
     pub(super) reasoning: String,
     pub(super) tasks: Vec<PlanTask>,
@@ -35,6 +27,19 @@ pub(super) struct ActivePlan {
     pub(super) cycles: u32,
     /// Since when nothing of the plan has been running and nothing could start.
     pub(super) stuck_since: Option<Instant>,
+}
+
+impl ActivePlan {
+    /// The plan a resumed mission goes on with (`mission::resume`).
+    pub(super) fn resumed(saved: SavedPlan) -> ActivePlan {
+        ActivePlan {
+            reasoning: saved.reasoning,
+            tasks: saved.tasks,
+            memory: saved.memory,
+            cycles: saved.cycles,
+            stuck_since: None,
+        }
+    }
 }
 
 /// How long a plan may have nothing running and nothing that can start before it is given up
@@ -184,6 +189,10 @@ impl Mission {
                         task: Some(task.call.task.clone()),
                         seq: *seq,
                         outcome: outcome.clone(),
+                        failure: match &status {
+                            TaskStatus::Failed(why) => Some(why.clone()),
+                            _ => None,
+                        },
                     });
                     finished.push(Finished {
                         drone: drone.to_string(),
@@ -277,6 +286,7 @@ impl Mission {
             now: self.link.clock().instant(),
             visible: &visible,
             pending: &pending,
+            ground: self.link.epoch(),
         };
         f(&start)
     }
@@ -380,7 +390,7 @@ impl Mission {
     pub(super) fn finish_plan(&mut self, plan: ActivePlan, how: &str) {
         self.work_epoch += 1;
         for t in plan.tasks.iter().filter(|t| t.status == TaskStatus::Done) {
-            self.history.push(HistoryEntry::Executed {
+            self.remember(HistoryEntry::Executed {
                 call: t.call.clone(),
                 outcome: "done".into(),
             });
@@ -394,7 +404,13 @@ impl Mission {
                 cycles: plan.cycles,
             });
         } else {
-            self.event(EventTopic::PlanEnded, format!("plan ended: {how}"));
+            self.log.note(Record::PlanEnded {
+                how: how.to_owned(),
+            });
+            self.tell(MissionUpdate::Event {
+                topic: EventTopic::PlanEnded,
+                text: format!("plan ended: {how}"),
+            });
         }
     }
 
@@ -476,6 +492,9 @@ pub(super) struct Start<'a> {
     pub(super) now: Instant,
     pub(super) visible: &'a [TargetObservation],
     pub(super) pending: &'a [DroneId],
+    /// This ground station (its epoch): a drone that follows another one takes none of its
+    /// actions, as after a restart until the old one has been silent for the drone's hold time.
+    pub(super) ground: u64,
 }
 
 impl Start<'_> {
@@ -487,6 +506,16 @@ impl Start<'_> {
         };
         if entry.effective_mode(self.now) == DroneMode::Unavailable {
             return Some(format!("{drone} is unavailable"));
+        }
+        if let Some(other) = entry
+            .status
+            .as_ref()
+            .and_then(|s| s.ground)
+            .filter(|g| *g != self.ground)
+        {
+            return Some(format!(
+                "{drone} follows another ground station ({other}) until it falls silent"
+            ));
         }
         if entry.busy() || self.pending.contains(&entry.id) {
             return Some(format!("{drone} is busy with another action"));
