@@ -3,7 +3,7 @@
 
 use anyhow::Context;
 use clap::{Parser, Subcommand};
-use tacos_ground::cli::{DemoArgs, EvalArgs, PlotArgs, ReplayArgs, SendArgs, SwarmArgs};
+use tacos_ground::cli::{DemoArgs, EvalArgs, FlyArgs, PlotArgs, ReplayArgs, SendArgs, SwarmArgs};
 
 #[derive(Debug, Parser)]
 #[command(version, about = "TACOS ground station: fly a PX4 swarm")]
@@ -22,6 +22,9 @@ enum Cmd {
     Send(SendArgs),
     /// Start a simulated swarm on this machine and fly it.
     Demo(DemoArgs),
+    /// Fly a swarm that is already up (real drones) with the language-model layers; with
+    /// --resume LOG, go on with the mission a stopped ground station left in its log.
+    Fly(FlyArgs),
     /// Run the paper's ablation: every mode × swarm size × run of a task, on simulated swarms.
     ///
     /// Each finished run is appended to OUT/runs.jsonl at once; running again with the same
@@ -67,6 +70,7 @@ fn run() -> anyhow::Result<()> {
             Cmd::Swarm(args) => args.run().await,
             Cmd::Send(args) => args.run().await,
             Cmd::Demo(args) => args.run().await,
+            Cmd::Fly(args) => args.run().await,
             Cmd::Eval(args) => args.run().await,
             Cmd::Replay(args) => args.run(),
             Cmd::Plot(args) => args.run(),

@@ -115,7 +115,22 @@ pub async fn run_session(
     };
 
     let mut result = Ok(());
-    for line in &opts.say {
+    // A resumed mission's plan is carried out before anything new is said.
+    let resumed_plan = opts
+        .mission
+        .resume
+        .as_ref()
+        .is_some_and(|r| r.memory.plan.is_some());
+    if resumed_plan {
+        say("going on with the resumed plan");
+        if let Err(reason) = carried_out(&mut updates, opts.line_timeout, &say).await {
+            result = Err(SessionError::Line {
+                line: "(the resumed plan)".into(),
+                reason,
+            });
+        }
+    }
+    for line in opts.say.iter().filter(|_| result.is_ok()) {
         say(&format!("pilot: {line}"));
         if input.submit(line).await.is_err() {
             result = Err(SessionError::Line {
@@ -124,31 +139,7 @@ pub async fn run_session(
             });
             break;
         }
-        let deadline = tokio::time::Instant::now() + opts.line_timeout;
-        let outcome = loop {
-            match tokio::time::timeout_at(deadline, updates.recv()).await {
-                Err(_) => break Err(format!("not carried out within {:?}", opts.line_timeout)),
-                Ok(None) => break Err("the mission stopped".to_owned()),
-                Ok(Some(update)) => {
-                    if let Some(text) = describe(&update) {
-                        say(&text);
-                    }
-                    match update {
-                        MissionUpdate::PlanComplete { .. } => break Ok(()),
-                        MissionUpdate::Error(reason) => break Err(reason),
-                        // A direct command is carried out at once; nothing more to wait for.
-                        MissionUpdate::Event {
-                            topic: EventTopic::Direct,
-                            ..
-                        } => {
-                            break Ok(());
-                        }
-                        _ => {}
-                    }
-                }
-            }
-        };
-        if let Err(reason) = outcome {
+        if let Err(reason) = carried_out(&mut updates, opts.line_timeout, &say).await {
             result = Err(SessionError::Line {
                 line: line.clone(),
                 reason,
@@ -220,4 +211,35 @@ pub async fn run_session(
         stats,
         log_path: log.path().to_owned(),
     })
+}
+
+/// Waits until the plan under way completes (or a direct command was carried out), telling the
+/// pilot what happens; the mission's error, or the timeout, otherwise.
+async fn carried_out(
+    updates: &mut tokio::sync::mpsc::UnboundedReceiver<MissionUpdate>,
+    timeout: Duration,
+    say: &impl Fn(&str),
+) -> Result<(), String> {
+    let deadline = tokio::time::Instant::now() + timeout;
+    loop {
+        match tokio::time::timeout_at(deadline, updates.recv()).await {
+            Err(_) => return Err(format!("not carried out within {timeout:?}")),
+            Ok(None) => return Err("the mission stopped".to_owned()),
+            Ok(Some(update)) => {
+                if let Some(text) = describe(&update) {
+                    say(&text);
+                }
+                match update {
+                    MissionUpdate::PlanComplete { .. } => return Ok(()),
+                    MissionUpdate::Error(reason) => return Err(reason),
+                    // A direct command is carried out at once; nothing more to wait for.
+                    MissionUpdate::Event {
+                        topic: EventTopic::Direct,
+                        ..
+                    } => return Ok(()),
+                    _ => {}
+                }
+            }
+        }
+    }
 }

@@ -3,7 +3,7 @@
 
 use std::time::Duration;
 use tacos_ground::launch::{Stack, StackConfig};
-use tacos_ground::link::GroundLink;
+use tacos_ground::link::{GroundLink, GroundRole};
 use tacos_ground::mission::log::MissionLog;
 use tacos_shared::SwarmId;
 use tacos_shared::messages::{SimTruth, VehicleTruth};
@@ -58,11 +58,31 @@ impl SimSwarm {
         n: usize,
         adjust: impl FnOnce(&mut StackConfig),
     ) -> anyhow::Result<SimSwarm> {
+        Self::start_as(tag, scenario_name, n, GroundRole::InControl, adjust).await
+    }
+
+    /// A swarm whose hub only watches (`GroundRole::Monitor`): the ground station in control
+    /// is another process, joined with [`Self::bus_args`].
+    pub async fn start_watching(
+        tag: &str,
+        scenario_name: &str,
+        n: usize,
+    ) -> anyhow::Result<SimSwarm> {
+        Self::start_as(tag, scenario_name, n, GroundRole::Monitor, |_| {}).await
+    }
+
+    async fn start_as(
+        tag: &str,
+        scenario_name: &str,
+        n: usize,
+        role: GroundRole,
+        adjust: impl FnOnce(&mut StackConfig),
+    ) -> anyhow::Result<SimSwarm> {
         let scenario = tacos_bus::load_scenario(scenario_name)?;
         let mut config =
             StackConfig::on_loopback(unique_swarm(tag), scenario_name, scenario.clone(), n)?;
         adjust(&mut config);
-        let link = std::sync::Arc::new(GroundLink::connect(&config.ground_bus()).await?);
+        let link = std::sync::Arc::new(GroundLink::connect_as(&config.ground_bus(), role).await?);
         let stack = Stack::start(config)?;
         Ok(SimSwarm {
             link,
@@ -132,6 +152,18 @@ impl SimSwarm {
             let goto = [(drone, tacos_shared::action::Action::Goto { target })];
             tacos_ground::direct::run_actions(&link, &gate, &goto, None, step).await
         })
+    }
+
+    /// The arguments that join another process to this swarm through its hub, on the
+    /// simulator's clock, as the stack's own processes join it.
+    pub fn bus_args(&self) -> Vec<String> {
+        vec![
+            "--swarm".into(),
+            self.stack.config.swarm.to_string(),
+            "--zenoh-connect".into(),
+            self.stack.config.hub_endpoint.clone(),
+            "--sim-clock".into(),
+        ]
     }
 
     pub async fn stop(self) {

@@ -87,7 +87,15 @@ impl DemoArgs {
         let drones = self.drones.unwrap_or(6.min(scenario.drones.len()));
         // A script is read and checked against the map before anything starts.
         let script = match &self.script {
-            Some(path) => Some(read_script(path, &scenario, drones)?),
+            Some(path) => {
+                let ids: Vec<String> = scenario
+                    .drones
+                    .iter()
+                    .take(drones)
+                    .map(|d| d.id.to_string())
+                    .collect();
+                Some(read_script(path, &scenario, &ids)?)
+            }
             None => None,
         };
         let opts = DemoOptions {
@@ -161,24 +169,21 @@ impl DemoArgs {
     }
 }
 
-fn read_script(path: &Path, scenario: &Scenario, drones: usize) -> anyhow::Result<Script> {
+/// Reads a pilot script and checks it against the map and the swarm's `drones`.
+pub(super) fn read_script(
+    path: &Path,
+    scenario: &Scenario,
+    drones: &[String],
+) -> anyhow::Result<Script> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     crate::script::parse(&text)
-        .and_then(|s| {
-            let drones: Vec<String> = scenario
-                .drones
-                .iter()
-                .take(drones)
-                .map(|d| d.id.to_string())
-                .collect();
-            s.check(scenario, &drones).map(|()| s)
-        })
+        .and_then(|s| s.check(scenario, drones).map(|()| s))
         .with_context(|| format!("script {}", path.display()))
 }
 
 /// `missions-out/<unix seconds>-<mode>.jsonl`.
-fn default_log(mode: Mode) -> PathBuf {
+pub(super) fn default_log(mode: Mode) -> PathBuf {
     let secs = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| d.as_secs());
@@ -186,7 +191,7 @@ fn default_log(mode: Mode) -> PathBuf {
 }
 
 /// The run's summary, counted from its mission log: what happened, however the run ended.
-fn print_summary(log: &Path) {
+pub(super) fn print_summary(log: &Path) {
     match read(log) {
         Ok(lines) => println!(
             "demo finished: {}; mission log {}",

@@ -3,12 +3,14 @@
 
 mod demo;
 mod eval;
+mod fly;
 mod logs;
 mod send;
 mod swarm;
 
 pub use demo::{DemoArgs, Pattern};
 pub use eval::EvalArgs;
+pub use fly::FlyArgs;
 pub use logs::{PlotArgs, ReplayArgs};
 pub use send::SendArgs;
 pub use swarm::SwarmArgs;

@@ -54,6 +54,8 @@ pub struct Resumable {
     /// The mode and map the mission ran with (a resumed mission keeps them).
     pub mode: String,
     pub scenario: String,
+    /// The drones it started with.
+    pub drones: Vec<String>,
     pub memory: MissionMemory,
     /// How the mission ended, when it did (the pilot closed it); none after a crash.
     pub ended: Option<String>,
@@ -76,11 +78,12 @@ pub enum ResumeError {
 /// Rebuilds the memory of the last mission in `lines` (a reused log holds several).
 pub fn rebuild(lines: &[Line]) -> Result<Resumable, ResumeError> {
     let lines = last_mission(lines);
-    let (mode, scenario) = match lines.first().map(|l| &l.record) {
+    let (mode, scenario, drones) = match lines.first().map(|l| &l.record) {
         Some(Record::MissionStart {
             mode,
             scenario,
             format,
+            drones,
             ..
         }) => {
             if *format < LOG_FORMAT {
@@ -89,7 +92,7 @@ pub fn rebuild(lines: &[Line]) -> Result<Resumable, ResumeError> {
             if mode == "mnl" {
                 return Err(ResumeError::Monolithic { mode: mode.clone() });
             }
-            (mode.clone(), scenario.clone())
+            (mode.clone(), scenario.clone(), drones.clone())
         }
         _ => return Err(ResumeError::NoMission),
     };
@@ -104,6 +107,7 @@ pub fn rebuild(lines: &[Line]) -> Result<Resumable, ResumeError> {
     Ok(Resumable {
         mode,
         scenario,
+        drones,
         memory,
         ended,
     })

@@ -219,14 +219,26 @@ impl Mission {
                         let (firsts, later) = first_call_per_drone(&reply.actions);
                         // The drones whose call went while the reply was written are served.
                         let served = seen.handed_on();
+                        let mut handed_elsewhere = Vec::new();
                         let firsts: Vec<Call> = firsts
                             .into_iter()
-                            .filter(|c| !served.contains(&c.drone))
+                            .filter(|c| !served.iter().any(|s| s.drone == c.drone))
+                            .filter(|c| match served.iter().find(|s| s.task == c.task) {
+                                Some(s) => {
+                                    handed_elsewhere.push(format!(
+                                        "{c}: task {} already goes to {} this cycle",
+                                        c.task, s.drone
+                                    ));
+                                    false
+                                }
+                                None => true,
+                            })
                             .collect();
                         let (calls, mut rejections) = match &only {
                             Some(startable) => match_startable(&firsts, startable),
                             None => (firsts, Vec::new()),
                         };
+                        rejections.extend(handed_elsewhere);
                         let (accepted, live, gate_refusals) =
                             check_live(&calls, &gate, &link, &visible, &tasks);
                         rejections.extend(live);

@@ -65,16 +65,16 @@ impl EarlyCalls {
     }
 }
 
-/// What the hook has seen of a reply: the drones whose call it handed on, and the calls it
-/// judged (each is judged once). Shared with the whole reply's check, which leaves the drones
-/// handed on out: their call is the engine's already, and the drone busy with it would make
-/// the same call look like a repeat.
+/// What the hook has seen of a reply: the calls it handed on, and the calls it judged (each is
+/// judged once). Shared with the whole reply's check, which leaves the drones handed on out
+/// (their call is the engine's already, and the drone busy with it would make the same call
+/// look like a repeat) and refuses their tasks to any other drone.
 #[derive(Clone, Default)]
-pub(super) struct Seen(Arc<Mutex<(Vec<String>, Vec<String>)>>);
+pub(super) struct Seen(Arc<Mutex<(Vec<Call>, Vec<String>)>>);
 
 impl Seen {
-    /// The drones whose call was handed on.
-    pub(super) fn handed_on(&self) -> Vec<String> {
+    /// The calls handed on.
+    pub(super) fn handed_on(&self) -> Vec<Call> {
         self.0.lock().unwrap_or_else(|e| e.into_inner()).0.clone()
     }
 }
@@ -97,16 +97,24 @@ pub(super) fn early_calls(
         }
         let mut seen = shared.0.lock().unwrap_or_else(|e| e.into_inner());
         let (firsts, _) = first_call_per_drone(&calls);
+        // Not a drone or a task handed on already: a task goes to one drone (the whole reply's
+        // check says why when it comes).
         let fresh: Vec<Call> = firsts
             .into_iter()
-            .filter(|c| !seen.0.contains(&c.drone) && !seen.1.contains(&c.to_string()))
+            .filter(|c| {
+                !seen
+                    .0
+                    .iter()
+                    .any(|h| h.drone == c.drone || h.task == c.task)
+                    && !seen.1.contains(&c.to_string())
+            })
             .collect();
         if fresh.is_empty() {
             return;
         }
         seen.1.extend(fresh.iter().map(ToString::to_string));
         for (call, checked) in judge(&fresh) {
-            seen.0.push(call.drone.clone());
+            seen.0.push(call.clone());
             let after = started.elapsed();
             let _ = tx.send(EarlyCall {
                 call,
@@ -157,5 +165,93 @@ impl Mission {
             }
             Err(e) => self.tell(MissionUpdate::Error(e.to_string())),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::safety::SafetyGate;
+    use crate::swarm::SwarmView;
+    use tacos_shared::action::Action;
+    use tacos_shared::messages::DroneStatus;
+    use tacos_shared::scenario::Scenario;
+    use tacos_shared::{DroneMode, Vec3};
+
+    fn flying(view: &mut SwarmView, id: &str, now: Instant) {
+        view.apply_status(
+            DroneStatus {
+                drone: DroneId::new(id).expect("valid"),
+                counter: 1,
+                mode: DroneMode::Flying,
+                armed: true,
+                position: Vec3::new(-50.0, -130.0, 10.0),
+                velocity: Vec3::zeros(),
+                autopilot_link: true,
+                action: None,
+                failsafe: None,
+                peers_silent: false,
+                malformed_actions: 0,
+                ground: None,
+                refused: None,
+            },
+            now,
+        );
+    }
+
+    fn call(task: &str, drone: &str) -> String {
+        format!(
+            r#"{{"task":"{task}","drone":"{drone}","action":"goto","target":"car_11","xyz":null}}"#
+        )
+    }
+
+    /// A failed task may go to any drone, so a model can offer it to two at once: the first
+    /// call handed on takes it, and the other drone's call of that task is not handed on.
+    #[test]
+    fn a_task_handed_on_is_not_handed_on_again_for_another_drone() {
+        let gate = SafetyGate::new(Scenario::builtin("city").expect("city"));
+        let now = Instant::now();
+        let mut view = SwarmView::default();
+        flying(&mut view, "alfa", now);
+        flying(&mut view, "bravo", now);
+        flying(&mut view, "charlie", now);
+        // Every call passes; what is tested is which calls reach the judge and the engine.
+        let judge = move |calls: &[Call]| {
+            calls
+                .iter()
+                .filter_map(|c| {
+                    let checked = gate.check(&view, &c.drone, &Action::Hold, now).ok()?;
+                    Some((c.clone(), checked))
+                })
+                .collect()
+        };
+        let (hook, seen, mut early) = early_calls(judge, |_, _, _, _| {}, 0);
+        let head = r#"{"reasoning":"Go.","actions":["#;
+        hook(&format!("{head}{},", call("T2", "alfa")));
+        hook(&format!(
+            "{head}{},{},",
+            call("T2", "alfa"),
+            call("T2", "bravo")
+        ));
+        hook(&format!(
+            "{head}{},{},{},",
+            call("T2", "alfa"),
+            call("T2", "bravo"),
+            call("T3", "charlie")
+        ));
+        let handed: Vec<String> = seen.handed_on().iter().map(ToString::to_string).collect();
+        assert_eq!(
+            handed,
+            ["T2 alfa goto(car_11)", "T3 charlie goto(car_11)"],
+            "bravo's T2 was handed on beside alfa's"
+        );
+        let mut sent = Vec::new();
+        while let Some(rx) = early.calls.as_mut() {
+            match rx.try_recv() {
+                Ok(c) => sent.push(c.call.to_string()),
+                Err(_) => break,
+            }
+        }
+        assert_eq!(sent, handed);
     }
 }
