@@ -191,10 +191,31 @@ pub struct Landmark {
 pub enum PointRejection {
     #[error("({x:.1}, {y:.1}, {z:.1}) is not a finite point", x = .0.x, y = .0.y, z = .0.z)]
     NotFinite(Vec3),
-    #[error("({x:.1}, {y:.1}, {z:.1}) is outside the flight area", x = .0.x, y = .0.y, z = .0.z)]
-    OutOfBounds(Vec3),
-    #[error("({x:.1}, {y:.1}, {z:.1}) is inside obstacle {1} (with the drone's safety margin)", x = .0.x, y = .0.y, z = .0.z)]
-    InsideObstacle(Vec3, String),
+    /// The point, and the flight area (said, so the pilot or model knows what would do).
+    #[error(
+        "({x:.1}, {y:.1}, {z:.1}) is outside the flight area (x {x0:.0} to {x1:.0}, y {y0:.0} to {y1:.0}, altitude {z0:.0} to {z1:.0} m)",
+        x = .0.x, y = .0.y, z = .0.z,
+        x0 = .1.min.x, x1 = .1.max.x, y0 = .1.min.y, y1 = .1.max.y, z0 = .1.min.z, z1 = .1.max.z
+    )]
+    OutOfBounds(Vec3, Bounds),
+    /// The point, the obstacle, and the nearest point clear of every obstacle straight away
+    /// from its centre at the same altitude, when there is one in the flight area.
+    #[error(
+        "({x:.1}, {y:.1}, {z:.1}) is inside obstacle {1} (with the drone's safety margin){clear}",
+        x = .0.x, y = .0.y, z = .0.z, clear = clear_of_it(.2)
+    )]
+    InsideObstacle(Vec3, String, Option<Vec3>),
+}
+
+/// The suggestion of [`PointRejection::InsideObstacle`], as it is read.
+fn clear_of_it(point: &Option<Vec3>) -> String {
+    match point {
+        Some(p) => format!(
+            "; clear of it at that altitude: ({:.1}, {:.1}, {:.1})",
+            p.x, p.y, p.z
+        ),
+        None => String::new(),
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -216,16 +237,38 @@ impl World {
             return Err(PointRejection::NotFinite(*p));
         }
         if !self.bounds.contains(p) {
-            return Err(PointRejection::OutOfBounds(*p));
+            return Err(PointRejection::OutOfBounds(*p, self.bounds));
         }
-        match self
-            .obstacles
-            .iter()
-            .find(|o| o.inflated(radius).contains(p))
-        {
-            Some(o) => Err(PointRejection::InsideObstacle(*p, o.name.clone())),
+        match self.obstacle_at(p, radius) {
+            Some(o) => Err(PointRejection::InsideObstacle(
+                *p,
+                o.name.clone(),
+                self.clear_point_from(o, p, radius),
+            )),
             None => Ok(()),
         }
+    }
+
+    fn obstacle_at(&self, p: &Vec3, radius: f64) -> Option<&Ellipsoid> {
+        self.obstacles
+            .iter()
+            .find(|o| o.inflated(radius).contains(p))
+    }
+
+    /// The first point, in 1 m steps from `p` straight away from `obstacle`'s centre at `p`'s
+    /// altitude (east when `p` is above the centre), that a drone of `radius` may be at; `None`
+    /// when the flight area ends first.
+    fn clear_point_from(&self, obstacle: &Ellipsoid, p: &Vec3, radius: f64) -> Option<Vec3> {
+        let away = Vec3::new(p.x - obstacle.center.x, p.y - obstacle.center.y, 0.0);
+        let away = if away.norm() > 1e-6 {
+            away.normalize()
+        } else {
+            Vec3::new(1.0, 0.0, 0.0)
+        };
+        (1..)
+            .map(|step| p + away * f64::from(step))
+            .take_while(|q| self.bounds.contains(q))
+            .find(|q| self.obstacle_at(q, radius).is_none())
     }
 
     /// The first obstacle (inflated by `radius`) that the straight segment a→b crosses.
@@ -258,6 +301,52 @@ mod tests {
             0.0,
         )
         .expect("valid")
+    }
+
+    /// A refused point says what would do: the flight area, or a point clear of the obstacle.
+    #[test]
+    fn a_refused_point_says_what_would_do() {
+        let world = World {
+            bounds: Bounds {
+                min: Vec3::new(-100.0, -100.0, 0.0),
+                max: Vec3::new(100.0, 100.0, 60.0),
+            },
+            obstacles: vec![tower()],
+            landmarks: Vec::new(),
+        };
+        let outside = world.check_point(&Vec3::new(150.0, 0.0, 10.0), 0.5);
+        assert_eq!(
+            outside.map_err(|e| e.to_string()),
+            Err("(150.0, 0.0, 10.0) is outside the flight area (x -100 to 100, y -100 to 100, altitude 0 to 60 m)".into())
+        );
+        // Inside the tower (radius 10, 0.5 m margin), west of its centre: clear 11 m west.
+        let inside = world.check_point(&Vec3::new(-2.0, 0.0, 20.0), 0.5);
+        let Err(PointRejection::InsideObstacle(_, name, Some(clear))) = &inside else {
+            panic!("{inside:?}");
+        };
+        assert_eq!(name, "tower");
+        assert!(world.check_point(clear, 0.5).is_ok());
+        assert!(
+            (clear - Vec3::new(-11.0, 0.0, 20.0)).norm() < 1e-9,
+            "{clear}"
+        );
+        assert!(
+            inside
+                .map_err(|e| e.to_string())
+                .is_err_and(|e| e.ends_with("; clear of it at that altitude: (-11.0, 0.0, 20.0)"))
+        );
+        // A tower that fills the area leaves nothing to suggest.
+        let walled = World {
+            bounds: Bounds {
+                min: Vec3::new(-9.0, -9.0, 0.0),
+                max: Vec3::new(9.0, 9.0, 60.0),
+            },
+            ..world
+        };
+        assert!(matches!(
+            walled.check_point(&Vec3::new(1.0, 0.0, 20.0), 0.5),
+            Err(PointRejection::InsideObstacle(_, _, None))
+        ));
     }
 
     #[test]

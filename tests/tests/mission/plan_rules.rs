@@ -16,15 +16,31 @@ use tokio::sync::mpsc;
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_task_that_keeps_failing_gives_the_plan_up_with_the_reason() -> anyhow::Result<()> {
     stopping_after(start("hopeless").await?, async |run| {
-        let plan = json!([call("T1", "alfa", "arm_takeoff", "none"), call("T2", "alfa", "start_tracking", "suspect")]);
-        let (mut updates, lines, log_path, max) = run_offered(run, "hopelog", plan, false, "alfa, take off and follow the suspect").await?;
+        let plan = json!([
+            call("T1", "alfa", "arm_takeoff", "none"),
+            call("T2", "alfa", "start_tracking", "suspect")
+        ]);
+        let (mut updates, lines, log_path, max) = run_offered(
+            run,
+            "hopelog",
+            plan,
+            false,
+            "alfa, take off and follow the suspect",
+        )
+        .await?;
         let error = given_up(&mut updates, Duration::from_secs(120)).await?;
         drop(lines);
-        assert!(error.contains("T2 alfa start_tracking(suspect)") && error.contains(&format!("failed {max} times")), "{error}");
+        assert!(
+            error.contains("T2 alfa start_tracking(suspect)")
+                && error.contains(&format!("failed {max} times")),
+            "{error}"
+        );
         let lines = log::read(&log_path)?;
         let tries = sent_tasks(&lines).iter().filter(|(t, _)| t == "T2").count();
         assert_eq!(tries, max as usize, "T2 was sent {tries} times");
-        assert!(lines.iter().any(|l| matches!(&l.record, Record::Event { text } if text.starts_with("plan ended: abandoned"))));
+        assert!(lines.iter().any(
+            |l| matches!(&l.record, Record::PlanEnded { how } if how.starts_with("abandoned"))
+        ));
         anyhow::Ok(())
     })
     .await
@@ -251,7 +267,8 @@ async fn a_plan_for_a_drone_that_is_gone_is_refused() -> anyhow::Result<()> {
         let error = given_up(&mut updates, Duration::from_secs(30)).await?;
         drop(lines);
         assert!(
-            error.contains("coordinator") && error.contains("no call of its plan passed"),
+            error.contains("coordinator")
+                && error.contains("bravo is unavailable; the drones available are: alfa, charlie"),
             "{error}"
         );
         let lines = log::read(&log_path)?;

@@ -41,6 +41,9 @@ pub(super) struct Caller {
 /// The result of checking one reply: what may be done, and why the rest may not.
 pub(super) struct Checked<U> {
     pub(super) accepted: U,
+    /// Nothing of the reply passed: `keep-partial-plan` has nothing to keep, and the pilot is
+    /// told the refusals instead of an empty plan.
+    pub(super) nothing_passed: bool,
     pub(super) rejections: Vec<String>,
     /// The calls the safety gate refused, with its reasons (counted apart from the checks').
     pub(super) gate_refusals: Vec<String>,
@@ -157,7 +160,7 @@ impl Caller {
                             return Ok(checked.accepted);
                         }
                         let refused = distinct_problems(checked.rejections).join("; ");
-                        if self.aids.is_on(Aid::KeepPartialPlan) {
+                        if self.aids.is_on(Aid::KeepPartialPlan) && !checked.nothing_passed {
                             let detail = format!(
                                 "{layer}: kept what passed of the last reply; refused: {refused}"
                             );
@@ -173,7 +176,7 @@ impl Caller {
                     if let Some(narrowed) = checked.narrowed {
                         schema = narrowed;
                     }
-                    passed_before = Some(checked.accepted);
+                    passed_before = (!checked.nothing_passed).then_some(checked.accepted);
                     checked.rejections
                 }
             };

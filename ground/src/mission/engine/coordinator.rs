@@ -242,11 +242,13 @@ impl Mission {
                         schema::requiring(&first_schema, &required)
                     });
                     rejections.extend(missing.iter().map(grounding::FollowAsked::missing_text));
+                    let refusal = reply.refusal_text().map(str::to_owned);
                     Checked {
+                        nothing_passed: plan.is_empty() && refusal.is_none(),
                         accepted: (
                             reply.reasoning.clone(),
                             plan,
-                            reply.refusal_text().map(str::to_owned),
+                            refusal,
                         ),
                         rejections,
                         // A plan's calls are not actions yet: the gate judges them when sent.

@@ -243,6 +243,7 @@ impl Mission {
                             check_live(&calls, &gate, &link, &visible, &tasks);
                         rejections.extend(live);
                         Checked {
+                            nothing_passed: accepted.is_empty(),
                             accepted: CycleChoice {
                                 reasoning: reply.reasoning.clone(),
                                 claim: reply.claim,
