@@ -177,8 +177,20 @@ pub fn resolve(
                         target: free_spot(above(&t.position), scenario, claimed, from),
                     })
                 } else {
+                    let names = scenario
+                        .world
+                        .landmarks
+                        .iter()
+                        .map(|l| l.name.as_str())
+                        .chain(visible.iter().map(|t| t.name.as_str()));
                     Err(format!(
-                        "goto target {name:?} is neither a landmark nor a visible target"
+                        "goto target {name:?} is neither a landmark nor a visible target; {}",
+                        match closest_name(name, names) {
+                            Some(near) => format!("the closest name is {near}"),
+                            None => "name a landmark of the map or a visible target, or give a \
+                                     point in \"xyz\""
+                                .to_owned(),
+                        }
                     ))
                 }
             }
@@ -192,12 +204,47 @@ pub fn resolve(
                     target: name.to_owned(),
                 })
             }
-            Some(name) => Err(format!(
-                "start_tracking: {name:?} is not a target (landmarks cannot be tracked)"
-            )),
+            Some(name) => {
+                let targets: Vec<&str> = scenario.targets.iter().map(|t| t.name.as_str()).collect();
+                Err(format!(
+                    "start_tracking: {name:?} is not a target (landmarks cannot be tracked); the \
+                     targets of this map: {}",
+                    targets.join(", ")
+                ))
+            }
             None => Err("start_tracking needs a target name".into()),
         },
     }
+}
+
+/// The name among `names` a mistyped `wanted` most likely meant: the nearest by edit distance,
+/// if it is within a third of the name's length (at least 2 edits).
+fn closest_name<'a>(wanted: &str, names: impl Iterator<Item = &'a str>) -> Option<&'a str> {
+    let wanted = wanted.to_lowercase();
+    let bound = (wanted.chars().count() / 3).max(2);
+    names
+        .map(|n| (edit_distance(&wanted, &n.to_lowercase()), n))
+        .filter(|(d, _)| *d <= bound)
+        .min_by_key(|(d, _)| *d)
+        .map(|(_, n)| n)
+}
+
+/// Levenshtein distance in characters.
+fn edit_distance(a: &str, b: &str) -> usize {
+    let b: Vec<char> = b.chars().collect();
+    let mut row: Vec<usize> = (0..=b.len()).collect();
+    for (i, ca) in a.chars().enumerate() {
+        let mut diagonal = row[0];
+        row[0] = i + 1;
+        for (j, cb) in b.iter().enumerate() {
+            let above = row[j + 1];
+            row[j + 1] = (above + 1)
+                .min(row[j] + 1)
+                .min(diagonal + usize::from(ca != *cb));
+            diagonal = above;
+        }
+    }
+    row[b.len()]
 }
 
 #[cfg(test)]
@@ -256,25 +303,25 @@ mod tests {
             "the name wins, as the call is shown"
         );
         assert!(resolve(&call(ActionName::Goto, "none", None), &city, &[], &[], None).is_err());
+        // A name the map lacks is refused with what would do: the name meant, or how to say it.
+        let refused = |action, target: &str| {
+            resolve(&call(action, target, None), &city, &[], &[], None)
+                .err()
+                .unwrap_or_default()
+        };
+        assert!(refused(ActionName::Goto, "atlantis").ends_with(
+            "name a landmark of the map or a visible target, or give a point in \"xyz\""
+        ));
         assert!(
-            resolve(
-                &call(ActionName::Goto, "atlantis", None),
-                &city,
-                &[],
-                &[],
-                None
-            )
-            .is_err()
+            refused(ActionName::Goto, "Vila_3").ends_with("the closest name is villa_3"),
+            "{}",
+            refused(ActionName::Goto, "Vila_3")
         );
+        let not_a_target = refused(ActionName::StartTracking, "car_7");
         assert!(
-            resolve(
-                &call(ActionName::StartTracking, "car_7", None),
-                &city,
-                &[],
-                &[],
-                None
-            )
-            .is_err()
+            not_a_target.contains("(landmarks cannot be tracked); the targets of this map: ")
+                && not_a_target.contains("van"),
+            "{not_a_target}"
         );
         assert!(
             resolve(
