@@ -68,13 +68,34 @@ pub fn swarm_lines(text: &str) -> Vec<SwarmLine> {
         .collect()
 }
 
+/// A chat-completions body as a served stand-in model reads it (`chat_server`): its system
+/// message and the engine's rendered request (as [`request_text`]); `None` without a request.
+pub fn body_text(body: &serde_json::Value) -> Option<(String, String)> {
+    let messages = body["messages"].as_array()?;
+    let text = |m: &serde_json::Value| m["content"].as_str().unwrap_or_default().to_owned();
+    let system = messages.first().map(text).unwrap_or_default();
+    let request = messages
+        .iter()
+        .rev()
+        .map(text)
+        .find(|t| t.starts_with("## "))?;
+    Some((system, request))
+}
+
 /// What a stand-in Supervisor starts: for each drone, the first call the engine's schema offers
 /// it (`/properties/actions/items/anyOf`), as the `actions` of a reply.
 pub fn first_offered_per_drone(request: &tacos_llm::ChatRequest) -> Vec<serde_json::Value> {
-    let offered: Vec<serde_json::Value> = request
-        .schema
-        .as_ref()
-        .and_then(|s| s.schema.pointer("/properties/actions/items/anyOf"))
+    first_offered_in(request.schema.as_ref().map(|s| &s.schema))
+}
+
+/// [`first_offered_per_drone`] for a served model: the schema is the body's `response_format`.
+pub fn first_offered_in_body(body: &serde_json::Value) -> Vec<serde_json::Value> {
+    first_offered_in(body["response_format"].pointer("/json_schema/schema"))
+}
+
+fn first_offered_in(schema: Option<&serde_json::Value>) -> Vec<serde_json::Value> {
+    let offered: Vec<serde_json::Value> = schema
+        .and_then(|s| s.pointer("/properties/actions/items/anyOf"))
         .and_then(serde_json::Value::as_array)
         .cloned()
         .unwrap_or_default();

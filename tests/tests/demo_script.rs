@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 use tacos_ground::mission::log::{self, Line as LogLine, Record};
 use tacos_tests::chat_server::{ChatServer, PolicyResult};
-use tacos_tests::prompt_text::{plan_lines, section, swarm_lines};
+use tacos_tests::prompt_text::{body_text, plan_lines, section, swarm_lines};
 
 fn call(task: &str, drone: &str, action: &str, target: &str) -> Value {
     json!({ "task": task, "drone": drone, "action": action, "target": target, "xyz": null })
@@ -22,15 +22,7 @@ fn policy(index: usize, request: &Value) -> PolicyResult {
     if index == 0 {
         return Err((503, "the model is still loading".into()));
     }
-    let messages = request["messages"].as_array().cloned().unwrap_or_default();
-    let text = |m: &Value| m["content"].as_str().unwrap_or_default().to_owned();
-    let system = messages.first().map(text).unwrap_or_default();
-    let Some(user) = messages
-        .iter()
-        .rev()
-        .map(text)
-        .find(|t| t.starts_with("## "))
-    else {
+    let Some((system, user)) = body_text(request) else {
         return Err((400, "no request in the messages".into()));
     };
     if system.starts_with("You are the Coordinator") {

@@ -13,7 +13,7 @@ use tacos_ground::mission::log::{self, Line, Record};
 use tacos_prompts::render::TaskStatus;
 use tacos_tests::SimSwarm;
 use tacos_tests::chat_server::{ChatServer, PolicyResult};
-use tacos_tests::prompt_text::plan_lines;
+use tacos_tests::prompt_text::{body_text, first_offered_in_body, plan_lines};
 use tokio::process::{Child, Command};
 
 fn call(task: &str, drone: &str, action: &str, target: &str) -> Value {
@@ -24,15 +24,7 @@ fn call(task: &str, drone: &str, action: &str, target: &str) -> Value {
 /// off. Supervisor: each drone starts the first call the engine offers it; the plan is complete
 /// when every task is done.
 fn policy(_index: usize, request: &Value) -> PolicyResult {
-    let messages = request["messages"].as_array().cloned().unwrap_or_default();
-    let text = |m: &Value| m["content"].as_str().unwrap_or_default().to_owned();
-    let system = messages.first().map(text).unwrap_or_default();
-    let Some(user) = messages
-        .iter()
-        .rev()
-        .map(text)
-        .find(|t| t.starts_with("## "))
-    else {
+    let Some((system, user)) = body_text(request) else {
         return Err((400, "no request in the messages".into()));
     };
     if system.starts_with("You are the Coordinator") {
@@ -44,21 +36,7 @@ fn policy(_index: usize, request: &Value) -> PolicyResult {
         ];
         return Ok(json!({ "reasoning": "Alfa inspects the two cars; bravo stands by in the air.", "plan": plan }).to_string());
     }
-    let offered = request["response_format"]
-        .pointer("/json_schema/schema/properties/actions/items/anyOf")
-        .and_then(Value::as_array)
-        .cloned()
-        .unwrap_or_default();
-    let first = |alt: &Value, field: &str| alt["properties"][field]["enum"][0].clone();
-    let mut actions: Vec<Value> = Vec::new();
-    for alt in &offered {
-        if !actions.iter().any(|a| a["drone"] == first(alt, "drone")) {
-            actions.push(json!({
-                "task": first(alt, "task"), "drone": first(alt, "drone"),
-                "action": first(alt, "action"), "target": first(alt, "target"), "xyz": null
-            }));
-        }
-    }
+    let actions = first_offered_in_body(request);
     let complete = plan_lines(&user).iter().all(|t| t.4 == "done");
     Ok(json!({ "reasoning": "Each drone does its next task.", "actions": actions, "plan_complete": complete }).to_string())
 }
