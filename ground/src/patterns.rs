@@ -87,13 +87,18 @@ pub async fn fly_points(
         &say,
         "every vehicle is at take-off altitude",
         |t| {
-            ids.iter().zip(&homes).all(|(id, home)| {
-                t.vehicles.iter().any(|v| {
-                    &v.drone == id
-                        && v.armed
-                        && v.position.z >= home.z + 0.8 * limits.takeoff_altitude
-                })
-            })
+            unmet(ids.iter().zip(&homes).map(|(id, home)| {
+                let up = home.z + 0.8 * limits.takeoff_altitude;
+                match vehicle(t, id) {
+                    Some(v) if v.armed && v.position.z >= up => None,
+                    Some(v) => Some(format!(
+                        "{id} at {:.1} m{}",
+                        v.position.z,
+                        if v.armed { "" } else { ", disarmed" }
+                    )),
+                    None => Some(format!("{id} not in the truth")),
+                }
+            }))
         },
     )
     .await?;
@@ -123,12 +128,27 @@ fn arrival_tolerance(gate: &SafetyGate) -> f64 {
     1.5 * (2.0 * gate.scenario().limits.drone_radius).max(0.2)
 }
 
-fn at_points(t: &SimTruth, ids: &[DroneId], points: &[Vec3], tolerance: f64) -> bool {
-    ids.iter().zip(points).all(|(id, p)| {
-        t.vehicles
-            .iter()
-            .any(|v| &v.drone == id && (v.position - p).norm() <= tolerance)
-    })
+/// Every vehicle of `ids` within `tolerance` of its point, or those that are not.
+fn at_points(t: &SimTruth, ids: &[DroneId], points: &[Vec3], tolerance: f64) -> Result<(), String> {
+    unmet(ids.iter().zip(points).map(|(id, p)| match vehicle(t, id) {
+        Some(v) if (v.position - p).norm() <= tolerance => None,
+        Some(v) => Some(format!("{id} {:.1} m off", (v.position - p).norm())),
+        None => Some(format!("{id} not in the truth")),
+    }))
+}
+
+fn vehicle<'a>(t: &'a SimTruth, id: &DroneId) -> Option<&'a tacos_shared::messages::VehicleTruth> {
+    t.vehicles.iter().find(|v| &v.drone == id)
+}
+
+/// Ok when nothing is unmet; else what is, as the pilot reads it.
+fn unmet(each: impl Iterator<Item = Option<String>>) -> Result<(), String> {
+    let unmet: Vec<String> = each.flatten().collect();
+    if unmet.is_empty() {
+        Ok(())
+    } else {
+        Err(unmet.join(", "))
+    }
 }
 
 /// Lands every drone and waits for the truth to show them all down and disarmed.
@@ -149,11 +169,15 @@ async fn land_all(
     )
     .await?;
     check_truth(truth, say, "every vehicle has landed and disarmed", |t| {
-        ids.iter().all(|id| {
-            t.vehicles
-                .iter()
-                .any(|v| &v.drone == id && v.landed && !v.armed)
-        })
+        unmet(ids.iter().map(|id| match vehicle(t, id) {
+            Some(v) if v.landed && !v.armed => None,
+            Some(v) => Some(format!(
+                "{id} {} at {:.1} m",
+                if v.armed { "armed" } else { "disarmed" },
+                v.position.z
+            )),
+            None => Some(format!("{id} not in the truth")),
+        }))
     })
     .await
 }
@@ -269,16 +293,17 @@ async fn phase(
     Ok(())
 }
 
-/// Waits (bounded) until the simulator's truth satisfies `ok`.
+/// Waits (bounded) until the simulator's truth satisfies `ok`; a failure says what was unmet in
+/// the last truth heard (`ok`'s error).
 async fn check_truth(
     truth: &mut watch::Receiver<Option<SimTruth>>,
     say: &Say,
     what: &str,
-    ok: impl Fn(&SimTruth) -> bool,
+    ok: impl Fn(&SimTruth) -> Result<(), String>,
 ) -> Result<(), DemoError> {
     let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
     loop {
-        if let Some(t) = truth.borrow().as_ref().filter(|t| ok(t)) {
+        if let Some(t) = truth.borrow().as_ref().filter(|t| ok(t).is_ok()) {
             say.line(format!(
                 "simulator truth: {what} (so far: min pair {:.2} m, {} separation / {} obstacle breaches)",
                 t.min_pair_distance, t.separation_breaches, t.obstacle_breaches
@@ -288,8 +313,13 @@ async fn check_truth(
         match tokio::time::timeout_at(deadline, truth.changed()).await {
             Ok(Ok(())) => {}
             _ => {
+                let unmet = match truth.borrow().as_ref().map(&ok) {
+                    Some(Err(unmet)) => unmet,
+                    Some(Ok(())) => "met only now".to_owned(),
+                    None => "no truth heard".to_owned(),
+                };
                 return Err(DemoError::Step(format!(
-                    "simulator truth does not show that {what}"
+                    "simulator truth does not show that {what} within 10 s: {unmet}"
                 )));
             }
         }

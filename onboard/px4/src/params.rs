@@ -4,14 +4,19 @@
 //! Each parameter is first read (PARAM_REQUEST_READ → PARAM_VALUE), which also gives its type;
 //! a wanted value that differs is then set (PARAM_SET) and confirmed by PX4's echo. PX4 carries
 //! INT32 values byte for byte in the float field (measured on PX4 SITL). A parameter that does
-//! not answer after three tries, or that PX4 will not take, fails the whole set: the writer
-//! then refuses to arm and says which.
+//! not answer after three tries is asked again after a pause, in up to four such rounds: fifteen
+//! PX4 instances starting together on two cores left one silent for over 3 s. One that still
+//! does not answer, or that PX4 will not take, fails the whole set: the writer then refuses to
+//! arm and says which.
 
 use std::time::{Duration, Instant};
 
 /// How long to wait for a PARAM_VALUE.
 pub const PARAM_TIMEOUT: Duration = Duration::from_secs(1);
 pub const PARAM_TRIES: u8 = 3;
+/// Rounds of [`PARAM_TRIES`] before a silent parameter fails the set, and the pause between.
+pub const PARAM_ROUNDS: u8 = 4;
+pub const PARAM_PAUSE: Duration = Duration::from_secs(2);
 /// MAV_PARAM_TYPE values PX4 uses.
 pub const TYPE_INT32: u8 = 6;
 pub const TYPE_REAL32: u8 = 9;
@@ -149,6 +154,10 @@ pub struct ParamSync {
     current: Option<(usize, Phase, u8, Instant)>,
     next: usize,
     failed: Option<String>,
+    /// The item that went unanswered and the rounds it has had.
+    rounds: (usize, u8),
+    /// A pause after a round without an answer: asked again from then.
+    resume_at: Option<Instant>,
 }
 
 impl ParamSync {
@@ -165,6 +174,8 @@ impl ParamSync {
             current: None,
             next: 0,
             failed: None,
+            rounds: (0, 0),
+            resume_at: None,
         }
     }
 
@@ -197,6 +208,11 @@ impl ParamSync {
         if self.failed.is_some() {
             return Vec::new();
         }
+        match self.resume_at {
+            Some(at) if now < at => return Vec::new(),
+            Some(_) => self.resume_at = None,
+            None => {}
+        }
         if let Some((index, phase, tries, deadline)) = self.current {
             if now < deadline {
                 return Vec::new();
@@ -205,12 +221,27 @@ impl ParamSync {
                 self.current = Some((index, phase, tries + 1, now + PARAM_TIMEOUT));
                 return self.request(index, phase).into_iter().collect();
             }
+            self.current = None;
+            let rounds = if self.rounds.0 == index {
+                self.rounds.1 + 1
+            } else {
+                1
+            };
+            self.rounds = (index, rounds);
+            if rounds < PARAM_ROUNDS {
+                // The same parameter again, from its read, after a pause.
+                self.next = index;
+                self.resume_at = Some(now + PARAM_PAUSE);
+                return Vec::new();
+            }
             let name = self.items.get(index).map_or("?", |i| i.want.name.as_str());
+            let tries = u16::from(PARAM_ROUNDS) * u16::from(PARAM_TRIES);
             self.failed = Some(match phase {
-                Phase::Reading => format!("parameter {name} did not answer (is it in this PX4?)"),
+                Phase::Reading => {
+                    format!("parameter {name} did not answer {tries} requests (is it in this PX4?)")
+                }
                 Phase::Setting(v) => format!("parameter {name} was not set to {v}"),
             });
-            self.current = None;
             return Vec::new();
         }
         if self.next >= self.items.len() {
@@ -266,7 +297,7 @@ impl ParamSync {
     }
 
     pub fn next_deadline(&self) -> Option<Instant> {
-        self.current.map(|(_, _, _, d)| d)
+        self.current.map(|(_, _, _, d)| d).or(self.resume_at)
     }
 }
 
@@ -348,18 +379,52 @@ mod tests {
         );
     }
 
+    /// Asked three times a second apart, then again after a 2 s pause, four rounds in all;
+    /// then the set fails. A parameter that answers in a later round goes on as usual.
     #[test]
-    fn a_silent_parameter_is_asked_three_times_then_fails_the_set() {
+    fn a_silent_parameter_is_asked_in_rounds_then_fails_the_set() {
         let t0 = Instant::now();
         let mut s = ParamSync::new(vec![ParamWant::set("COM_OF_LOSS_T", 1.0)]);
-        assert_eq!(s.poll(t0).len(), 1);
-        assert_eq!(s.poll(at(t0, 1000)).len(), 1);
-        assert_eq!(s.poll(at(t0, 2000)).len(), 1);
-        assert!(s.poll(at(t0, 3000)).is_empty());
+        let mut asked = Vec::new();
+        for ms in (0..=20_000).step_by(100) {
+            if !s.poll(at(t0, ms)).is_empty() {
+                asked.push(ms);
+            }
+        }
+        assert_eq!(
+            asked,
+            [
+                0, 1000, 2000, 5000, 6000, 7000, 10000, 11000, 12000, 15000, 16000, 17000
+            ]
+        );
         match s.state() {
-            SyncState::Failed(why) => assert!(why.contains("COM_OF_LOSS_T"), "{why}"),
+            SyncState::Failed(why) => assert!(
+                why.contains("COM_OF_LOSS_T") && why.contains("12 requests"),
+                "{why}"
+            ),
             other => panic!("expected a failure, got {other:?}"),
         }
+
+        let mut s = ParamSync::new(vec![
+            ParamWant::set("COM_OF_LOSS_T", 1.0),
+            ParamWant::read("NAV_RCL_ACT"),
+        ]);
+        s.poll(t0);
+        for ms in [1000, 2000, 3000] {
+            s.poll(at(t0, ms));
+        }
+        assert_eq!(s.state(), SyncState::Pending, "paused, not failed");
+        assert_eq!(s.next_deadline(), Some(at(t0, 5000)));
+        assert_eq!(
+            s.poll(at(t0, 5000)),
+            [ParamRequest::Read("COM_OF_LOSS_T".into())]
+        );
+        assert_eq!(
+            s.on_value("COM_OF_LOSS_T", ParamValue::Real(1.0), at(t0, 5100)),
+            [ParamRequest::Read("NAV_RCL_ACT".into())]
+        );
+        s.on_value("NAV_RCL_ACT", ParamValue::Int(2), at(t0, 5200));
+        assert_eq!(s.state(), SyncState::Done);
     }
 
     #[test]
@@ -378,17 +443,29 @@ mod tests {
         assert!(matches!(s.state(), SyncState::Failed(_)));
     }
 
+    /// PX4 answers, but keeps its old value: the set fails once its rounds are spent.
     #[test]
     fn a_refused_set_fails_after_its_tries() {
         let t0 = Instant::now();
         let mut s = ParamSync::new(vec![ParamWant::set("NAV_DLL_ACT", 0.0)]);
-        s.poll(t0);
-        s.on_value("NAV_DLL_ACT", ParamValue::Int(2), at(t0, 5));
-        // PX4 echoes the old value: not confirmed.
-        s.on_value("NAV_DLL_ACT", ParamValue::Int(2), at(t0, 10));
-        for ms in [1005, 2005, 3005] {
-            s.poll(at(t0, ms));
+        let mut sets = 0;
+        for ms in (0..=30_000).step_by(50) {
+            for request in s.poll(at(t0, ms)) {
+                // Read or set, the echo is the old value.
+                sets += usize::from(matches!(request, ParamRequest::Set(..)));
+                let name = match &request {
+                    ParamRequest::Read(n) | ParamRequest::Set(n, _) => n.clone(),
+                };
+                for echo in s.on_value(&name, ParamValue::Int(2), at(t0, ms + 5)) {
+                    sets += usize::from(matches!(echo, ParamRequest::Set(..)));
+                }
+            }
         }
         assert!(matches!(s.state(), SyncState::Failed(why) if why.contains("not set")));
+        assert_eq!(
+            sets,
+            usize::from(PARAM_ROUNDS * PARAM_TRIES),
+            "three sets a round"
+        );
     }
 }
