@@ -272,8 +272,17 @@ mod tests {
     fn a_failed_parameter_blocks_arming_and_skipping_does_not() {
         let t0 = Instant::now();
         let mut s = AutopilotSetup::new(vec![ParamWant::set("NO_SUCH_PARAM", 1.0)], None, 0.0);
-        for ms in [0, 1000, 2000, 3000] {
+        // Every round of tries, and the pauses between them (`params::PARAM_ROUNDS`).
+        for ms in (0..=20_000).step_by(500) {
             s.poll(t0 + Duration::from_millis(ms), None);
+            if ms == 3000 {
+                assert_eq!(
+                    s.state(),
+                    SetupState::Pending,
+                    "paused after the first round"
+                );
+                assert!(!s.state().allows_arming());
+            }
         }
         assert!(matches!(s.state(), SetupState::Failed(_)));
         assert!(!s.state().allows_arming());

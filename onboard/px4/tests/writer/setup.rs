@@ -158,9 +158,10 @@ fn without_the_parameter_protocol_arming_is_refused_unless_the_setup_is_skipped(
     rig.ports
         .send_command(CommandSample::new(1, CommandKind::Arm, 0.0))
         .expect("send command");
-    // Three tries of one second for the first parameter, then the refusal.
+    // Four rounds of three one-second tries for the first parameter, 2 s apart (18 s), then
+    // the refusal.
     let r = rig
-        .wait_result(Duration::from_secs(6), 1)
+        .wait_result(Duration::from_secs(25), 1)
         .unwrap_or_else(|| panic!("{}", rig.fail("no result for arm")));
     assert_eq!(r.outcome(), Some(CommandOutcome::Rejected));
     let reason = r.reason().unwrap_or("").to_owned();
@@ -176,8 +177,8 @@ fn without_the_parameter_protocol_arming_is_refused_unless_the_setup_is_skipped(
             .iter()
             .filter(|r| is_param(&r.msg))
             .count(),
-        3,
-        "asked three times"
+        12,
+        "asked three times in each of four rounds"
     );
     drop(rig);
 
