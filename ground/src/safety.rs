@@ -224,28 +224,10 @@ impl SafetyGate {
 mod tests {
     use super::*;
     use tacos_shared::Vec3;
-    use tacos_shared::messages::DroneStatus;
 
     fn view_with(id: &str, mode: DroneMode, now: Instant) -> SwarmView {
         let mut view = SwarmView::default();
-        view.apply_status(
-            DroneStatus {
-                drone: DroneId::new(id).expect("valid"),
-                counter: 1,
-                mode,
-                armed: mode.is_airborne(),
-                position: Vec3::new(-50.0, -130.0, 10.0),
-                velocity: Vec3::zeros(),
-                autopilot_link: true,
-                action: None,
-                failsafe: None,
-                peers_silent: false,
-                malformed_actions: 0,
-                ground: None,
-                refused: None,
-            },
-            now,
-        );
+        view.apply_status(crate::swarm::test_status(id, mode), now);
         view
     }
 

@@ -159,28 +159,34 @@ impl SwarmView {
     }
 }
 
+/// A drone's status as the ground's unit tests build it: in `mode`, armed when airborne, linked
+/// to its autopilot, at (-50, -130, 10) of the city, with no action.
+#[cfg(test)]
+pub(crate) fn test_status(id: &str, mode: DroneMode) -> DroneStatus {
+    DroneStatus {
+        drone: DroneId::new(id).expect("valid"),
+        counter: 1,
+        mode,
+        armed: mode.is_airborne(),
+        position: tacos_shared::Vec3::new(-50.0, -130.0, 10.0),
+        velocity: tacos_shared::Vec3::zeros(),
+        autopilot_link: true,
+        action: None,
+        failsafe: None,
+        peers_silent: false,
+        malformed_actions: 0,
+        ground: None,
+        refused: None,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use std::time::Duration;
-    use tacos_shared::Vec3;
 
     fn status(id: &str) -> DroneStatus {
-        DroneStatus {
-            drone: DroneId::new(id).expect("valid"),
-            counter: 1,
-            mode: DroneMode::Flying,
-            armed: true,
-            position: Vec3::zeros(),
-            velocity: Vec3::zeros(),
-            autopilot_link: true,
-            action: None,
-            failsafe: None,
-            peers_silent: false,
-            malformed_actions: 0,
-            ground: None,
-            refused: None,
-        }
+        test_status(id, DroneMode::Flying)
     }
 
     #[test]

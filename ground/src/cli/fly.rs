@@ -204,16 +204,16 @@ async fn heard_drones(
     wait_s: f64,
 ) -> anyhow::Result<Vec<String>> {
     let wait = Duration::from_secs_f64(wait_s.max(0.0));
-    let all = link
-        .wait_for_drones(wanted, wait, |s| s.autopilot_link)
-        .await;
+    let linked = |s: &tacos_shared::messages::DroneStatus| s.autopilot_link;
+    let all = link.wait_for_drones(wanted, wait, linked).await;
+    // Those the wait would count (alive, and `linked`).
     let heard: Vec<String> = {
         let view = link.view();
         wanted
             .iter()
             .filter(|id| {
                 view.get(id)
-                    .is_some_and(|e| e.alive && e.status.as_ref().is_some_and(|s| s.autopilot_link))
+                    .is_some_and(|e| e.alive && e.status.as_ref().is_some_and(linked))
             })
             .map(|id| id.to_string())
             .collect()

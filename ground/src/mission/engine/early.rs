@@ -172,31 +172,13 @@ impl Mission {
 mod tests {
     use super::*;
     use crate::safety::SafetyGate;
-    use crate::swarm::SwarmView;
+    use crate::swarm::{SwarmView, test_status};
+    use tacos_shared::DroneMode;
     use tacos_shared::action::Action;
-    use tacos_shared::messages::DroneStatus;
     use tacos_shared::scenario::Scenario;
-    use tacos_shared::{DroneMode, Vec3};
 
     fn flying(view: &mut SwarmView, id: &str, now: Instant) {
-        view.apply_status(
-            DroneStatus {
-                drone: DroneId::new(id).expect("valid"),
-                counter: 1,
-                mode: DroneMode::Flying,
-                armed: true,
-                position: Vec3::new(-50.0, -130.0, 10.0),
-                velocity: Vec3::zeros(),
-                autopilot_link: true,
-                action: None,
-                failsafe: None,
-                peers_silent: false,
-                malformed_actions: 0,
-                ground: None,
-                refused: None,
-            },
-            now,
-        );
+        view.apply_status(test_status(id, DroneMode::Flying), now);
     }
 
     fn call(task: &str, drone: &str) -> String {
