@@ -21,6 +21,7 @@ use super::aids::{Aid, ModelAids};
 use super::approval::HeldPlan;
 use super::commands::DirectCommands;
 use super::config::{MissionConfig, Mode};
+use super::core::{ActivePlan, PlanBook};
 use super::directives;
 use super::input::MissionInputs;
 use super::log::{MissionLog, Record};
@@ -35,7 +36,6 @@ use crate::swarm::{SwarmChange, membership_diff};
 use crate::task_guard::AbortOnDrop;
 use caller::Caller;
 use in_flight::{Coordination, Heard, InFlight};
-use plan_state::{ActivePlan, Monolithic};
 use std::collections::{BTreeSet, VecDeque};
 use std::sync::Arc;
 use std::time::Duration;
@@ -55,8 +55,8 @@ pub struct Mission {
     targets: watch::Receiver<Vec<TargetObservation>>,
     history: Vec<HistoryEntry>,
     events: Vec<String>,
-    plan: Option<ActivePlan>,
-    mnl: Monolithic,
+    /// The plan in force and the monolithic model's work (`mission::core`).
+    book: PlanBook,
     stats: SharedStats,
     /// The model call running beside the engine (`in_flight`), if any.
     in_flight: Option<InFlight>,
@@ -183,8 +183,7 @@ impl Mission {
             targets,
             history: Vec::new(),
             events: Vec::new(),
-            plan: None,
-            mnl: Monolithic::default(),
+            book: PlanBook::default(),
             stats,
             in_flight: None,
             queued: VecDeque::new(),
@@ -210,8 +209,8 @@ impl Mission {
     /// True while a plan (or the monolithic model's work) is under way.
     pub fn busy(&self) -> bool {
         match self.cfg.mode {
-            Mode::Mnl => self.mnl.active,
-            _ => self.plan.is_some(),
+            Mode::Mnl => self.book.mnl.active,
+            _ => self.book.plan.is_some(),
         }
     }
 
@@ -354,7 +353,7 @@ impl Mission {
         }
         self.work_epoch += 1;
         self.cycle_due = false;
-        if let Some(plan) = self.plan.take() {
+        if let Some(plan) = self.book.plan.take() {
             self.finish_plan(plan, "interrupted by a direct command");
         }
         if let Some(held) = self.held.take() {
@@ -364,7 +363,7 @@ impl Mission {
             );
             self.event(EventTopic::PlanEnded, text);
         }
-        self.mnl.active = false;
+        self.book.mnl.active = false;
         true
     }
 
@@ -417,11 +416,14 @@ impl Mission {
                 // A cycle in flight was asked without this instruction.
                 self.drop_call(Overtaken::NewerWork);
                 self.work_epoch += 1;
-                self.mnl.instructions.push(text.to_owned());
-                self.mnl.active = true;
-                self.mnl.cycles = 0;
-                self.mnl.claimed_done = false;
-                self.mnl.tasks.retain(|t| t.status == TaskStatus::Running);
+                self.book.mnl.instructions.push(text.to_owned());
+                self.book.mnl.active = true;
+                self.book.mnl.cycles = 0;
+                self.book.mnl.claimed_done = false;
+                self.book
+                    .mnl
+                    .tasks
+                    .retain(|t| t.status == TaskStatus::Running);
                 Ok(())
             }
             Mode::Tacos | Mode::Wor => {
@@ -449,21 +451,22 @@ impl Mission {
         // drone follows: without this, the chase would end with its tracker).
         let lost_work = match &change {
             SwarmChange::Left(d) => {
-                let following = self.following_of(d);
-                self.fail_tasks_of(d, following.as_deref(), "drone lost");
-                self.unfinished_work_of(d, following)
+                let following = super::core::following_of(&self.snapshot(), d);
+                self.book
+                    .fail_tasks_of(d, following.as_deref(), "drone lost");
+                self.book.unfinished_work_of(d, following)
             }
             _ => Vec::new(),
         };
         match self.cfg.mode {
             Mode::Mnl => {
-                self.mnl.executed.push(format!("event: {text}"));
-                self.mnl.claimed_done = false;
+                self.book.mnl.executed.push(format!("event: {text}"));
+                self.book.mnl.claimed_done = false;
             }
             Mode::Tacos | Mode::Wor => {
                 self.remember(HistoryEntry::Event(text.clone()));
                 // Replan only when there is work that the change may affect.
-                if self.plan.is_some() || !lost_work.is_empty() {
+                if self.book.plan.is_some() || !lost_work.is_empty() {
                     self.log.note(Record::Replan {
                         reason: text.clone(),
                     });
@@ -503,7 +506,7 @@ impl Mission {
             text: text.clone(),
         });
         match self.cfg.mode {
-            Mode::Mnl => self.mnl.executed.push(format!("event: {text}")),
+            Mode::Mnl => self.book.mnl.executed.push(format!("event: {text}")),
             _ => self.remember(HistoryEntry::Event(text)),
         }
         true
@@ -549,8 +552,8 @@ impl Mission {
         );
         self.history = history;
         self.events = world_events;
-        self.plan = plan.map(ActivePlan::resumed);
-        self.cycle_due = self.plan.is_some();
+        self.book.plan = plan.map(ActivePlan::resumed);
+        self.cycle_due = self.book.plan.is_some();
         self.tell(MissionUpdate::Event {
             topic: EventTopic::Note,
             text,

@@ -13,6 +13,7 @@ pub mod aids;
 pub mod approval;
 pub mod commands;
 pub mod config;
+pub(crate) mod core;
 pub mod directives;
 pub mod engine;
 pub mod grounding;

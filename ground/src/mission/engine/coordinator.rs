@@ -4,9 +4,9 @@ use super::Mission;
 use super::caller::Checked;
 use super::checks::check_static;
 use super::in_flight::{Answered, CoordinatorAnswer, InFlight};
-use super::plan_state::ActivePlan;
 use crate::mission::aids::Aid;
 use crate::mission::approval::HeldPlan;
+use crate::mission::core::ActivePlan;
 use crate::mission::grounding;
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionError, MissionUpdate};
@@ -343,6 +343,7 @@ impl Mission {
             plan: calls.clone(),
         });
         let running: HashMap<(String, String), PlanTask> = self
+            .book
             .plan
             .take()
             .into_iter()
@@ -372,7 +373,7 @@ impl Mission {
             reasoning: reasoning.clone(),
             tasks: tasks.clone(),
         });
-        self.plan = Some(ActivePlan {
+        self.book.plan = Some(ActivePlan {
             reasoning,
             tasks,
             memory: Vec::new(),

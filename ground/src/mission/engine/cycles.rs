@@ -9,6 +9,7 @@ use super::cycle_call::{CycleAsk, CycleChoice, CycleKind, CycleOutcome, CycleRep
 use super::early::{Served, early_calls};
 use super::in_flight::{Answered, CycleAnswer, InFlight};
 use crate::mission::config::Mode;
+use crate::mission::core::effect_holds;
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionError, MissionUpdate};
 use crate::mission::resume::PlanTask;
@@ -18,8 +19,8 @@ use tacos_prompts::offer::{Callable, callable_schema, startable_schema};
 use tacos_prompts::render::{self, TaskStatus};
 use tacos_prompts::schema::{self, Output};
 use tacos_prompts::{ActionName, Call, MonolithicReply, SupervisorReply, texts};
+use tacos_shared::DroneId;
 use tacos_shared::action::Action;
-use tacos_shared::{DroneId, DroneMode};
 
 impl Mission {
     /// Starts one Supervisor (or monolithic) cycle, when there is a decision to make.
@@ -31,11 +32,11 @@ impl Mission {
     }
 
     pub(super) fn supervisor_cycle(&mut self) -> Result<(), MissionError> {
-        let Some(plan) = self.plan.as_ref() else {
+        let Some(plan) = self.book.plan.as_ref() else {
             return Ok(());
         };
         if plan.cycles >= self.cfg.max_cycles_per_plan {
-            if let Some(plan) = self.plan.take() {
+            if let Some(plan) = self.book.plan.take() {
                 self.finish_plan(plan, "abandoned after too many cycles");
                 self.tell(MissionUpdate::Error(format!(
                     "the plan was not complete after {} Supervisor cycles",
@@ -61,7 +62,7 @@ impl Mission {
             &self.world_text(),
             &plan.memory,
         );
-        if let Some(plan) = self.plan.as_mut() {
+        if let Some(plan) = self.book.plan.as_mut() {
             plan.stuck_since = None;
         }
         let ask = CycleAsk {
@@ -74,7 +75,7 @@ impl Mission {
             tasks: self.plan_lines(),
         };
         self.start_cycle_call(ask, CycleKind::Supervisor, |mission, call, drone, seq| {
-            let Some(plan) = mission.plan.as_mut() else {
+            let Some(plan) = mission.book.plan.as_mut() else {
                 return;
             };
             plan.memory.push(format!("issued {call}"));
@@ -97,15 +98,15 @@ impl Mission {
     }
 
     pub(super) fn monolithic_cycle(&mut self) -> Result<(), MissionError> {
-        if self.mnl.claimed_done {
+        if self.book.mnl.claimed_done {
             // The model said its actions carry out the instructions: wait for their outcomes.
             return Ok(());
         }
-        if self.mnl.cycles >= self.cfg.max_cycles_per_plan {
-            self.mnl.active = false;
+        if self.book.mnl.cycles >= self.cfg.max_cycles_per_plan {
+            self.book.mnl.active = false;
             let text = format!(
                 "the monolithic model did not carry out the instructions in {} cycles",
-                self.mnl.cycles
+                self.book.mnl.cycles
             );
             self.log.note(Record::Event { text: text.clone() });
             self.tell(MissionUpdate::Error(text));
@@ -117,10 +118,10 @@ impl Mission {
             return Ok(());
         }
         let user = render::monolithic_request(
-            &self.mnl.instructions,
+            &self.book.mnl.instructions,
             &render::swarm(&self.drone_lines()),
             &self.world_text(),
-            &self.mnl.executed,
+            &self.book.mnl.executed,
         );
         let (drones, places) = self.enums();
         let trackable = self.trackable();
@@ -136,6 +137,7 @@ impl Mission {
             parse: |text| MonolithicReply::parse(text).map(CycleReply::from),
             only: None,
             tasks: self
+                .book
                 .mnl
                 .tasks
                 .iter()
@@ -147,7 +149,7 @@ impl Mission {
             ask,
             CycleKind::Monolithic { offered },
             |mission, call, drone, seq| {
-                mission.mnl.tasks.push(PlanTask {
+                mission.book.mnl.tasks.push(PlanTask {
                     call,
                     status: TaskStatus::Running,
                     sent: Some((drone, seq)),
@@ -319,17 +321,17 @@ impl Mission {
             CycleKind::Supervisor => {
                 // The Supervisor's claim that the plan is complete is logged only: the plan is
                 // complete when its tasks are done (`poll_outcomes`).
-                if let Some(plan) = self.plan.as_mut() {
+                if let Some(plan) = self.book.plan.as_mut() {
                     plan.cycles += 1;
                     let n = plan.cycles;
                     self.note_cycle(n, cycle);
                 }
             }
             CycleKind::Monolithic { offered } => {
-                self.mnl.next_task += offered;
-                self.mnl.cycles += 1;
-                self.mnl.claimed_done = cycle.claim_stands();
-                self.note_cycle(self.mnl.cycles, cycle);
+                self.book.mnl.next_task += offered;
+                self.book.mnl.cycles += 1;
+                self.book.mnl.claimed_done = cycle.claim_stands();
+                self.note_cycle(self.book.mnl.cycles, cycle);
                 self.judge_monolithic();
             }
         }
@@ -378,27 +380,12 @@ impl Mission {
         });
     }
 
-    /// The monolithic model's instructions are carried out when its claim stands and every
-    /// action it issued for them has finished (a failure has withdrawn the claim already).
-    pub(super) fn judge_monolithic(&mut self) {
-        let m = &self.mnl;
-        if !(m.active && m.claimed_done) || m.tasks.iter().any(|t| t.status == TaskStatus::Running)
-        {
-            return;
-        }
-        self.mnl.active = false;
-        let cycles = self.mnl.cycles;
-        self.stats.update(|s| s.cycles_per_plan.push(cycles));
-        self.log.note(Record::PlanComplete { cycles });
-        self.tell(MissionUpdate::PlanComplete { cycles });
-    }
-
     /// What the monolithic model may call now: for each drone that can take an action, a fresh
     /// task id and the actions its mode allows whose effect does not already hold. Points and
     /// targets are checked per call afterwards, by `check_live` and the safety gate.
     pub(super) fn callable_now(&self) -> Vec<Callable> {
         let swarm = self.swarm_ids();
-        let pending = self.drones_with_pending_actions();
+        let pending = self.book.pending_drones();
         let view = self.link.view();
         let now = self.link.clock().instant();
         let mut out = Vec::new();
@@ -421,7 +408,7 @@ impl Mission {
                 continue;
             }
             out.push(Callable {
-                task: format!("A{}", self.mnl.next_task + 1 + out.len() as u32),
+                task: format!("A{}", self.book.mnl.next_task + 1 + out.len() as u32),
                 drone,
                 actions,
             });
@@ -453,18 +440,6 @@ pub(super) fn mode_probe(name: ActionName) -> Action {
         ActionName::StopTracking => Action::StopTracking,
         ActionName::Land => Action::Land,
         ActionName::Hold => Action::Hold,
-    }
-}
-
-/// The action's effect already holds for an idle drone in `mode`: take-off when airborne,
-/// landing or hold on the ground, stop-tracking when not tracking. Sending it would only be
-/// refused by the drone or do nothing.
-pub(super) fn effect_holds(action: ActionName, mode: DroneMode) -> bool {
-    match action {
-        ActionName::ArmTakeoff => mode.is_airborne(),
-        ActionName::Land | ActionName::Hold => mode == DroneMode::Idle,
-        ActionName::StopTracking => mode != DroneMode::Tracking,
-        ActionName::Goto | ActionName::StartTracking => false,
     }
 }
 
@@ -538,17 +513,6 @@ pub fn supervisor_fixed_messages() -> Vec<ChatMessage> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn an_effect_that_holds_is_not_offered_again() {
-        assert!(effect_holds(ActionName::ArmTakeoff, DroneMode::Flying));
-        assert!(!effect_holds(ActionName::ArmTakeoff, DroneMode::Idle));
-        assert!(effect_holds(ActionName::Land, DroneMode::Idle));
-        assert!(!effect_holds(ActionName::Land, DroneMode::Flying));
-        assert!(effect_holds(ActionName::StopTracking, DroneMode::Flying));
-        assert!(!effect_holds(ActionName::StopTracking, DroneMode::Tracking));
-        assert!(!effect_holds(ActionName::Goto, DroneMode::Flying));
-    }
 
     #[test]
     fn a_reply_gives_each_drone_its_first_call_and_names_the_later_steps() {

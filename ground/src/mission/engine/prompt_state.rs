@@ -149,7 +149,8 @@ impl Mission {
     }
 
     pub(super) fn plan_lines(&self) -> Vec<(Call, TaskStatus)> {
-        self.plan
+        self.book
+            .plan
             .iter()
             .flat_map(|p| p.tasks.iter())
             .map(|t| (t.call.clone(), t.status.clone()))

@@ -1,0 +1,19 @@
+//! What the core asks the engine to do.
+
+use crate::mission::log::Record;
+use crate::mission::report::MissionUpdate;
+use tacos_prompts::render::HistoryEntry;
+
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) enum Effect {
+    /// Write a record to the mission log.
+    Note(Record),
+    /// Tell the pilot (the terminal, a script, the evaluation).
+    Tell(MissionUpdate),
+    /// Add to the Coordinator's memory of the mission (and to the log it is resumed from).
+    Remember(HistoryEntry),
+    /// The models' work was replaced or ended: a reply asked for before is not used.
+    WorkReplaced,
+    /// A plan completed after this many cycles (the statistics' cycles per plan).
+    PlanCycles(u32),
+}
