@@ -7,7 +7,7 @@
 //! it. Where an aid stands in for a principled rule, the rule is what runs when it is off (an
 //! implied take-off off: the Coordinator's plan is refused, naming the missing take-off).
 //!
-//! The first four act on the Coordinator only, so `mnl` never meets them; compare the modes with
+//! The first four and `whole-swarm` act on the Coordinator only, so `mnl` never meets them; compare the modes with
 //! the same preset and say which.
 
 use serde::{Deserialize, Serialize};
@@ -43,10 +43,15 @@ pub enum Aid {
     /// every drone on the ground, and "charlie, search the business_district" on a map that has
     /// it. Off: a reply may decline with a reason for the pilot instead of planning.
     PlanOnly,
+    /// An instruction for the whole swarm (English words: "all drones", "everyone", "the
+    /// swarm" …) needs a task for every available drone whose state the plan would change; a
+    /// plan that leaves some out goes back naming them (`whole_swarm`). Off: the plan is taken
+    /// as the model wrote it.
+    WholeSwarm,
 }
 
 impl Aid {
-    pub const ALL: [Aid; 8] = [
+    pub const ALL: [Aid; 9] = [
         Aid::PlaceScope,
         Aid::FollowWords,
         Aid::RepairGrammar,
@@ -55,6 +60,7 @@ impl Aid {
         Aid::CompactRepairEcho,
         Aid::KeepPartialPlan,
         Aid::PlanOnly,
+        Aid::WholeSwarm,
     ];
 
     /// The name on the command line and in the log.
@@ -68,11 +74,12 @@ impl Aid {
             Aid::CompactRepairEcho => "compact-repair-echo",
             Aid::KeepPartialPlan => "keep-partial-plan",
             Aid::PlanOnly => "plan-only",
+            Aid::WholeSwarm => "whole-swarm",
         }
     }
 
-    fn bit(self) -> u8 {
-        1 << (self as u8)
+    const fn bit(self) -> u16 {
+        1 << (self as u16)
     }
 }
 
@@ -86,13 +93,19 @@ impl fmt::Display for Aid {
 /// and the default; `none` turns them all off.
 #[derive(Clone, Copy, PartialEq, Eq, Hash)]
 pub struct ModelAids {
-    on: u8,
+    on: u16,
 }
 
 impl ModelAids {
     /// Every aid on: what the 135M embedded model needs.
     pub const fn small() -> ModelAids {
-        ModelAids { on: 0xff }
+        let mut on = 0;
+        let mut i = 0;
+        while i < Aid::ALL.len() {
+            on |= Aid::ALL[i].bit();
+            i += 1;
+        }
+        ModelAids { on }
     }
 
     /// No aid: the principled rules only.

@@ -4,7 +4,6 @@
 
 mod approval;
 mod caller;
-mod checks;
 mod coordinator;
 mod cycle_call;
 mod cycles;
@@ -36,6 +35,7 @@ use crate::swarm::{SwarmChange, membership_diff};
 use crate::task_guard::AbortOnDrop;
 use caller::Caller;
 use in_flight::{Coordination, Heard, InFlight};
+use plan_state::snapshot_of;
 use std::collections::{BTreeSet, VecDeque};
 use std::sync::Arc;
 use std::time::Duration;

@@ -25,6 +25,7 @@ pub mod resolve;
 pub mod resume;
 pub mod undo;
 pub mod untrusted;
+pub mod whole_swarm;
 
 pub use aids::{Aid, ModelAids};
 pub use config::{MissionConfig, Mode, ResumeFrom};

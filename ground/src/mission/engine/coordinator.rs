@@ -2,20 +2,21 @@
 
 use super::Mission;
 use super::caller::Checked;
-use super::checks::check_static;
-use super::in_flight::{Answered, CoordinatorAnswer, InFlight};
+use super::in_flight::{Answered, Coordination, CoordinatorAnswer, InFlight};
 use crate::mission::aids::Aid;
 use crate::mission::approval::HeldPlan;
-use crate::mission::core::ActivePlan;
+use crate::mission::core::{ActivePlan, check_static, same_work};
 use crate::mission::grounding;
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionError, MissionUpdate};
 use crate::mission::resume::PlanTask;
+use crate::mission::whole_swarm;
 use std::collections::HashMap;
 use tacos_llm::ChatMessage;
 use tacos_prompts::render::{self, HistoryEntry, TaskStatus};
 use tacos_prompts::schema::{self, Output};
 use tacos_prompts::{ActionName, Call, CoordinatorReply, texts};
+use tacos_shared::{DroneId, DroneMode};
 
 /// How long a Coordinator call waits for a drone to be heard again when none is available: a
 /// status is stale after a second, and a loaded ground (a model computing on both cores) or a
@@ -38,7 +39,11 @@ impl Mission {
     /// Starts the Coordinator's call for `instruction` beside the engine
     /// ([`Self::coordinator_answered`] takes its reply); its plan will replace the current one
     /// (the pending plan is in its prompt).
-    pub(super) async fn coordinate(&mut self, instruction: &str) -> Result<(), MissionError> {
+    pub(super) async fn coordinate(&mut self, work: &Coordination) -> Result<(), MissionError> {
+        let (instruction, from_pilot) = match work {
+            Coordination::Pilot(text) => (text.as_str(), true),
+            Coordination::Replan(text) => (text.as_str(), false),
+        };
         let pending: Vec<(Call, TaskStatus)> = self
             .plan_lines()
             .into_iter()
@@ -99,6 +104,21 @@ impl Mission {
                 ),
             );
         }
+        // The pilot's instruction for the whole swarm: the available drones and their modes,
+        // for the reply check (`whole_swarm`; a replan's own words are not the pilot's).
+        let whole_swarm: Option<Vec<(String, DroneMode)>> = (from_pilot
+            && aids.is_on(Aid::WholeSwarm)
+            && whole_swarm::addresses_whole_swarm(instruction))
+        .then(|| {
+            let snap = self.snapshot();
+            available
+                .iter()
+                .filter_map(|d| {
+                    let entry = DroneId::new(d).ok().and_then(|id| snap.swarm.get(&id))?;
+                    Some((d.clone(), entry.effective_mode(snap.now)))
+                })
+                .collect()
+        });
         let grounded = self.grounded_ids();
         let followed = self.followed_targets();
         let user = render::coordinator_request(
@@ -203,6 +223,14 @@ impl Mission {
                             Aid::PlanLengthCap,
                             format!("the plan filled its cap of {plan_cap} calls (three per drone)"),
                         );
+                    }
+                    if let Some(available) = whole_swarm.as_ref() {
+                        let left = whole_swarm::left_out(&reply.plan, available);
+                        if !left.is_empty() {
+                            let text = whole_swarm::left_out_text(&left);
+                            log.aid_fired(Aid::WholeSwarm, text.clone());
+                            rejections.push(text);
+                        }
                     }
                     if !aids.is_on(Aid::ImpliedTakeoffs) {
                         // The rule the aid stands in for: a drone on the ground cannot fly a
@@ -498,17 +526,6 @@ pub(super) fn without_repeated_work(calls: Vec<Call>) -> (Vec<Call>, Vec<Call>) 
         }
     }
     (kept, dropped)
-}
-
-/// What a call asks of which drone, whatever its task id: a replan that repeats a running call
-/// keeps it running instead of starting it again.
-pub(super) fn same_work(call: &Call) -> (String, String) {
-    let text = call.to_string();
-    let without_task = text
-        .split_once(' ')
-        .map(|x| x.1.to_owned())
-        .unwrap_or_default();
-    (call.drone.clone(), without_task)
 }
 
 #[cfg(test)]

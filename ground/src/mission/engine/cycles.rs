@@ -3,13 +3,13 @@
 
 use super::Mission;
 use super::caller::Checked;
-use super::checks::check_live;
-use super::coordinator::same_work;
 use super::cycle_call::{CycleAsk, CycleChoice, CycleKind, CycleOutcome, CycleReply, CycleWork};
 use super::early::{Served, early_calls};
 use super::in_flight::{Answered, CycleAnswer, InFlight};
 use crate::mission::config::Mode;
-use crate::mission::core::effect_holds;
+use crate::mission::core::{
+    CycleJudgement, check_live, effect_holds, judge_cycle, match_startable,
+};
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionError, MissionUpdate};
 use crate::mission::resume::PlanTask;
@@ -186,7 +186,8 @@ impl Mission {
                     Some(startable) => match_startable(calls, startable).0,
                     None => calls.to_vec(),
                 };
-                check_live(&calls, &gate, &link, &visible, &tasks).0
+                let snap = super::snapshot_of(&link, visible.clone());
+                check_live(&calls, &gate, &snap, &tasks).0
             }
         };
         let (on_written, seen, early) = early_calls(judge, issued, self.work_epoch);
@@ -218,32 +219,21 @@ impl Mission {
                     parse,
                     false,
                     move |reply: &CycleReply| {
-                        let (firsts, later) = first_call_per_drone(&reply.actions);
                         // The drones whose call went while the reply was written are served.
-                        let served = seen.handed_on();
-                        let mut handed_elsewhere = Vec::new();
-                        let firsts: Vec<Call> = firsts
-                            .into_iter()
-                            .filter(|c| !served.iter().any(|s| s.drone == c.drone))
-                            .filter(|c| match served.iter().find(|s| s.task == c.task) {
-                                Some(s) => {
-                                    handed_elsewhere.push(format!(
-                                        "{c}: task {} already goes to {} this cycle",
-                                        c.task, s.drone
-                                    ));
-                                    false
-                                }
-                                None => true,
-                            })
-                            .collect();
-                        let (calls, mut rejections) = match &only {
-                            Some(startable) => match_startable(&firsts, startable),
-                            None => (firsts, Vec::new()),
-                        };
-                        rejections.extend(handed_elsewhere);
-                        let (accepted, live, gate_refusals) =
-                            check_live(&calls, &gate, &link, &visible, &tasks);
-                        rejections.extend(live);
+                        let snap = super::snapshot_of(&link, visible.clone());
+                        let CycleJudgement {
+                            accepted,
+                            later,
+                            rejections,
+                            gate_refusals,
+                        } = judge_cycle(
+                            &reply.actions,
+                            only.as_deref(),
+                            &seen.handed_on(),
+                            &snap,
+                            &gate,
+                            &tasks,
+                        );
                         Checked {
                             nothing_passed: accepted.is_empty(),
                             accepted: CycleChoice {
@@ -443,50 +433,6 @@ pub(super) fn mode_probe(name: ActionName) -> Action {
     }
 }
 
-/// Each drone's first call in a reply; the calls after it for the same drone are its next
-/// steps (one action per drone per cycle), which a later cycle issues if they still apply. A
-/// small model lists a drone's whole route at once, often under one task id: sending that back
-/// costs a model call of minutes and changes nothing. Returns the first calls and the later
-/// steps that are other work (a repeat of the first call is just dropped).
-pub(super) fn first_call_per_drone(calls: &[Call]) -> (Vec<Call>, Vec<String>) {
-    let mut firsts: Vec<Call> = Vec::new();
-    let mut later = Vec::new();
-    for call in calls {
-        match firsts.iter().find(|c| c.drone == call.drone) {
-            None => firsts.push(call.clone()),
-            Some(first) if same_work(first) == same_work(call) => {}
-            Some(_) => later.push(call.to_string()),
-        }
-    }
-    (firsts, later)
-}
-
-/// Keeps the proposed calls that are one of the startable calls (task, drone, action and target
-/// as the plan has them; the point of a goto comes from the plan), and says why the others are not.
-pub(super) fn match_startable(proposed: &[Call], startable: &[Call]) -> (Vec<Call>, Vec<String>) {
-    let mut calls = Vec::new();
-    let mut rejections = Vec::new();
-    for call in proposed {
-        let found = startable.iter().find(|c| {
-            c.task == call.task
-                && c.drone == call.drone
-                && c.action == call.action
-                && c.target_name() == call.target_name()
-        });
-        match found {
-            Some(c) => calls.push(c.clone()),
-            None => {
-                let options: Vec<String> = startable.iter().map(|c| c.to_string()).collect();
-                rejections.push(format!(
-                    "{call}: not a task that can start now (startable: {})",
-                    options.join("; ")
-                ));
-            }
-        }
-    }
-    (calls, rejections)
-}
-
 /// The Supervisor's messages: its configuration prompt, the few-shot cycles, then the request.
 pub fn supervisor_messages(user: String) -> Vec<ChatMessage> {
     let mut messages = supervisor_fixed_messages();
@@ -508,32 +454,4 @@ pub fn supervisor_fixed_messages() -> Vec<ChatMessage> {
         messages.push(ChatMessage::assistant(example.reply.to_string()));
     }
     messages
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn a_reply_gives_each_drone_its_first_call_and_names_the_later_steps() {
-        let call = |task: &str, drone: &str, target: &str| Call {
-            task: task.into(),
-            drone: drone.into(),
-            action: ActionName::Goto,
-            target: target.into(),
-            xyz: None,
-        };
-        // The 135M model's monolithic reply at 12 drones: one task id, alfa's whole route.
-        let reply = vec![
-            call("A1", "alfa", "car_1"),
-            call("A1", "alfa", "car_2"),
-            call("A2", "bravo", "car_4"),
-            call("A3", "alfa", "car_1"),
-            call("A1", "alfa", "car_3"),
-        ];
-        let (firsts, later) = first_call_per_drone(&reply);
-        assert_eq!(firsts, vec![reply[0].clone(), reply[2].clone()]);
-        // The repeat of alfa's first call (under another id) is no later step.
-        assert_eq!(later, ["A1 alfa goto(car_2)", "A1 alfa goto(car_3)"]);
-    }
 }

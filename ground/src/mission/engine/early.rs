@@ -8,7 +8,7 @@
 //! calls already sent are not sent again.
 
 use super::Mission;
-use super::cycles::first_call_per_drone;
+use crate::mission::core::first_call_per_drone;
 use crate::mission::report::{EventTopic, MissionUpdate};
 use crate::safety::CheckedAction;
 use std::sync::{Arc, Mutex};

@@ -123,10 +123,7 @@ impl Mission {
             let Some(work) = self.queued.pop_front() else {
                 break;
             };
-            let instruction = match &work {
-                Coordination::Pilot(text) | Coordination::Replan(text) => text.clone(),
-            };
-            if let Err(e) = self.coordinate(&instruction).await {
+            if let Err(e) = self.coordinate(&work).await {
                 self.tell(MissionUpdate::Error(e.to_string()));
             }
         }

@@ -2,21 +2,26 @@
 //! snapshot of the swarm per step, hands it to the core, and carries out the effects.
 
 use super::Mission;
+use crate::link::GroundLink;
 use crate::mission::core::{self, Effect, Rules, Snapshot, Start};
 use tacos_prompts::Call;
+use tacos_shared::messages::TargetObservation;
+
+/// The link's view of the world now, with the targets seen (`Mission::visible_targets`).
+pub(super) fn snapshot_of(link: &GroundLink, targets: Vec<TargetObservation>) -> Snapshot {
+    let swarm = link.view().clone();
+    Snapshot {
+        swarm,
+        targets,
+        now: link.clock().instant(),
+        ground: link.epoch(),
+    }
+}
 
 impl Mission {
     /// The step's view of the world: the swarm, the targets seen, the time, this ground's epoch.
     pub(super) fn snapshot(&self) -> Snapshot {
-        // Before the view is locked: `visible_targets` reads the targets' channel only.
-        let targets = self.visible_targets();
-        let swarm = self.link.view().clone();
-        Snapshot {
-            swarm,
-            targets,
-            now: self.link.clock().instant(),
-            ground: self.link.epoch(),
-        }
+        snapshot_of(&self.link, self.visible_targets())
     }
 
     /// Carries out the core's effects, in order.

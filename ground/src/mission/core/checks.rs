@@ -1,7 +1,7 @@
 //! The checks of a model's calls before they are sent: the static ones (the plan names real
 //! drones, places and points) and the live ones (against the swarm now, through the safety gate).
 
-use crate::link::GroundLink;
+use super::snapshot::Snapshot;
 use crate::mission::resolve::{claimed_points, nearest_first, position_of, resolve};
 use crate::safety::{CheckedAction, SafetyGate};
 use tacos_prompts::Call;
@@ -12,7 +12,7 @@ use tacos_shared::{DroneId, DroneMode};
 
 /// Checks a planned call that does not depend on the live state: the drone exists, the call
 /// names something real, and a point is a place a drone may be.
-pub(super) fn check_static(
+pub(crate) fn check_static(
     call: &Call,
     scenario: &tacos_shared::scenario::Scenario,
     visible: &[TargetObservation],
@@ -34,19 +34,19 @@ pub(super) fn check_static(
 /// not busy, one drone per task id, and not repeating a task that is running or done. The calls
 /// come one per drone (`first_call_per_drone`). Returns the accepted calls, the checks'
 /// refusals and the gate's.
-pub(super) fn check_live(
+pub(crate) fn check_live(
     calls: &[Call],
     gate: &SafetyGate,
-    link: &GroundLink,
-    visible: &[TargetObservation],
+    snap: &Snapshot,
     tasks: &[(Call, TaskStatus)],
 ) -> (Vec<(Call, CheckedAction)>, Vec<String>, Vec<String>) {
     let mut accepted: Vec<(Call, CheckedAction)> = Vec::new();
     let mut rejections = Vec::new();
     let mut gate_refusals = Vec::new();
-    let view = link.view();
-    let now = link.clock().instant();
-    let order = nearest_first(calls, gate.scenario(), visible, |d| position_of(&view, d));
+    let view = &snap.swarm;
+    let now = snap.now;
+    let visible = &snap.targets[..];
+    let order = nearest_first(calls, gate.scenario(), visible, |d| position_of(view, d));
     for call in order {
         if let Some((other, _)) = accepted.iter().find(|(c, _)| c.task == call.task) {
             rejections.push(format!(
@@ -82,7 +82,7 @@ pub(super) fn check_live(
             continue;
         }
         // Clear of where the other drones are or go, this cycle's accepted gotos included.
-        let mut claimed = claimed_points(&view, &call.drone, now);
+        let mut claimed = claimed_points(view, &call.drone, now);
         claimed.extend(accepted.iter().filter_map(|(_, c)| match c.action() {
             Action::Goto { target } => Some(*target),
             _ => None,
@@ -92,7 +92,7 @@ pub(super) fn check_live(
             gate.scenario(),
             visible,
             &claimed,
-            position_of(&view, &call.drone),
+            position_of(view, &call.drone),
         ) {
             Ok(a) => a,
             Err(why) => {
@@ -100,7 +100,7 @@ pub(super) fn check_live(
                 continue;
             }
         };
-        match gate.check(&view, &call.drone, &action, now) {
+        match gate.check(view, &call.drone, &action, now) {
             Ok(checked) => accepted.push((call.clone(), checked)),
             Err(r) => gate_refusals.push(format!("{call}: {r}")),
         }
