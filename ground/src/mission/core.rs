@@ -1,22 +1,26 @@
 //! The mission's pure core: the plan's bookkeeping (`book`), the outcomes the drones report and
 //! when a plan is complete, given up or stuck (`outcomes`), and whether a call can start now
-//! (`start`), what a cycle's reply comes to (`cycle`, `checks`), each decided from one [`Snapshot`] of the swarm, the targets and the time, handing
+//! (`start`), what a cycle's reply and a Coordinator's plan come to (`cycle`,
+//! `checks`, `plan_check`), each decided from one [`Snapshot`] of the swarm, the targets and the time, handing
 //! back [`Effect`]s for the engine (the async shell in `engine`) to carry out. Nothing here does
 //! I/O or reads a clock, so the same book and snapshot give the same effects, and the rules are
 //! tested without a process (`core::tests`; `core::purity` fails if a file here names tokio,
 //! zenoh, the link, the log writer, the model backend or a clock).
 //!
-//! Not in the core yet (issue 16 item 1): the Coordinator, Supervisor and monolithic layers'
-//! prompts, the repair loop and the sends, which still live in `engine`.
+//! Not in the core yet (issue 16 item 1): the layers' prompts, the repair loop and the sends,
+//! which still live in `engine`.
 
 mod book;
 mod checks;
 mod cycle;
 mod effect;
 mod outcomes;
+mod plan_check;
 mod snapshot;
 mod start;
 
+#[cfg(test)]
+mod plan_tests;
 #[cfg(test)]
 mod properties;
 #[cfg(test)]
@@ -25,7 +29,7 @@ mod purity;
 mod tests;
 
 pub(crate) use book::{ActivePlan, PlanBook};
-pub(crate) use checks::{check_live, check_static};
+pub(crate) use checks::check_live;
 pub(crate) use cycle::{
     CycleJudgement, first_call_per_drone, judge_cycle, match_startable, same_work,
 };
@@ -33,5 +37,6 @@ pub(crate) use effect::Effect;
 pub(crate) use outcomes::{
     Rules, effect_holds, following_of, give_up_if_stuck, judge_monolithic, plan_ended, poll,
 };
+pub(crate) use plan_check::{PlanCheck, missing_takeoffs};
 pub(crate) use snapshot::Snapshot;
 pub(crate) use start::{Start, startable};

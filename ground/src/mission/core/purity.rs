@@ -29,7 +29,9 @@ fn core_sources() -> Vec<(String, String)> {
             .file_name()
             .and_then(|n| n.to_str())
             .unwrap_or_default();
-        if name.ends_with(".rs") && !["tests.rs", "purity.rs", "properties.rs"].contains(&name) {
+        if name.ends_with(".rs")
+            && !["tests.rs", "purity.rs", "properties.rs", "plan_tests.rs"].contains(&name)
+        {
             paths.push(path.display().to_string());
         }
     }

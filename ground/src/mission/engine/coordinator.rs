@@ -5,7 +5,7 @@ use super::caller::Checked;
 use super::in_flight::{Answered, Coordination, CoordinatorAnswer, InFlight};
 use crate::mission::aids::Aid;
 use crate::mission::approval::HeldPlan;
-use crate::mission::core::{ActivePlan, check_static, same_work};
+use crate::mission::core::{ActivePlan, PlanCheck, missing_takeoffs, same_work};
 use crate::mission::grounding;
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionError, MissionUpdate};
@@ -149,143 +149,56 @@ impl Mission {
             schema = schema::without_plan_cap(&schema);
             schema::coordinator_token_budget(schema::PLAN_MAX_CALLS)
         };
-        let first_schema = schema.clone();
+        let check = PlanCheck {
+            scenario: self.gate.scenario().clone(),
+            visible: self.visible_targets(),
+            drones: drones.clone(),
+            available: available.clone(),
+            places,
+            scope,
+            named_places,
+            aids,
+            plan_cap,
+            schema: schema.clone(),
+            on_the_ground: grounded.clone(),
+            follow,
+            followed,
+            whole_swarm,
+        };
         let log = self.log.clone();
         self.tell(MissionUpdate::Thinking {
             layer: "coordinator",
         });
         self.stats.update(|s| s.coordinator_calls += 1);
-        let scenario = self.gate.scenario().clone();
-        let visible = self.visible_targets();
         let caller = self.caller.clone();
         let max_tokens = self.cfg.coordinator_max_tokens.max(token_budget);
         let instruction = instruction.to_owned();
-        let on_the_ground = grounded.clone();
         let call = async move {
             let answer = caller
-            .ask(
-                "coordinator",
-                messages,
-                Output::Coordinator,
-                schema,
-                max_tokens,
-                CoordinatorReply::parse,
-                true,
-                move |reply: &CoordinatorReply| {
-                    let mut rejections = Vec::new();
-                    let mut plan = Vec::new();
-                    for call in &reply.plan {
-                        let off = scope
-                            .as_ref()
-                            .and_then(|s| grounding::off_scope(call, &places, s));
-                        let checked = match off {
-                            Some(why) => Err(why),
-                            None if drones.contains(&call.drone)
-                                && !available.contains(&call.drone) =>
-                            {
-                                Err(format!(
-                                    "{} is unavailable; the drones available are: {}",
-                                    call.drone,
-                                    available.join(", ")
-                                ))
-                            }
-                            None => check_static(call, &scenario, &visible),
-                        };
-                        match checked {
-                            Ok(()) => plan.push(call.clone()),
-                            Err(why) => rejections.push(format!("{call}: {why}")),
+                .ask(
+                    "coordinator",
+                    messages,
+                    Output::Coordinator,
+                    schema,
+                    max_tokens,
+                    CoordinatorReply::parse,
+                    true,
+                    move |reply: &CoordinatorReply| {
+                        let judged = check.judge(reply);
+                        for (aid, detail) in judged.aids_fired {
+                            log.aid_fired(aid, detail);
                         }
-                    }
-                    // An empty plan is a reply only with a refusal for the pilot, and not one
-                    // about a place the pilot named that the map has: the 1.5B model declined
-                    // "charlie, search the business_district" on the lab map, which has it.
-                    match reply.refusal_text() {
-                        None if reply.plan.is_empty() => rejections.push(
-                            "the plan is empty: list the calls the instruction needs, or, if it \
-                             cannot be carried out, say why in \"refusal\""
-                                .into(),
-                        ),
-                        Some(refusal) if reply.plan.is_empty() => {
-                            for place in render::named_in(refusal, &named_places) {
-                                rejections.push(format!(
-                                    "the refusal: {place} is a place on this map (the pilot \
-                                     named it), and a goto can reach it"
-                                ));
-                            }
+                        Checked {
+                            nothing_passed: judged.plan.is_empty() && judged.refusal.is_none(),
+                            accepted: (judged.reasoning, judged.plan, judged.refusal),
+                            rejections: judged.rejections,
+                            // A plan's calls are not actions yet: the gate judges them when sent.
+                            gate_refusals: Vec::new(),
+                            narrowed: judged.narrowed,
                         }
-                        _ => {}
-                    }
-                    if aids.is_on(Aid::PlanLengthCap)
-                        && plan_cap < schema::PLAN_MAX_CALLS
-                        && reply.plan.len() >= plan_cap
-                    {
-                        log.aid_fired(
-                            Aid::PlanLengthCap,
-                            format!("the plan filled its cap of {plan_cap} calls (three per drone)"),
-                        );
-                    }
-                    if let Some(available) = whole_swarm.as_ref() {
-                        let left = whole_swarm::left_out(&reply.plan, available);
-                        if !left.is_empty() {
-                            let text = whole_swarm::left_out_text(&left);
-                            log.aid_fired(Aid::WholeSwarm, text.clone());
-                            rejections.push(text);
-                        }
-                    }
-                    if !aids.is_on(Aid::ImpliedTakeoffs) {
-                        // The rule the aid stands in for: a drone on the ground cannot fly a
-                        // goto or a chase that no take-off precedes.
-                        for i in missing_takeoffs(&plan, &on_the_ground).into_iter().rev() {
-                            let call = plan.remove(i);
-                            rejections.push(format!(
-                                "{call}: {} is on the ground and the plan never takes it off: \
-                                 add `{} arm_takeoff` before it",
-                                call.drone, call.drone
-                            ));
-                        }
-                    }
-                    let missing = grounding::untracked(&follow, &plan, &followed);
-                    // The repair round's grammar opens the plan with the missing tracking.
-                    let narrowed = (!missing.is_empty() && aids.is_on(Aid::RepairGrammar)).then(|| {
-                        let required: Vec<schema::RequiredCall> = missing
-                            .iter()
-                            .map(|a| schema::RequiredCall {
-                                drones: a
-                                    .drone
-                                    .clone()
-                                    .map_or_else(|| available.clone(), |d| vec![d]),
-                                action: "start_tracking",
-                                target: a.target.clone(),
-                            })
-                            .collect();
-                        let targets: Vec<&str> =
-                            required.iter().map(|r| r.target.as_str()).collect();
-                        log.aid_fired(
-                            Aid::RepairGrammar,
-                            format!(
-                                "the repair round's grammar opens the plan with start_tracking of {}",
-                                targets.join(", ")
-                            ),
-                        );
-                        schema::requiring(&first_schema, &required)
-                    });
-                    rejections.extend(missing.iter().map(grounding::FollowAsked::missing_text));
-                    let refusal = reply.refusal_text().map(str::to_owned);
-                    Checked {
-                        nothing_passed: plan.is_empty() && refusal.is_none(),
-                        accepted: (
-                            reply.reasoning.clone(),
-                            plan,
-                            refusal,
-                        ),
-                        rejections,
-                        // A plan's calls are not actions yet: the gate judges them when sent.
-                        gate_refusals: Vec::new(),
-                        narrowed,
-                    }
-                },
-            )
-            .await;
+                    },
+                )
+                .await;
             Answered::Coordinator {
                 instruction,
                 grounded,
@@ -451,21 +364,6 @@ impl Mission {
         }
         out
     }
-}
-
-/// The positions in `calls` of the first goto or start_tracking of each drone in `grounded`
-/// whose plan has no take-off anywhere: such a call could never start.
-fn missing_takeoffs(calls: &[Call], grounded: &[String]) -> Vec<usize> {
-    let mut out: Vec<usize> = Vec::new();
-    for (i, call) in calls.iter().enumerate() {
-        let needs_air = matches!(call.action, ActionName::Goto | ActionName::StartTracking);
-        let takes_off = |c: &Call| c.drone == call.drone && c.action == ActionName::ArmTakeoff;
-        let first = !out.iter().any(|&j| calls[j].drone == call.drone);
-        if needs_air && first && grounded.contains(&call.drone) && !calls.iter().any(takes_off) {
-            out.push(i);
-        }
-    }
-    out
 }
 
 /// The Coordinator's messages: its configuration prompt, the few-shot examples as turns, then
