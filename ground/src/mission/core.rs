@@ -14,6 +14,7 @@ mod book;
 mod checks;
 mod cycle;
 mod effect;
+mod membership;
 mod outcomes;
 mod plan_check;
 mod snapshot;
@@ -26,6 +27,8 @@ mod properties;
 #[cfg(test)]
 mod purity;
 #[cfg(test)]
+mod replan_tests;
+#[cfg(test)]
 mod tests;
 
 pub(crate) use book::{ActivePlan, PlanBook};
@@ -34,8 +37,9 @@ pub(crate) use cycle::{
     CycleJudgement, first_call_per_drone, judge_cycle, match_startable, same_work,
 };
 pub(crate) use effect::Effect;
+pub(crate) use membership::membership_changed;
 pub(crate) use outcomes::{
-    Rules, effect_holds, following_of, give_up_if_stuck, judge_monolithic, plan_ended, poll,
+    Rules, effect_holds, give_up_if_stuck, judge_monolithic, plan_ended, poll,
 };
 pub(crate) use plan_check::{PlanCheck, missing_takeoffs};
 pub(crate) use snapshot::Snapshot;

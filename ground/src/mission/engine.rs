@@ -440,45 +440,10 @@ impl Mission {
             SwarmChange::Left(d) => self.present.remove(d),
             SwarmChange::Status(_) => false,
         };
-        let (topic, text) = match &change {
-            SwarmChange::Joined(d) => (EventTopic::Joined, format!("{d} joined the swarm")),
-            SwarmChange::Left(d) => (EventTopic::Failure, format!("{d} became unavailable")),
-            SwarmChange::Status(_) => return,
-        };
-        self.event(topic, text.clone());
-        // What the lost drone leaves undone, named in the replan's instruction so the
-        // Coordinator hands exactly that on (a done start_tracking is still work while the
-        // drone follows: without this, the chase would end with its tracker).
-        let lost_work = match &change {
-            SwarmChange::Left(d) => {
-                let following = super::core::following_of(&self.snapshot(), d);
-                self.book
-                    .fail_tasks_of(d, following.as_deref(), "drone lost");
-                self.book.unfinished_work_of(d, following)
-            }
-            _ => Vec::new(),
-        };
-        match self.cfg.mode {
-            Mode::Mnl => {
-                self.book.mnl.executed.push(format!("event: {text}"));
-                self.book.mnl.claimed_done = false;
-            }
-            Mode::Tacos | Mode::Wor => {
-                self.remember(HistoryEntry::Event(text.clone()));
-                // Replan only when there is work that the change may affect.
-                if self.book.plan.is_some() || !lost_work.is_empty() {
-                    self.log.note(Record::Replan {
-                        reason: text.clone(),
-                    });
-                    let subtasks = if lost_work.is_empty() {
-                        String::new()
-                    } else {
-                        format!(" ({})", lost_work.join(", "))
-                    };
-                    self.want_coordination(Coordination::Replan(format!("(automatic replan) {text}: reassign its unfinished subtasks{subtasks} and keep the mission going")));
-                }
-            }
-        }
+        let snap = self.snapshot();
+        let effects =
+            super::core::membership_changed(&mut self.book, &snap, self.cfg.mode, &change);
+        self.apply(effects);
     }
 
     /// Takes in a world event whose names are the scenario's; one that is not is logged and

@@ -16,4 +16,7 @@ pub(crate) enum Effect {
     WorkReplaced,
     /// A plan completed after this many cycles (the statistics' cycles per plan).
     PlanCycles(u32),
+    /// Ask the Coordinator for an automatic replan with this instruction (queued after the work
+    /// waiting for it; a cycle in flight is dropped).
+    Replan(String),
 }

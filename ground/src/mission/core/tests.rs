@@ -1,7 +1,7 @@
 //! The core's rules on hand-built snapshots: no process, no clock, no channel.
 
 use super::book::{Monolithic, STUCK_AFTER};
-use super::outcomes::judge_monolithic;
+use super::outcomes::{following_of, judge_monolithic};
 use super::*;
 use crate::mission::config::Mode;
 use crate::mission::log::Record;

@@ -2,6 +2,7 @@
 //! snapshot of the swarm per step, hands it to the core, and carries out the effects.
 
 use super::Mission;
+use super::in_flight::Coordination;
 use crate::link::GroundLink;
 use crate::mission::core::{self, Effect, Rules, Snapshot, Start};
 use tacos_prompts::Call;
@@ -33,6 +34,9 @@ impl Mission {
                 Effect::Remember(entry) => self.remember(entry),
                 Effect::WorkReplaced => self.work_epoch += 1,
                 Effect::PlanCycles(cycles) => self.stats.update(|s| s.cycles_per_plan.push(cycles)),
+                Effect::Replan(instruction) => {
+                    self.want_coordination(Coordination::Replan(instruction))
+                }
             }
         }
     }

@@ -1,0 +1,70 @@
+//! A drone joining or leaving the swarm: the pilot is told, a lost drone's running tasks fail
+//! (and its done start_tracking while it still followed the target), and an automatic replan is
+//! asked for when there is work the change may affect, naming what the lost drone leaves undone.
+
+use super::book::PlanBook;
+use super::effect::Effect;
+use super::outcomes::following_of;
+use super::snapshot::Snapshot;
+use crate::mission::config::Mode;
+use crate::mission::log::Record;
+use crate::mission::report::{EventTopic, MissionUpdate};
+use crate::swarm::SwarmChange;
+use tacos_prompts::render::HistoryEntry;
+
+/// Takes in a membership change seen on `snap` (the view after it).
+pub(crate) fn membership_changed(
+    book: &mut PlanBook,
+    snap: &Snapshot,
+    mode: Mode,
+    change: &SwarmChange,
+) -> Vec<Effect> {
+    let (topic, text) = match change {
+        SwarmChange::Joined(d) => (EventTopic::Joined, format!("{d} joined the swarm")),
+        SwarmChange::Left(d) => (EventTopic::Failure, format!("{d} became unavailable")),
+        SwarmChange::Status(_) => return Vec::new(),
+    };
+    let mut effects = vec![
+        Effect::Note(Record::Event { text: text.clone() }),
+        Effect::Tell(MissionUpdate::Event {
+            topic,
+            text: text.clone(),
+        }),
+    ];
+    // What the lost drone leaves undone, named in the replan's instruction so the Coordinator
+    // hands exactly that on (a done start_tracking is still work while the drone follows:
+    // without this, the chase would end with its tracker).
+    let lost_work = match change {
+        SwarmChange::Left(d) => {
+            let following = following_of(snap, d);
+            book.fail_tasks_of(d, following.as_deref(), "drone lost");
+            book.unfinished_work_of(d, following)
+        }
+        _ => Vec::new(),
+    };
+    match mode {
+        Mode::Mnl => {
+            book.mnl.executed.push(format!("event: {text}"));
+            book.mnl.claimed_done = false;
+        }
+        Mode::Tacos | Mode::Wor => {
+            effects.push(Effect::Remember(HistoryEntry::Event(text.clone())));
+            // Replan only when there is work that the change may affect.
+            if book.plan.is_some() || !lost_work.is_empty() {
+                effects.push(Effect::Note(Record::Replan {
+                    reason: text.clone(),
+                }));
+                let subtasks = if lost_work.is_empty() {
+                    String::new()
+                } else {
+                    format!(" ({})", lost_work.join(", "))
+                };
+                effects.push(Effect::Replan(format!(
+                    "(automatic replan) {text}: reassign its unfinished subtasks{subtasks} and \
+                     keep the mission going"
+                )));
+            }
+        }
+    }
+    effects
+}
