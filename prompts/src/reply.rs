@@ -15,6 +15,25 @@ pub enum ActionName {
     Hold,
 }
 
+impl ActionName {
+    /// The name models write (the schema's and serde's).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ActionName::ArmTakeoff => "arm_takeoff",
+            ActionName::Goto => "goto",
+            ActionName::StartTracking => "start_tracking",
+            ActionName::StopTracking => "stop_tracking",
+            ActionName::Land => "land",
+            ActionName::Hold => "hold",
+        }
+    }
+
+    /// True for the actions that take no target (take-off, landing, hold, stop-tracking).
+    pub fn takes_no_target(self) -> bool {
+        !matches!(self, ActionName::Goto | ActionName::StartTracking)
+    }
+}
+
 /// One atomic API call: a task id, a drone, an action and its argument.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -38,10 +57,7 @@ impl Call {
 
 impl fmt::Display for Call {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let action = serde_json::to_value(self.action)
-            .ok()
-            .and_then(|v| v.as_str().map(str::to_owned))
-            .unwrap_or_default();
+        let action = self.action.as_str();
         // Only the argument the action takes: models fill "target" and "xyz" of a take-off or a
         // landing with filler, which is ignored and must not read as part of the call.
         let arg = match (self.action, self.target_name(), self.xyz) {
@@ -143,6 +159,17 @@ mod tests {
             ..reply.plan[0].clone()
         };
         assert_eq!(takeoff.to_string(), "T1 alfa arm_takeoff()");
+        for name in [
+            ActionName::ArmTakeoff,
+            ActionName::Goto,
+            ActionName::StartTracking,
+            ActionName::StopTracking,
+            ActionName::Land,
+            ActionName::Hold,
+        ] {
+            let serde_name = serde_json::to_value(name).expect("serialises");
+            assert_eq!(serde_name.as_str(), Some(name.as_str()));
+        }
         assert!(CoordinatorReply::parse(&format!("```json\n{good}\n```")).is_ok());
         assert!(matches!(
             CoordinatorReply::parse("take off!"),

@@ -5,7 +5,7 @@
 //! `whole-swarm` aid on, such a plan goes back for a repair round naming the drones it leaves
 //! out. English words decide what addresses the whole swarm, so this is an aid, not a rule.
 
-use tacos_prompts::reply::Call;
+use tacos_prompts::reply::{ActionName, Call};
 use tacos_shared::DroneMode;
 
 /// Words after which an instruction for the swarm leaves some drones out ("all drones except
@@ -56,6 +56,13 @@ pub fn left_out(plan: &[Call], available: &[(String, DroneMode)]) -> Vec<(String
         .collect()
 }
 
+/// The one action of `plan` when every call is the same action without a target (a take-off
+/// for all, a landing for all): what a drone left out is to do, too.
+pub fn one_action_without_target(plan: &[Call]) -> Option<ActionName> {
+    let first = plan.first()?.action;
+    (first.takes_no_target() && plan.iter().all(|c| c.action == first)).then_some(first)
+}
+
 /// What a plan that leaves `left` out is told.
 pub fn left_out_text(left: &[(String, DroneMode)]) -> String {
     let named: Vec<String> = left
@@ -72,7 +79,6 @@ pub fn left_out_text(left: &[(String, DroneMode)]) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use tacos_prompts::reply::ActionName;
 
     fn take_off(drone: &str) -> Call {
         Call {

@@ -100,12 +100,23 @@ impl PlanCheck {
                 ),
             ));
         }
+        // Calls the repair round's grammar requires the plan to open with (`repair-grammar`).
+        let mut required: Vec<schema::RequiredCall> = Vec::new();
         if let Some(available) = self.whole_swarm.as_ref() {
             let left = whole_swarm::left_out(&reply.plan, available);
             if !left.is_empty() {
                 let text = whole_swarm::left_out_text(&left);
                 aids_fired.push((Aid::WholeSwarm, text.clone()));
                 rejections.push(text);
+                // The 1.5B default sent the same three take-offs back three times when told:
+                // a plan of one action without a target gets it required for each drone left.
+                if let Some(action) = whole_swarm::one_action_without_target(&reply.plan) {
+                    required.extend(left.iter().map(|(drone, _)| schema::RequiredCall {
+                        drones: vec![drone.clone()],
+                        action: action.as_str(),
+                        target: schema::NO_TARGET.to_owned(),
+                    }));
+                }
             }
         }
         if !self.aids.is_on(Aid::ImpliedTakeoffs) {
@@ -125,24 +136,26 @@ impl PlanCheck {
         }
         let missing = grounding::untracked(&self.follow, &plan, &self.followed);
         // The repair round's grammar opens the plan with the missing tracking.
-        let narrowed = (!missing.is_empty() && self.aids.is_on(Aid::RepairGrammar)).then(|| {
-            let required: Vec<schema::RequiredCall> = missing
+        required.extend(missing.iter().map(|a| {
+            schema::RequiredCall {
+                drones: a
+                    .drone
+                    .clone()
+                    .map_or_else(|| self.available.clone(), |d| vec![d]),
+                action: "start_tracking",
+                target: a.target.clone(),
+            }
+        }));
+        let narrowed = (!required.is_empty() && self.aids.is_on(Aid::RepairGrammar)).then(|| {
+            let calls: Vec<String> = required
                 .iter()
-                .map(|a| schema::RequiredCall {
-                    drones: a
-                        .drone
-                        .clone()
-                        .map_or_else(|| self.available.clone(), |d| vec![d]),
-                    action: "start_tracking",
-                    target: a.target.clone(),
-                })
+                .map(|r| format!("{}({})", r.action, r.target))
                 .collect();
-            let targets: Vec<&str> = required.iter().map(|r| r.target.as_str()).collect();
             aids_fired.push((
                 Aid::RepairGrammar,
                 format!(
-                    "the repair round's grammar opens the plan with start_tracking of {}",
-                    targets.join(", ")
+                    "the repair round's grammar opens the plan with {}",
+                    calls.join(", ")
                 ),
             ));
             schema::requiring(&self.schema, &required)

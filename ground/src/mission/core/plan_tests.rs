@@ -123,7 +123,41 @@ fn with_the_whole_swarm_aid_a_plan_for_every_drone_must_leave_none_out() {
     let text = "the instruction is for every drone, but the plan gives bravo (idle) no task: add \
                 its part";
     assert_eq!(j.rejections, [text]);
-    assert_eq!(j.aids_fired, [(Aid::WholeSwarm, text.to_owned())]);
+    // The repair round's grammar opens the plan with bravo's take-off.
+    assert_eq!(
+        j.aids_fired,
+        [
+            (Aid::WholeSwarm, text.to_owned()),
+            (
+                Aid::RepairGrammar,
+                "the repair round's grammar opens the plan with arm_takeoff(none)".to_owned()
+            ),
+        ]
+    );
+    let narrowed = j.narrowed.expect("a narrowed grammar");
+    let prefix = &narrowed["properties"]["plan"]["prefixItems"];
+    assert_eq!(
+        prefix[0]["properties"]["drone"]["enum"],
+        serde_json::json!(["bravo"])
+    );
+    assert_eq!(
+        prefix[0]["properties"]["action"]["enum"],
+        serde_json::json!(["arm_takeoff"])
+    );
+    // A plan of gotos: each drone's place is the model's to choose, so the text only.
+    let goto = call("T2", "alfa", ActionName::Goto, "car_3");
+    let j = c.judge(&reply(vec![take_off("T1", "alfa"), goto]));
+    assert_eq!(j.rejections.len(), 1);
+    assert!(j.narrowed.is_none());
+    // Without the repair grammar, the text only.
+    let mut plain = c.clone();
+    plain.aids = ModelAids::small().with(Aid::RepairGrammar, false);
+    assert!(
+        plain
+            .judge(&reply(vec![take_off("T1", "alfa")]))
+            .narrowed
+            .is_none()
+    );
     let j = c.judge(&reply(vec![
         take_off("T1", "alfa"),
         take_off("T2", "bravo"),
