@@ -16,6 +16,16 @@ pub enum ActionName {
 }
 
 impl ActionName {
+    /// Every action, in the API's order.
+    pub const ALL: [ActionName; 6] = [
+        ActionName::ArmTakeoff,
+        ActionName::Goto,
+        ActionName::StartTracking,
+        ActionName::StopTracking,
+        ActionName::Land,
+        ActionName::Hold,
+    ];
+
     /// The name models write (the schema's and serde's).
     pub fn as_str(self) -> &'static str {
         match self {
@@ -48,6 +58,17 @@ pub struct Call {
 }
 
 impl Call {
+    /// A call whose argument is a name, or "none" for an action without one (no point).
+    pub fn named(task: &str, drone: &str, action: ActionName, target: &str) -> Call {
+        Call {
+            task: task.into(),
+            drone: drone.into(),
+            action,
+            target: target.into(),
+            xyz: None,
+        }
+    }
+
     /// The target, unless it is "none" or empty.
     pub fn target_name(&self) -> Option<&str> {
         let t = self.target.trim();
@@ -159,14 +180,7 @@ mod tests {
             ..reply.plan[0].clone()
         };
         assert_eq!(takeoff.to_string(), "T1 alfa arm_takeoff()");
-        for name in [
-            ActionName::ArmTakeoff,
-            ActionName::Goto,
-            ActionName::StartTracking,
-            ActionName::StopTracking,
-            ActionName::Land,
-            ActionName::Hold,
-        ] {
+        for name in ActionName::ALL {
             let serde_name = serde_json::to_value(name).expect("serialises");
             assert_eq!(serde_name.as_str(), Some(name.as_str()));
         }

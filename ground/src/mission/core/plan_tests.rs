@@ -36,18 +36,8 @@ fn check(aids: ModelAids) -> PlanCheck {
     }
 }
 
-fn call(task: &str, drone: &str, action: ActionName, target: &str) -> Call {
-    Call {
-        task: task.into(),
-        drone: drone.into(),
-        action,
-        target: target.into(),
-        xyz: None,
-    }
-}
-
 fn take_off(task: &str, drone: &str) -> Call {
-    call(task, drone, ActionName::ArmTakeoff, "none")
+    Call::named(task, drone, ActionName::ArmTakeoff, "none")
 }
 
 fn reply(plan: Vec<Call>) -> CoordinatorReply {
@@ -100,7 +90,7 @@ fn a_place_off_the_instruction_is_sent_back_only_with_a_scope() {
     let mut c = check(ModelAids::small());
     let plan = vec![
         take_off("T1", "alfa"),
-        call("T2", "alfa", ActionName::Goto, "car_5"),
+        Call::named("T2", "alfa", ActionName::Goto, "car_5"),
     ];
     assert!(c.judge(&reply(plan.clone())).rejections.is_empty());
     c.scope = Some(strings(&["car_3"]));
@@ -145,7 +135,7 @@ fn with_the_whole_swarm_aid_a_plan_for_every_drone_must_leave_none_out() {
         serde_json::json!(["arm_takeoff"])
     );
     // A plan of gotos: each drone's place is the model's to choose, so the text only.
-    let goto = call("T2", "alfa", ActionName::Goto, "car_3");
+    let goto = Call::named("T2", "alfa", ActionName::Goto, "car_3");
     let j = c.judge(&reply(vec![take_off("T1", "alfa"), goto]));
     assert_eq!(j.rejections.len(), 1);
     assert!(j.narrowed.is_none());
@@ -174,7 +164,7 @@ fn with_the_whole_swarm_aid_a_plan_for_every_drone_must_leave_none_out() {
 
 #[test]
 fn with_implied_takeoffs_off_a_goto_no_take_off_precedes_is_refused_by_name() {
-    let plan = vec![call("T1", "alfa", ActionName::Goto, "car_3")];
+    let plan = vec![Call::named("T1", "alfa", ActionName::Goto, "car_3")];
     // On: the engine adds the take-off when it adopts the plan (`with_implied_takeoffs`).
     let j = check(ModelAids::small()).judge(&reply(plan.clone()));
     assert_eq!(passed(&j), ["T1 alfa goto(car_3)"]);
@@ -197,7 +187,7 @@ fn a_target_asked_to_be_followed_must_be_tracked_and_the_repair_grammar_requires
     }];
     let plan = vec![
         take_off("T1", "bravo"),
-        call("T2", "bravo", ActionName::Goto, "car_3"),
+        Call::named("T2", "bravo", ActionName::Goto, "car_3"),
     ];
     let mut on = check(ModelAids::small());
     on.follow = follow.clone();

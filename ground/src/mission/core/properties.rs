@@ -15,14 +15,6 @@ use tacos_shared::scenario::Scenario;
 use tacos_shared::{DroneMode, Vec3};
 
 const DRONES: [&str; 5] = ["alfa", "bravo", "charlie", "delta", "zulu"];
-const ACTIONS: [ActionName; 6] = [
-    ActionName::ArmTakeoff,
-    ActionName::Goto,
-    ActionName::StartTracking,
-    ActionName::StopTracking,
-    ActionName::Land,
-    ActionName::Hold,
-];
 const TARGETS: [&str; 7] = [
     "car_2",
     "car_3",
@@ -72,14 +64,14 @@ fn call() -> impl Strategy<Value = Call> {
     (
         0..DRONES.len(),
         1..5u32,
-        0..ACTIONS.len(),
+        0..ActionName::ALL.len(),
         0..TARGETS.len(),
         point,
     )
         .prop_map(|(d, task, a, t, xyz)| Call {
             task: format!("T{task}"),
             drone: DRONES[d].into(),
-            action: ACTIONS[a],
+            action: ActionName::ALL[a],
             target: TARGETS[t].into(),
             xyz: xyz.map(|(x, y, z)| [x, y, z]),
         })

@@ -19,16 +19,6 @@ fn id(name: &str) -> DroneId {
     DroneId::new(name).expect("valid")
 }
 
-fn call(task: &str, drone: &str, action: ActionName, target: &str) -> Call {
-    Call {
-        task: task.into(),
-        drone: drone.into(),
-        action,
-        target: target.into(),
-        xyz: None,
-    }
-}
-
 /// alfa flying to car_3 (seq 2), bravo chasing the van (seq 4, its task done: at its station).
 fn chase() -> (PlanBook, Snapshot) {
     let now = Instant::now();
@@ -62,12 +52,12 @@ fn chase() -> (PlanBook, Snapshot) {
             reasoning: "chase".into(),
             tasks: vec![
                 task(
-                    call("T1", "bravo", ActionName::StartTracking, "van"),
+                    Call::named("T1", "bravo", ActionName::StartTracking, "van"),
                     TaskStatus::Done,
                     ("bravo", 4),
                 ),
                 task(
-                    call("T2", "alfa", ActionName::Goto, "car_3"),
+                    Call::named("T2", "alfa", ActionName::Goto, "car_3"),
                     TaskStatus::Running,
                     ("alfa", 2),
                 ),

@@ -66,16 +66,6 @@ fn progress(seq: u64, action: Action, state: ActionState) -> Option<ActionProgre
     })
 }
 
-fn call(task: &str, drone: &str, action: ActionName, target: &str) -> Call {
-    Call {
-        task: task.into(),
-        drone: drone.into(),
-        action,
-        target: target.into(),
-        xyz: None,
-    }
-}
-
 fn task(call: Call, status: TaskStatus, sent: Option<(&str, u64)>, failures: u32) -> PlanTask {
     PlanTask {
         call,
@@ -98,6 +88,40 @@ fn book(tasks: Vec<PlanTask>) -> PlanBook {
     }
 }
 
+/// alfa flying, reporting that its goto (seq 7) ended in `state`; the book has T1, that goto,
+/// running after `failures` failures.
+fn alfa_goto_ended(snap: &mut Snapshot, state: ActionState, failures: u32) -> PlanBook {
+    let target = Vec3::new(0.0, 0.0, 10.0);
+    let ended = progress(7, Action::Goto { target }, state);
+    heard(snap, "alfa", DroneMode::Flying, ended);
+    let running = TaskStatus::Running;
+    book(vec![task(
+        goto("T1", "alfa", "car_2"),
+        running,
+        Some(("alfa", 7)),
+        failures,
+    )])
+}
+
+/// alfa flying to car_2 (sent as `seq`), then to car_3; bravo to car_4.
+fn alfa_busy_then_bravo(seq: u64) -> PlanBook {
+    book(vec![
+        task(
+            goto("T1", "alfa", "car_2"),
+            TaskStatus::Running,
+            Some(("alfa", seq)),
+            0,
+        ),
+        task(goto("T2", "alfa", "car_3"), TaskStatus::NotStarted, None, 0),
+        task(
+            goto("T3", "bravo", "car_4"),
+            TaskStatus::NotStarted,
+            None,
+            0,
+        ),
+    ])
+}
+
 fn rules(gate: &SafetyGate) -> Rules<'_> {
     Rules {
         gate,
@@ -107,7 +131,7 @@ fn rules(gate: &SafetyGate) -> Rules<'_> {
 }
 
 fn goto(task: &str, drone: &str, place: &str) -> Call {
-    call(task, drone, ActionName::Goto, place)
+    Call::named(task, drone, ActionName::Goto, place)
 }
 
 #[test]
@@ -116,7 +140,7 @@ fn a_reported_outcome_ends_its_task_and_the_last_one_completes_the_plan() {
     let mut snap = empty(Instant::now());
     let done = progress(5, Action::ArmTakeoff, ActionState::Done);
     heard(&mut snap, "alfa", DroneMode::Flying, done);
-    let take_off = call("T1", "alfa", ActionName::ArmTakeoff, "none");
+    let take_off = Call::named("T1", "alfa", ActionName::ArmTakeoff, "none");
     let mut book = book(vec![task(
         take_off.clone(),
         TaskStatus::Running,
@@ -174,7 +198,7 @@ fn the_same_book_and_snapshot_give_the_same_effects() {
             0,
         ),
         task(
-            call("T2", "bravo", ActionName::ArmTakeoff, "none"),
+            Call::named("T2", "bravo", ActionName::ArmTakeoff, "none"),
             TaskStatus::NotStarted,
             None,
             0,
@@ -203,20 +227,7 @@ fn a_task_that_fails_three_times_gives_its_plan_up_with_the_last_reason() {
     let gate = gate();
     let mut snap = empty(Instant::now());
     let why = FailureReason::Unreachable("no progress".into());
-    let state = ActionState::Failed(why.clone());
-    let target = Vec3::new(0.0, 0.0, 10.0);
-    heard(
-        &mut snap,
-        "alfa",
-        DroneMode::Flying,
-        progress(7, Action::Goto { target }, state),
-    );
-    let mut book = book(vec![task(
-        goto("T1", "alfa", "car_2"),
-        TaskStatus::Running,
-        Some(("alfa", 7)),
-        2,
-    )]);
+    let mut book = alfa_goto_ended(&mut snap, ActionState::Failed(why.clone()), 2);
     let (effects, _) = poll(&mut book, &snap, &rules(&gate));
     assert_eq!(book.plan, None);
     let why = format!("T1 alfa goto(car_2) failed 3 times (last: {why})");
@@ -235,22 +246,9 @@ fn a_task_that_fails_three_times_gives_its_plan_up_with_the_last_reason() {
 fn a_failed_task_can_start_again_on_any_ready_drone_of_the_swarm() {
     let gate = gate();
     let mut snap = empty(Instant::now());
-    let state = ActionState::Failed(FailureReason::TimedOut);
-    let target = Vec3::new(0.0, 0.0, 10.0);
-    heard(
-        &mut snap,
-        "alfa",
-        DroneMode::Flying,
-        progress(7, Action::Goto { target }, state),
-    );
+    let mut book = alfa_goto_ended(&mut snap, ActionState::Failed(FailureReason::TimedOut), 0);
     heard(&mut snap, "bravo", DroneMode::Flying, None);
     heard(&mut snap, "charlie", DroneMode::Idle, None);
-    let mut book = book(vec![task(
-        goto("T1", "alfa", "car_2"),
-        TaskStatus::Running,
-        Some(("alfa", 7)),
-        0,
-    )]);
     poll(&mut book, &snap, &rules(&gate));
     let plan = book
         .plan
@@ -298,13 +296,13 @@ fn a_landing_after_a_take_off_waits_for_the_take_off_even_on_the_ground() {
     heard(&mut snap, "alfa", DroneMode::Idle, None);
     let mut book = book(vec![
         task(
-            call("T1", "alfa", ActionName::ArmTakeoff, "none"),
+            Call::named("T1", "alfa", ActionName::ArmTakeoff, "none"),
             TaskStatus::NotStarted,
             None,
             0,
         ),
         task(
-            call("T2", "alfa", ActionName::Land, "none"),
+            Call::named("T2", "alfa", ActionName::Land, "none"),
             TaskStatus::NotStarted,
             None,
             0,
@@ -388,7 +386,7 @@ fn a_target_lost_after_tracking_fails_the_done_task() {
         DroneMode::Flying,
         progress(9, tracking, lost),
     );
-    let follow = call("T1", "alfa", ActionName::StartTracking, "van");
+    let follow = Call::named("T1", "alfa", ActionName::StartTracking, "van");
     let mut book = book(vec![task(follow, TaskStatus::Done, Some(("alfa", 9)), 0)]);
     let (effects, changed) = poll(&mut book, &snap, &rules(&gate));
     assert!(changed);
@@ -420,21 +418,7 @@ fn a_lost_drone_leaves_its_work_and_the_target_it_followed() {
     let following = following_of(&snap, &alfa);
     assert_eq!(following.as_deref(), Some("van"));
     // The tracking was not a task of this plan: the replan is told to hand it on too.
-    let mut plan = book(vec![
-        task(
-            goto("T1", "alfa", "car_2"),
-            TaskStatus::Running,
-            Some(("alfa", 2)),
-            0,
-        ),
-        task(goto("T2", "alfa", "car_3"), TaskStatus::NotStarted, None, 0),
-        task(
-            goto("T3", "bravo", "car_4"),
-            TaskStatus::NotStarted,
-            None,
-            0,
-        ),
-    ]);
+    let mut plan = alfa_busy_then_bravo(2);
     plan.fail_tasks_of(&alfa, following.as_deref(), "drone lost");
     assert_eq!(
         plan.tasks().next().map(|t| t.status.clone()),
@@ -460,21 +444,7 @@ fn a_drone_busy_with_a_sent_action_or_following_another_ground_takes_nothing() {
     bravo.ground = Some(GROUND + 1);
     heard_as(&mut snap, bravo);
     // alfa's status does not show the sent action yet; the book does.
-    let book = book(vec![
-        task(
-            goto("T1", "alfa", "car_2"),
-            TaskStatus::Running,
-            Some(("alfa", 1)),
-            0,
-        ),
-        task(goto("T2", "alfa", "car_3"), TaskStatus::NotStarted, None, 0),
-        task(
-            goto("T3", "bravo", "car_4"),
-            TaskStatus::NotStarted,
-            None,
-            0,
-        ),
-    ]);
+    let book = alfa_busy_then_bravo(1);
     let start = Start::new(&snap, &gate, &book);
     let plan = book.plan.as_ref().expect("plan");
     assert_eq!(

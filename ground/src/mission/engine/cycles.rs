@@ -387,7 +387,7 @@ impl Mission {
                 continue;
             }
             let mode = entry.effective_mode(now);
-            let actions: Vec<ActionName> = ALL_ACTIONS
+            let actions: Vec<ActionName> = ActionName::ALL
                 .into_iter()
                 .filter(|a| {
                     !effect_holds(*a, mode)
@@ -406,15 +406,6 @@ impl Mission {
         out
     }
 }
-
-pub(super) const ALL_ACTIONS: [ActionName; 6] = [
-    ActionName::ArmTakeoff,
-    ActionName::Goto,
-    ActionName::StartTracking,
-    ActionName::StopTracking,
-    ActionName::Land,
-    ActionName::Hold,
-];
 
 /// An action of this kind, for asking whether a mode allows it (the argument does not matter
 /// to the mode rules; the real argument is checked by the safety gate).

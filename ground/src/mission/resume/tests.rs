@@ -17,16 +17,6 @@ fn start(mode: &str, format: u32) -> Record {
     }
 }
 
-fn call(task: &str, drone: &str, action: ActionName, target: &str) -> Call {
-    Call {
-        task: task.into(),
-        drone: drone.into(),
-        action,
-        target: target.into(),
-        xyz: None,
-    }
-}
-
 fn task(call: Call) -> PlanTask {
     PlanTask {
         call,
@@ -63,9 +53,14 @@ fn outcome(drone: &str, task: &str, seq: u64, failure: Option<&str>) -> Record {
 /// a ground killed while T2 ran and T3, failed once on bravo, had been sent to bravo again.
 fn killed_mid_plan() -> Vec<Line> {
     let plan = vec![
-        task(call("T1", "alfa", ActionName::ArmTakeoff, "none")),
-        task(call("T2", "alfa", ActionName::Goto, "villa")),
-        task(call("T3", "bravo", ActionName::Goto, "large_park_north")),
+        task(Call::named("T1", "alfa", ActionName::ArmTakeoff, "none")),
+        task(Call::named("T2", "alfa", ActionName::Goto, "villa")),
+        task(Call::named(
+            "T3",
+            "bravo",
+            ActionName::Goto,
+            "large_park_north",
+        )),
     ];
     let pilot = "alfa to the villa, bravo to the park";
     vec![
