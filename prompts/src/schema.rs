@@ -175,6 +175,22 @@ pub fn requiring(schema: &Value, required: &[RequiredCall]) -> Value {
     out
 }
 
+/// The Coordinator schema `schema` with its plan exactly `calls`, in order: a tuple
+/// (`prefixItems` without `items`, `minItems` = `maxItems`). The form llama.cpp's server and
+/// llguidance agree on: llama.cpp's grammar converter reads `items` when a schema has both and
+/// ignores `prefixItems` then, so [`requiring`]'s open-ended prefix holds only on llguidance.
+pub fn exactly(schema: &Value, calls: &[RequiredCall]) -> Value {
+    let mut out = requiring(schema, calls);
+    if let Some(plan) = out
+        .pointer_mut("/properties/plan")
+        .and_then(Value::as_object_mut)
+    {
+        plan.remove("items");
+        plan.insert("maxItems".into(), Value::from(calls.len()));
+    }
+    out
+}
+
 /// The most tokens a reply can take under [`build`]'s bounds for `drones` drones: its reasoning
 /// at full length (a token is at least one character) and its list full, each call at its
 /// longest (a point in "xyz", about 40 tokens). A smaller limit cuts off a well-formed reply of
@@ -225,6 +241,15 @@ mod tests {
         assert_eq!(first["target"]["enum"], serde_json::json!(["van"]));
         // The rest of the plan is as before.
         assert_eq!(plan["items"], s["properties"]["plan"]["items"]);
+        // `exactly`: that call and nothing else, in the tuple form every server reads.
+        let e = exactly(&s, std::slice::from_ref(&required));
+        let plan = &e["properties"]["plan"];
+        assert_eq!(plan["prefixItems"], r["properties"]["plan"]["prefixItems"]);
+        assert!(plan.get("items").is_none());
+        assert_eq!(
+            (plan["minItems"].as_u64(), plan["maxItems"].as_u64()),
+            (Some(1), Some(1))
+        );
     }
 
     #[test]

@@ -63,6 +63,16 @@ pub fn one_action_without_target(plan: &[Call]) -> Option<ActionName> {
     (first.takes_no_target() && plan.iter().all(|c| c.action == first)).then_some(first)
 }
 
+/// The drones among `available` whose state `action` would change: those a plan of that action
+/// for the whole swarm must name.
+pub fn needing(action: ActionName, available: &[(String, DroneMode)]) -> Vec<String> {
+    available
+        .iter()
+        .filter(|(_, mode)| !crate::mission::core::effect_holds(action, *mode))
+        .map(|(drone, _)| drone.clone())
+        .collect()
+}
+
 /// What a plan that leaves `left` out is told.
 pub fn left_out_text(left: &[(String, DroneMode)]) -> String {
     let named: Vec<String> = left

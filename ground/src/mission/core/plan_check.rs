@@ -100,8 +100,9 @@ impl PlanCheck {
                 ),
             ));
         }
-        // Calls the repair round's grammar requires the plan to open with (`repair-grammar`).
-        let mut required: Vec<schema::RequiredCall> = Vec::new();
+        // The whole plan the repair round's grammar allows (`repair-grammar`), for a plan of
+        // one action for the whole swarm that left drones out.
+        let mut whole: Option<Vec<schema::RequiredCall>> = None;
         if let Some(available) = self.whole_swarm.as_ref() {
             let left = whole_swarm::left_out(&reply.plan, available);
             if !left.is_empty() {
@@ -109,14 +110,18 @@ impl PlanCheck {
                 aids_fired.push((Aid::WholeSwarm, text.clone()));
                 rejections.push(text);
                 // The 1.5B default sent the same three take-offs back three times when told:
-                // a plan of one action without a target gets it required for each drone left.
-                if let Some(action) = whole_swarm::one_action_without_target(&reply.plan) {
-                    required.extend(left.iter().map(|(drone, _)| schema::RequiredCall {
-                        drones: vec![drone.clone()],
-                        action: action.as_str(),
-                        target: schema::NO_TARGET.to_owned(),
-                    }));
-                }
+                // a plan of one action without a target is then the whole plan's grammar, that
+                // action for each drone whose state it would change.
+                whole = whole_swarm::one_action_without_target(&reply.plan).map(|action| {
+                    whole_swarm::needing(action, available)
+                        .into_iter()
+                        .map(|drone| schema::RequiredCall {
+                            drones: vec![drone],
+                            action: action.as_str(),
+                            target: schema::NO_TARGET.to_owned(),
+                        })
+                        .collect()
+                });
             }
         }
         if !self.aids.is_on(Aid::ImpliedTakeoffs) {
@@ -136,30 +141,46 @@ impl PlanCheck {
         }
         let missing = grounding::untracked(&self.follow, &plan, &self.followed);
         // The repair round's grammar opens the plan with the missing tracking.
-        required.extend(missing.iter().map(|a| {
-            schema::RequiredCall {
+        let required: Vec<schema::RequiredCall> = missing
+            .iter()
+            .map(|a| schema::RequiredCall {
                 drones: a
                     .drone
                     .clone()
                     .map_or_else(|| self.available.clone(), |d| vec![d]),
                 action: "start_tracking",
                 target: a.target.clone(),
+            })
+            .collect();
+        let narrowed = match (whole, required.is_empty()) {
+            _ if !self.aids.is_on(Aid::RepairGrammar) => None,
+            (Some(whole), _) => {
+                let calls: Vec<String> = whole
+                    .iter()
+                    .map(|r| format!("{} {}", r.drones.join("|"), r.action))
+                    .collect();
+                aids_fired.push((
+                    Aid::RepairGrammar,
+                    format!(
+                        "the repair round's grammar allows only the plan {}",
+                        calls.join(", ")
+                    ),
+                ));
+                Some(schema::exactly(&self.schema, &whole))
             }
-        }));
-        let narrowed = (!required.is_empty() && self.aids.is_on(Aid::RepairGrammar)).then(|| {
-            let calls: Vec<String> = required
-                .iter()
-                .map(|r| format!("{}({})", r.action, r.target))
-                .collect();
-            aids_fired.push((
-                Aid::RepairGrammar,
-                format!(
-                    "the repair round's grammar opens the plan with {}",
-                    calls.join(", ")
-                ),
-            ));
-            schema::requiring(&self.schema, &required)
-        });
+            (None, false) => {
+                let targets: Vec<&str> = required.iter().map(|r| r.target.as_str()).collect();
+                aids_fired.push((
+                    Aid::RepairGrammar,
+                    format!(
+                        "the repair round's grammar opens the plan with start_tracking of {}",
+                        targets.join(", ")
+                    ),
+                ));
+                Some(schema::requiring(&self.schema, &required))
+            }
+            (None, true) => None,
+        };
         rejections.extend(missing.iter().map(FollowAsked::missing_text));
         PlanJudgement {
             reasoning: reply.reasoning.clone(),

@@ -113,26 +113,28 @@ fn with_the_whole_swarm_aid_a_plan_for_every_drone_must_leave_none_out() {
     let text = "the instruction is for every drone, but the plan gives bravo (idle) no task: add \
                 its part";
     assert_eq!(j.rejections, [text]);
-    // The repair round's grammar opens the plan with bravo's take-off.
+    // The repair round's grammar allows only the plan that takes both off.
     assert_eq!(
         j.aids_fired,
         [
             (Aid::WholeSwarm, text.to_owned()),
             (
                 Aid::RepairGrammar,
-                "the repair round's grammar opens the plan with arm_takeoff(none)".to_owned()
+                "the repair round's grammar allows only the plan alfa arm_takeoff, bravo \
+                 arm_takeoff"
+                    .to_owned()
             ),
         ]
     );
     let narrowed = j.narrowed.expect("a narrowed grammar");
-    let prefix = &narrowed["properties"]["plan"]["prefixItems"];
+    let plan = &narrowed["properties"]["plan"];
+    assert_eq!(plan["maxItems"], 2);
+    let drones: Vec<&serde_json::Value> = (0..2)
+        .map(|i| &plan["prefixItems"][i]["properties"]["drone"]["enum"][0])
+        .collect();
     assert_eq!(
-        prefix[0]["properties"]["drone"]["enum"],
-        serde_json::json!(["bravo"])
-    );
-    assert_eq!(
-        prefix[0]["properties"]["action"]["enum"],
-        serde_json::json!(["arm_takeoff"])
+        drones,
+        [&serde_json::json!("alfa"), &serde_json::json!("bravo")]
     );
     // A plan of gotos: each drone's place is the model's to choose, so the text only.
     let goto = Call::named("T2", "alfa", ActionName::Goto, "car_3");
