@@ -174,3 +174,47 @@ fn a_reply_to_ready_drones_is_accepted_whole() {
         .collect();
     assert_eq!(sent, ["bravo", "alfa"]);
 }
+
+/// Three drones sent to one car in one reply each get a point of their own, at least the safety
+/// distance from the others' (the goal points as `check_live` claims them in turn).
+#[test]
+fn three_drones_sent_to_one_car_get_points_of_their_own() {
+    let gate = SafetyGate::new(Scenario::builtin("city").expect("city"));
+    let ready = |x: f64| Drone {
+        mode: DroneMode::Flying,
+        stale: false,
+        busy: false,
+        x,
+        y: -100.0,
+    };
+    let snap = snapshot(
+        &[ready(-60.0), ready(0.0), ready(60.0), ready(120.0)],
+        Instant::now(),
+    );
+    let to_car = |task: &str, drone: &str| Call::named(task, drone, ActionName::Goto, "car_7");
+    let actions = [
+        to_car("T1", "alfa"),
+        to_car("T2", "bravo"),
+        to_car("T3", "charlie"),
+    ];
+    let judged = judge_cycle(&actions, None, &[], &snap, &gate, &[]);
+    assert_eq!(judged.rejections, Vec::<String>::new());
+    let points: Vec<Vec3> = judged
+        .accepted
+        .iter()
+        .filter_map(|(_, c)| match c.action() {
+            Action::Goto { target } => Some(*target),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(points.len(), 3);
+    let apart = gate.scenario().limits.safety_distance;
+    for (i, a) in points.iter().enumerate() {
+        for b in &points[i + 1..] {
+            assert!(
+                (a - b).norm() >= apart,
+                "{a:?} and {b:?} closer than {apart} m"
+            );
+        }
+    }
+}
