@@ -10,6 +10,7 @@
 //! Not in the core yet (issue 16 item 1): the layers' prompts, the repair loop and the sends,
 //! which still live in `engine`.
 
+mod adopt;
 mod book;
 mod checks;
 mod cycle;
@@ -31,16 +32,15 @@ mod replan_tests;
 #[cfg(test)]
 mod tests;
 
+pub(crate) use adopt::{adopt, with_implied_takeoffs, without_repeated_work};
 pub(crate) use book::{ActivePlan, PlanBook};
 pub(crate) use checks::check_live;
-pub(crate) use cycle::{
-    CycleJudgement, first_call_per_drone, judge_cycle, match_startable, same_work,
-};
+pub(crate) use cycle::{CycleJudgement, first_call_per_drone, judge_cycle, match_startable};
 pub(crate) use effect::Effect;
 pub(crate) use membership::membership_changed;
 pub(crate) use outcomes::{
     Rules, effect_holds, give_up_if_stuck, judge_monolithic, plan_ended, poll,
 };
-pub(crate) use plan_check::{PlanCheck, missing_takeoffs};
+pub(crate) use plan_check::PlanCheck;
 pub(crate) use snapshot::Snapshot;
 pub(crate) use start::{Start, startable};

@@ -5,17 +5,15 @@ use super::caller::Checked;
 use super::in_flight::{Answered, Coordination, CoordinatorAnswer, InFlight};
 use crate::mission::aids::Aid;
 use crate::mission::approval::HeldPlan;
-use crate::mission::core::{ActivePlan, PlanCheck, missing_takeoffs, same_work};
+use crate::mission::core::{PlanCheck, adopt, with_implied_takeoffs, without_repeated_work};
 use crate::mission::grounding;
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionError, MissionUpdate};
-use crate::mission::resume::PlanTask;
 use crate::mission::whole_swarm;
-use std::collections::HashMap;
 use tacos_llm::ChatMessage;
 use tacos_prompts::render::{self, HistoryEntry, TaskStatus};
 use tacos_prompts::schema::{self, Output};
-use tacos_prompts::{ActionName, Call, CoordinatorReply, texts};
+use tacos_prompts::{Call, CoordinatorReply, texts};
 use tacos_shared::{DroneId, DroneMode};
 
 /// How long a Coordinator call waits for a drone to be heard again when none is available: a
@@ -240,7 +238,9 @@ impl Mission {
             self.event(EventTopic::Note, text);
         }
         let calls = if self.cfg.aids.is_on(Aid::ImpliedTakeoffs) {
-            self.with_implied_takeoffs(calls, &grounded)
+            let (calls, effects) = with_implied_takeoffs(calls, &grounded);
+            self.apply(effects);
+            calls
         } else {
             calls
         };
@@ -276,93 +276,10 @@ impl Mission {
         MissionError::Declined { refusal }
     }
 
-    /// Makes `calls` the plan in force; tasks already running keep their status when the new
-    /// plan repeats them.
+    /// Makes `calls` the plan in force (`core::adopt`).
     pub(super) fn adopt_plan(&mut self, reasoning: String, calls: Vec<Call>) {
-        self.remember(HistoryEntry::Plan {
-            reasoning: reasoning.clone(),
-            plan: calls.clone(),
-        });
-        let running: HashMap<(String, String), PlanTask> = self
-            .book
-            .plan
-            .take()
-            .into_iter()
-            .flat_map(|p| p.tasks)
-            .filter(|t| t.status == TaskStatus::Running)
-            .map(|t| (same_work(&t.call), t))
-            .collect();
-        let tasks: Vec<PlanTask> = calls
-            .into_iter()
-            .map(|call| match running.get(&same_work(&call)) {
-                Some(t) => PlanTask {
-                    call,
-                    status: TaskStatus::Running,
-                    sent: t.sent.clone(),
-                    failures: t.failures,
-                },
-                None => PlanTask {
-                    call,
-                    status: TaskStatus::NotStarted,
-                    sent: None,
-                    failures: 0,
-                },
-            })
-            .collect();
-        self.work_epoch += 1;
-        self.log.note(Record::PlanAdopted {
-            reasoning: reasoning.clone(),
-            tasks: tasks.clone(),
-        });
-        self.book.plan = Some(ActivePlan {
-            reasoning,
-            tasks,
-            memory: Vec::new(),
-            cycles: 0,
-            stuck_since: None,
-        });
-    }
-
-    /// The plan with a take-off added before the first goto or start_tracking of each drone that
-    /// is on the ground and has no take-off anywhere in the plan: the Coordinator's own rule ("a
-    /// drone on the ground must take off before goto"), which a small model forgets. Without it
-    /// such a task can never start. Each addition is logged; the gate still checks every action.
-    pub(super) fn with_implied_takeoffs(
-        &mut self,
-        calls: Vec<Call>,
-        grounded: &[String],
-    ) -> Vec<Call> {
-        let missing = missing_takeoffs(&calls, grounded);
-        let mut next_id = calls
-            .iter()
-            .filter_map(|c| c.task.strip_prefix('T')?.parse::<u32>().ok())
-            .max()
-            .unwrap_or(0);
-        let mut out: Vec<Call> = Vec::with_capacity(calls.len());
-        for (i, call) in calls.iter().enumerate() {
-            if missing.contains(&i) {
-                next_id += 1;
-                let takeoff = Call {
-                    task: format!("T{next_id}"),
-                    drone: call.drone.clone(),
-                    action: ActionName::ArmTakeoff,
-                    target: schema::NO_TARGET.to_owned(),
-                    xyz: None,
-                };
-                let text = format!(
-                    "{call}: {} is on the ground and the plan never takes it off: added {takeoff}",
-                    call.drone
-                );
-                self.log.aid_fired(Aid::ImpliedTakeoffs, text.clone());
-                self.tell(MissionUpdate::Event {
-                    topic: EventTopic::Note,
-                    text,
-                });
-                out.push(takeoff);
-            }
-            out.push(call.clone());
-        }
-        out
+        let effects = adopt(&mut self.book, reasoning, calls);
+        self.apply(effects);
     }
 }
 
@@ -408,24 +325,6 @@ pub fn coordinator_fixed_messages(offer_refusal: bool) -> Vec<ChatMessage> {
     messages
 }
 
-/// The plan without calls that repeat their drone's previous call in the plan (the 135M model
-/// lists `alfa goto(villa)` six times in a row), and the calls dropped. Doing the same work
-/// twice in a row changes nothing, and each repeat would cost a Supervisor cycle. Work repeated
-/// after other work for that drone (out and back) is kept.
-pub(super) fn without_repeated_work(calls: Vec<Call>) -> (Vec<Call>, Vec<Call>) {
-    let mut kept: Vec<Call> = Vec::with_capacity(calls.len());
-    let mut dropped = Vec::new();
-    for call in calls {
-        let previous = kept.iter().rev().find(|c| c.drone == call.drone);
-        if previous.is_some_and(|p| same_work(p) == same_work(&call)) {
-            dropped.push(call);
-        } else {
-            kept.push(call);
-        }
-    }
-    (kept, dropped)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -443,29 +342,5 @@ mod tests {
         assert!(!plan_only.contains("refusal"), "{plan_only}");
         assert!(may_decline.contains("## Declining"));
         assert!(may_decline.contains(r#""refusal":"airport is not a place on this map"#));
-    }
-
-    #[test]
-    fn work_repeated_in_a_row_is_one_task() {
-        let call = |task: &str, drone: &str, action: ActionName, target: &str| Call {
-            task: task.into(),
-            drone: drone.into(),
-            action,
-            target: target.into(),
-            xyz: None,
-        };
-        let plan = vec![
-            call("T1", "alfa", ActionName::Goto, "villa"),
-            call("T2", "bravo", ActionName::Goto, "villa"),
-            call("T3", "alfa", ActionName::Goto, "villa"),
-            call("T4", "alfa", ActionName::Goto, "small_park"),
-            call("T5", "alfa", ActionName::Goto, "villa"),
-            call("T6", "alfa", ActionName::Goto, "villa"),
-        ];
-        let (kept, dropped) = without_repeated_work(plan);
-        let tasks = |calls: &[Call]| calls.iter().map(|c| c.task.clone()).collect::<Vec<_>>();
-        // Bravo's goto between alfa's two does not separate them; small_park does (out and back).
-        assert_eq!(tasks(&kept), ["T1", "T2", "T4", "T5"]);
-        assert_eq!(tasks(&dropped), ["T3", "T6"]);
     }
 }
