@@ -139,11 +139,8 @@ proptest! {
     }
 }
 
-/// The property above is not vacuous: a plain reply to ready drones is sent whole (and of its
-/// 400 random cases, 83 sent one call or two, measured once with a counter).
-#[test]
-fn a_reply_to_ready_drones_is_accepted_whole() {
-    let gate = SafetyGate::new(Scenario::builtin("city").expect("city"));
+/// Four drones flying idle 60 m apart along y = -100, heard just now.
+fn four_ready() -> Snapshot {
     let ready = |x: f64| Drone {
         mode: DroneMode::Flying,
         stale: false,
@@ -151,17 +148,20 @@ fn a_reply_to_ready_drones_is_accepted_whole() {
         x,
         y: -100.0,
     };
-    let snap = snapshot(
+    snapshot(
         &[ready(-60.0), ready(0.0), ready(60.0), ready(120.0)],
         Instant::now(),
-    );
-    let goto = |task: &str, drone: &str, target: &str| Call {
-        task: task.into(),
-        drone: drone.into(),
-        action: ActionName::Goto,
-        target: target.into(),
-        xyz: None,
-    };
+    )
+}
+
+/// The property above is not vacuous: a plain reply to ready drones is sent whole (and of its
+/// 400 random cases, 83 sent one call or two, measured once with a counter).
+#[test]
+fn a_reply_to_ready_drones_is_accepted_whole() {
+    let gate = SafetyGate::new(Scenario::builtin("city").expect("city"));
+    let snap = four_ready();
+    let goto =
+        |task: &str, drone: &str, target: &str| Call::named(task, drone, ActionName::Goto, target);
     let actions = [goto("T1", "alfa", "car_2"), goto("T2", "bravo", "car_3")];
     let judged = judge_cycle(&actions, None, &[], &snap, &gate, &[]);
     assert_eq!(judged.rejections, Vec::<String>::new());
@@ -180,17 +180,7 @@ fn a_reply_to_ready_drones_is_accepted_whole() {
 #[test]
 fn three_drones_sent_to_one_car_get_points_of_their_own() {
     let gate = SafetyGate::new(Scenario::builtin("city").expect("city"));
-    let ready = |x: f64| Drone {
-        mode: DroneMode::Flying,
-        stale: false,
-        busy: false,
-        x,
-        y: -100.0,
-    };
-    let snap = snapshot(
-        &[ready(-60.0), ready(0.0), ready(60.0), ready(120.0)],
-        Instant::now(),
-    );
+    let snap = four_ready();
     let to_car = |task: &str, drone: &str| Call::named(task, drone, ActionName::Goto, "car_7");
     let actions = [
         to_car("T1", "alfa"),
