@@ -6,7 +6,8 @@
 //!
 //! Prints one line per N (6, 12, 20), the N = 20 line last. No assertions on speed.
 //! `PLANNER_BENCH_PERIOD_S=0.25` replans every 250 ms instead (a planner starved of CPU, as
-//! 20 onboards on two cores are where the swap crosses).
+//! 20 onboards on two cores are where the swap crosses). `PLANNER_BENCH_SCREEN_M=1e9` screens no
+//! half-space out of the first QP (see `planner/screen.rs`), any other value sets the distance.
 //!
 //! `cargo bench -p tacos-onboard --bench planner` (release), or in the dev profile:
 //! `cargo build -p tacos-onboard --benches` then run `target/debug/deps/planner-*`.
@@ -36,10 +37,15 @@ struct Outcome {
     max_slack: f64,
     iterations: Vec<u32>,
     constraints: Vec<usize>,
+    in_qp: Vec<usize>,
+    qp_solves: usize,
 }
 
-fn run(n: usize, scenario: &Scenario, replan: f64) -> Result<Outcome, String> {
-    let cfg = PlannerConfig::from_scenario(&scenario.limits, &scenario.world);
+fn run(n: usize, scenario: &Scenario, replan: f64, screen: Option<f64>) -> Result<Outcome, String> {
+    let mut cfg = PlannerConfig::from_scenario(&scenario.limits, &scenario.world);
+    if let Some(screen) = screen {
+        cfg.screen_distance = screen;
+    }
     let mut planners = (0..n)
         .map(|_| Planner::new(cfg.clone()))
         .collect::<Result<Vec<_>, _>>()
@@ -74,6 +80,8 @@ fn run(n: usize, scenario: &Scenario, replan: f64) -> Result<Outcome, String> {
         max_slack: 0.0,
         iterations: Vec::new(),
         constraints: Vec::new(),
+        in_qp: Vec::new(),
+        qp_solves: 0,
     };
     let mut now = 0.0;
     let mut dense = vec![Vec::with_capacity(DENSE); n];
@@ -95,6 +103,8 @@ fn run(n: usize, scenario: &Scenario, replan: f64) -> Result<Outcome, String> {
             let result = result.map_err(|e| e.to_string())?;
             out.iterations.push(result.iterations);
             out.constraints.push(planners[i].last_constraints().len());
+            out.in_qp.push(result.qp_constraints);
+            out.qp_solves += result.qp_solves as usize;
             match result.status {
                 PlanStatus::Solved => {}
                 PlanStatus::Relaxed { max_slack } => {
@@ -161,8 +171,12 @@ fn main() {
         .and_then(|s| s.parse::<f64>().ok())
         .filter(|p| p.is_finite() && *p > 0.0)
         .unwrap_or(REPLAN);
+    let screen = std::env::var("PLANNER_BENCH_SCREEN_M")
+        .ok()
+        .and_then(|s| s.parse::<f64>().ok())
+        .filter(|d| d.is_finite() && *d >= 0.0);
     for n in [6, 12, 20] {
-        let out = match run(n, &scenario, replan) {
+        let out = match run(n, &scenario, replan, screen) {
             Ok(o) => o,
             Err(e) => {
                 eprintln!("planner bench N={n}: {e}");
@@ -176,8 +190,10 @@ fn main() {
         iterations.sort_by(f64::total_cmp);
         let mut constraints: Vec<f64> = out.constraints.iter().map(|&c| c as f64).collect();
         constraints.sort_by(f64::total_cmp);
+        let mut in_qp: Vec<f64> = out.in_qp.iter().map(|&c| c as f64).collect();
+        in_qp.sort_by(f64::total_cmp);
         println!(
-            "  N={n}: solves={} mean_ms={mean:.3} max_ms={:.3} iterations p50={} p95={} max={} half-spaces p50={} p95={} max={} relaxed={} braking={} max_slack_m={:.3}",
+            "  N={n}: solves={} mean_ms={mean:.3} max_ms={:.3} iterations p50={} p95={} max={} half-spaces p50={} p95={} max={} in_qp p50={} p95={} max={} qp_solves={} relaxed={} braking={} max_slack_m={:.3}",
             sorted.len(),
             sorted.last().copied().unwrap_or(f64::NAN),
             percentile(&iterations, 0.5),
@@ -186,6 +202,10 @@ fn main() {
             percentile(&constraints, 0.5),
             percentile(&constraints, 0.95),
             constraints.last().copied().unwrap_or(f64::NAN),
+            percentile(&in_qp, 0.5),
+            percentile(&in_qp, 0.95),
+            in_qp.last().copied().unwrap_or(f64::NAN),
+            out.qp_solves,
             out.relaxed,
             out.braking,
             out.max_slack,

@@ -7,6 +7,9 @@ use tacos_shared::Vec3;
 use tacos_shared::scenario::FlightLimits;
 use tacos_shared::world::{Bounds, Ellipsoid, World};
 
+/// See [`PlannerConfig::screen_distance`]; measured with the planner bench (see the README).
+const SCREEN_DISTANCE: f64 = 0.3;
+
 #[derive(Debug, Clone, PartialEq)]
 pub struct PlannerConfig {
     pub horizon_steps: usize,
@@ -56,6 +59,10 @@ pub struct PlannerConfig {
     pub right_hand_angle: f64,
     /// Clearance beyond the inflated obstacle that detour waypoints aim for.
     pub detour_margin: f64,
+    /// A half-space goes into the first QP of a solve only when the previous plan comes this
+    /// close to it (metres); the rest are checked on the solution (see `screen`). Zero keeps
+    /// only the ones the previous plan already touches; the answer is the same at any value.
+    pub screen_distance: f64,
     pub weights: CostWeights,
 }
 
@@ -95,6 +102,7 @@ impl PlannerConfig {
             floor_clearance: limits.safety_distance,
             right_hand_angle: 0.25,
             detour_margin: 2.0,
+            screen_distance: SCREEN_DISTANCE,
             weights: CostWeights {
                 position: 1.0,
                 terminal_position: 10.0,
@@ -133,6 +141,7 @@ impl PlannerConfig {
             ("stale_margin_rate", self.stale_margin_rate),
             ("max_stale_margin", self.max_stale_margin),
             ("detour_margin", self.detour_margin),
+            ("screen_distance", self.screen_distance),
             ("floor_clearance", self.floor_clearance),
             ("weights.position", self.weights.position),
             ("weights.terminal_position", self.weights.terminal_position),

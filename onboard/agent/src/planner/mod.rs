@@ -38,6 +38,7 @@ pub mod plan;
 pub mod qp;
 pub mod recheck;
 mod route;
+mod screen;
 
 #[cfg(test)]
 mod tests;
@@ -47,7 +48,8 @@ pub use constraints::{Downwash, HalfSpace, path_point, separating_half_space, ta
 pub use plan::{Plan, ReferenceState};
 pub use qp::{ConstraintKind, CostWeights, QpError, SegmentConstraint};
 
-use qp::{QpInput, QpWorkspace};
+use qp::{QpInput, QpOutput, QpWorkspace};
+use screen::Screen;
 use tacos_shared::geometry::is_finite;
 use tacos_shared::messages::PathMessage;
 use tacos_shared::world::Ellipsoid;
@@ -163,8 +165,12 @@ pub enum PlanStatus {
 pub struct PlanResult {
     pub plan: Plan,
     pub status: PlanStatus,
-    /// Interior-point iterations (0 when braking).
+    /// Interior-point iterations over every QP of the solve (0 when braking).
     pub iterations: u32,
+    /// QPs solved: 1, or more when a half-space left out by the screen was violated.
+    pub qp_solves: u32,
+    /// Half-spaces the last QP held (of `Planner::last_constraints`).
+    pub qp_constraints: usize,
     /// Neighbour paths left out as invalid.
     pub ignored_neighbours: usize,
 }
@@ -183,6 +189,9 @@ pub struct Planner {
     metric: Downwash,
     previous: Option<Plan>,
     constraints: Vec<SegmentConstraint>,
+    /// The half-spaces the QP holds (see `screen`).
+    screen: Screen,
+    in_qp: Vec<SegmentConstraint>,
     detour_sides: Vec<i8>,
     reference: Vec<Vec3>,
     qp: QpWorkspace,
@@ -204,6 +213,8 @@ impl Planner {
             detour_zone,
             previous: None,
             constraints: Vec::new(),
+            screen: Screen::default(),
+            in_qp: Vec::new(),
             reference: Vec::new(),
             qp: QpWorkspace::default(),
             cfg,
@@ -400,36 +411,66 @@ impl Planner {
             .z
             .max(ground + cfg.floor_clearance.min(lowest_wanted));
         let workspace_slack_weight = cfg.slack_weight * k as f64;
-        let input = QpInput {
-            dt,
-            p0: position,
-            v0: velocity,
-            a_prev,
-            reference: &self.reference,
-            velocity_reference,
-            speed_bounds: &speed_bounds,
-            // A drone already climbing or descending faster than allowed (a take-over in
-            // flight) is let keep that rate rather than made infeasible; the cost slows it.
-            climb_bound: cfg.max_climb_rate.max(velocity.z),
-            descent_bound: cfg.max_descent_rate.max(-velocity.z),
-            max_accel: cfg.max_accel,
-            box_lo: shrunk.min,
-            box_hi: shrunk.max,
-            reach: &reach,
-            constraints: &self.constraints,
-            weights: cfg.weights,
-            slack_weight: cfg.slack_weight,
-            workspace_slack_weight,
-            floor_slack_weight: workspace_slack_weight * cfg.floor_weight_factor,
+        let warm: Option<&dyn Fn(f64) -> Vec3> = match previous {
+            Some(_) => Some(&lin),
+            None => None,
         };
-        let out = match self.qp.solve(&input) {
-            Ok(out) => out,
-            Err(e) => return Ok(self.brake(now, position, velocity, e.into(), ignored)),
+        self.screen
+            .start(&self.constraints, warm, dt, cfg.screen_distance);
+        let mut iterations = 0;
+        let (plan, out) = loop {
+            self.screen.chosen(&self.constraints, &mut self.in_qp);
+            let input = QpInput {
+                dt,
+                p0: position,
+                v0: velocity,
+                a_prev,
+                reference: &self.reference,
+                velocity_reference,
+                speed_bounds: &speed_bounds,
+                // A drone already climbing or descending faster than allowed (a take-over in
+                // flight) is let keep that rate rather than made infeasible; the cost slows it.
+                climb_bound: cfg.max_climb_rate.max(velocity.z),
+                descent_bound: cfg.max_descent_rate.max(-velocity.z),
+                max_accel: cfg.max_accel,
+                box_lo: shrunk.min,
+                box_hi: shrunk.max,
+                reach: &reach,
+                coast: &coast,
+                constraints: &self.in_qp,
+                weights: cfg.weights,
+                slack_weight: cfg.slack_weight,
+                workspace_slack_weight,
+                floor_slack_weight: workspace_slack_weight * cfg.floor_weight_factor,
+            };
+            let mut out: QpOutput = match self.qp.solve(&input) {
+                Ok(out) => out,
+                Err(e) => return Ok(self.brake(now, position, velocity, e.into(), ignored)),
+            };
+            iterations += out.iterations;
+            let plan = Plan::integrate(
+                now,
+                dt,
+                position,
+                velocity,
+                std::mem::take(&mut out.accelerations),
+            );
+            if !plan.is_finite() {
+                return Ok(self.brake(
+                    now,
+                    position,
+                    velocity,
+                    BrakeReason::NonFinitePlan,
+                    ignored,
+                ));
+            }
+            if !self
+                .screen
+                .missed(&self.constraints, &plan, cfg.screen_distance)
+            {
+                break (plan, out);
+            }
         };
-        let plan = Plan::integrate(now, dt, position, velocity, out.accelerations);
-        if !plan.is_finite() {
-            return Ok(self.brake(now, position, velocity, BrakeReason::NonFinitePlan, ignored));
-        }
         let max_slack = out
             .slacks
             .iter()
@@ -444,7 +485,9 @@ impl Planner {
         Ok(PlanResult {
             plan,
             status,
-            iterations: out.iterations,
+            iterations,
+            qp_solves: self.screen.solves(),
+            qp_constraints: self.in_qp.len(),
             ignored_neighbours: ignored,
         })
     }
@@ -470,6 +513,8 @@ impl Planner {
             plan,
             status: PlanStatus::Braking(reason),
             iterations: 0,
+            qp_solves: self.screen.solves(),
+            qp_constraints: self.in_qp.len(),
             ignored_neighbours: ignored,
         }
     }

@@ -71,9 +71,11 @@ pub(crate) struct QpInput<'a> {
     /// Workspace box for every non-constant control point.
     pub box_lo: Vec3,
     pub box_hi: Vec3,
-    /// Radius around p_0 that segment k's control points cannot leave (for dropping workspace
-    /// rows that cannot be active).
+    /// Radius around p_0 that segment k's control points cannot leave, and a second ball
+    /// (centre, radius) they cannot leave either: a workspace wall that either ball keeps
+    /// clear of cannot be active, and its rows are left out.
     pub reach: &'a [f64],
+    pub coast: &'a [(Vec3, f64)],
     pub constraints: &'a [SegmentConstraint],
     pub weights: CostWeights,
     /// Price per metre of each obstacle or neighbour constraint's slack (one per segment).
@@ -209,9 +211,14 @@ impl QpWorkspace {
                 verbose: false,
                 max_iter: 60,
                 presolve_enable: false,
-                tol_gap_abs: 1e-6,
-                tol_gap_rel: 1e-6,
-                tol_feas: 1e-7,
+                // In the planner's units: a cost gap of 1e-4 (the cost is squared metres, and
+                // a metre of slack costs 2e4) and residuals of 1e-6 of the data's norms
+                // (metres, tens of them). Two iterations fewer per solve than 1e-6 / 1e-7 in the
+                // 20-drone swap (p50 11 → 9), the same clearances; any plan still keeps its
+                // half-spaces to within a tenth of the planner's millimetre slack tolerance.
+                tol_gap_abs: 1e-4,
+                tol_gap_rel: 1e-4,
+                tol_feas: 1e-6,
                 // The KKT systems are small and well regularised: iterative refinement of each
                 // KKT solve took a third of the solve time in the planner bench's 20-drone
                 // swap (mean 4.5 → 3.0 ms, p95 12 → 7.6 ms without it), with the same
@@ -229,6 +236,29 @@ impl QpWorkspace {
         self.p_i.push(i);
         self.p_j.push(j);
         self.p_v.push(v);
+    }
+
+    /// The constraint matrix in CSC form, by a counting sort on the column: rows are added in
+    /// increasing order and never repeat a (row, column) pair, so each column's rows come out
+    /// sorted, without the comparison sort of `CscMatrix::new_from_triplets`.
+    fn constraint_matrix(&self, m: usize, n: usize) -> CscMatrix<f64> {
+        debug_assert!(self.a_i.windows(2).all(|w| w[0] <= w[1]));
+        let mut colptr = vec![0; n + 1];
+        for &col in &self.a_j {
+            colptr[col + 1] += 1;
+        }
+        for col in 0..n {
+            colptr[col + 1] += colptr[col];
+        }
+        let mut next = colptr.clone();
+        let mut rowval = vec![0; self.a_i.len()];
+        let mut nzval = vec![0.0; self.a_i.len()];
+        for ((&row, &col), &v) in self.a_i.iter().zip(&self.a_j).zip(&self.a_v) {
+            rowval[next[col]] = row;
+            nzval[next[col]] = v;
+            next[col] += 1;
+        }
+        CscMatrix::new(m, n, colptr, rowval, nzval)
     }
 
     fn entry(&mut self, row: usize, col: usize, v: f64) {
@@ -263,6 +293,12 @@ impl QpWorkspace {
 
     pub(crate) fn solve(&mut self, input: &QpInput<'_>) -> Result<QpOutput, QpError> {
         let k = input.reference.len();
+        // The QP is written in coordinates centred on the drone (`origin`): its cost is then the
+        // size of the errors, not of the drone's distance from the map's origin, and the
+        // solver's relative gap tolerance means the same at every point of the map.
+        let origin = input.p0;
+        let p0 = Vec3::zeros();
+        let (box_lo, box_hi) = (input.box_lo - origin, input.box_hi - origin);
         let dt = input.dt;
         let layout = Layout {
             k,
@@ -284,7 +320,7 @@ impl QpWorkspace {
             let last = step == k;
             let wp = w.position + if last { w.terminal_position } else { 0.0 };
             let wv = w.velocity + if last { w.terminal_velocity } else { 0.0 };
-            let g = input.reference[step - 1];
+            let g = input.reference[step - 1] - origin;
             for axis in 0..3 {
                 let (ip, iv) = (layout.p(step) + axis, layout.v(step) + axis);
                 self.cost(ip, ip, 2.0 * wp);
@@ -320,7 +356,7 @@ impl QpWorkspace {
                 self.entry(row, layout.p(step + 1) + axis, 1.0);
                 self.entry(row, layout.a(step) + axis, -0.5 * dt * dt);
                 if step == 0 {
-                    self.b.push(input.p0[axis] + dt * input.v0[axis]);
+                    self.b.push(p0[axis] + dt * input.v0[axis]);
                 } else {
                     self.entry(row, layout.p(step) + axis, -1.0);
                     self.entry(row, layout.v(step) + axis, -dt);
@@ -352,7 +388,7 @@ impl QpWorkspace {
         for (g, c) in input.constraints.iter().enumerate() {
             // normal·x + σ ≥ offset  ⇔  (−normal)·x − σ ≤ −offset
             let neg = -c.half.normal;
-            for point in layout.control_points(c.segment, &input.p0, &input.v0, dt) {
+            for point in layout.control_points(c.segment, &p0, &input.v0, dt) {
                 if point.len == 0 {
                     continue; // fixed by the current state
                 }
@@ -360,7 +396,7 @@ impl QpWorkspace {
                     &mut row,
                     &neg,
                     &point,
-                    -c.half.offset,
+                    -(c.half.offset - c.half.normal.dot(&origin)),
                     &[(layout.slack(g), -1.0)],
                 );
             }
@@ -369,7 +405,12 @@ impl QpWorkspace {
         let floor = layout.floor_slack();
         for seg in 0..k {
             let reach = input.reach.get(seg).copied().unwrap_or(f64::INFINITY);
-            let points = layout.control_points(seg, &input.p0, &input.v0, dt);
+            let (coast, drift) = input
+                .coast
+                .get(seg)
+                .copied()
+                .map_or((p0, f64::INFINITY), |(centre, r)| (centre - origin, r));
+            let points = layout.control_points(seg, &p0, &input.v0, dt);
             // Skip the first point of segments ≥ 1: it is the last of the previous one.
             let skip = if seg == 0 { 0 } else { 1 };
             for point in points.iter().skip(skip) {
@@ -378,18 +419,14 @@ impl QpWorkspace {
                 }
                 for axis in 0..3 {
                     let e = Vec3::ith(axis, 1.0);
-                    if input.p0[axis] + reach > input.box_hi[axis] {
-                        self.le_row(&mut row, &e, point, input.box_hi[axis], &[(ws, -1.0)]);
+                    let beyond_hi = |c: &Vec3, r: f64| c[axis] + r > box_hi[axis];
+                    let beyond_lo = |c: &Vec3, r: f64| c[axis] - r < box_lo[axis];
+                    if beyond_hi(&p0, reach) && beyond_hi(&coast, drift) {
+                        self.le_row(&mut row, &e, point, box_hi[axis], &[(ws, -1.0)]);
                     }
-                    if input.p0[axis] - reach < input.box_lo[axis] {
+                    if beyond_lo(&p0, reach) && beyond_lo(&coast, drift) {
                         let slack = if axis == 2 { floor } else { ws };
-                        self.le_row(
-                            &mut row,
-                            &(-e),
-                            point,
-                            -input.box_lo[axis],
-                            &[(slack, -1.0)],
-                        );
+                        self.le_row(&mut row, &(-e), point, -box_lo[axis], &[(slack, -1.0)]);
                     }
                 }
             }
@@ -450,13 +487,7 @@ impl QpWorkspace {
             self.p_j.clone(),
             self.p_v.clone(),
         );
-        let a = CscMatrix::new_from_triplets(
-            m,
-            n,
-            self.a_i.clone(),
-            self.a_j.clone(),
-            self.a_v.clone(),
-        );
+        let a = self.constraint_matrix(m, n);
         let settings = self.settings();
         let mut solver = DefaultSolver::new(&p, &self.q, &a, &self.b, &cones, settings)
             .map_err(|e| QpError::Setup(e.to_string()))?;

@@ -5,6 +5,7 @@ use super::*;
 use tacos_shared::scenario::Scenario;
 
 mod neighbours;
+mod screening;
 mod stale_reads;
 
 const REPLAN: f64 = 0.05;
