@@ -182,6 +182,11 @@ async fn run_inner(
     // Solves are paced by their own timer (not every n-th control tick, which would round the
     // period up to a multiple of 20 ms); each starts from the state the last tick saw.
     let mut plan_timer = clock.ticker(cfg.motion.plan_period);
+    // A tick that found a solve still running: the next solve starts as soon as that one is
+    // done instead of a whole period later. On a starved CPU (20 drones on two cores, where
+    // the swap crosses) a solve can outlast the period; skipping the tick left the drones
+    // 10–14 solves a second where they should have 20.
+    let mut solve_due = false;
     let mut last_steering: Option<Steering> = None;
     // A ground station silent for the hold time may be replaced by another.
     let mut ground = GroundSide::new(
@@ -256,9 +261,14 @@ async fn run_inner(
                     // Only a panic in the solver gets here; the planner went with it.
                     Err(e) => return Err(OnboardError::PlannerLost(e.to_string())),
                 }
+                if std::mem::take(&mut solve_due) && let Some(steering) = last_steering {
+                    solving = start_solve(&mut motion, &executor, steering, now());
+                }
             }
             _ = plan_timer.tick() => {
-                if solving.is_none() && let Some(steering) = last_steering {
+                if solving.is_some() {
+                    solve_due = true;
+                } else if let Some(steering) = last_steering {
                     solving = start_solve(&mut motion, &executor, steering, now());
                 }
             }
