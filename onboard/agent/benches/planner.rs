@@ -39,6 +39,7 @@ struct Outcome {
     constraints: Vec<usize>,
     in_qp: Vec<usize>,
     qp_solves: usize,
+    solver_reuses: u64,
 }
 
 fn run(n: usize, scenario: &Scenario, replan: f64, screen: Option<f64>) -> Result<Outcome, String> {
@@ -82,6 +83,7 @@ fn run(n: usize, scenario: &Scenario, replan: f64, screen: Option<f64>) -> Resul
         constraints: Vec::new(),
         in_qp: Vec::new(),
         qp_solves: 0,
+        solver_reuses: 0,
     };
     let mut now = 0.0;
     let mut dense = vec![Vec::with_capacity(DENSE); n];
@@ -146,6 +148,7 @@ fn run(n: usize, scenario: &Scenario, replan: f64, screen: Option<f64>) -> Resul
         }
     }
     out.arrived = arrived.iter().filter(|a| **a).count();
+    out.solver_reuses = planners.iter().map(|p| p.solver_reuses()).sum();
     out.sim_s = now;
     Ok(out)
 }
@@ -193,7 +196,7 @@ fn main() {
         let mut in_qp: Vec<f64> = out.in_qp.iter().map(|&c| c as f64).collect();
         in_qp.sort_by(f64::total_cmp);
         println!(
-            "  N={n}: solves={} mean_ms={mean:.3} max_ms={:.3} iterations p50={} p95={} max={} half-spaces p50={} p95={} max={} in_qp p50={} p95={} max={} qp_solves={} relaxed={} braking={} max_slack_m={:.3}",
+            "  N={n}: solves={} mean_ms={mean:.3} max_ms={:.3} iterations p50={} p95={} max={} half-spaces p50={} p95={} max={} in_qp p50={} p95={} max={} qp_solves={} solver_reuses={} relaxed={} braking={} max_slack_m={:.3}",
             sorted.len(),
             sorted.last().copied().unwrap_or(f64::NAN),
             percentile(&iterations, 0.5),
@@ -206,6 +209,7 @@ fn main() {
             percentile(&in_qp, 0.95),
             in_qp.last().copied().unwrap_or(f64::NAN),
             out.qp_solves,
+            out.solver_reuses,
             out.relaxed,
             out.braking,
             out.max_slack,

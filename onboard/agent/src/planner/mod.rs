@@ -243,6 +243,12 @@ impl Planner {
         self.detour_sides.iter_mut().for_each(|s| *s = 0);
     }
 
+    /// QPs solved by updating the last solver's data rather than setting one up (a problem of
+    /// the same shape), since the planner was made.
+    pub fn solver_reuses(&self) -> u64 {
+        self.qp.reuses()
+    }
+
     /// The half-spaces of the last solve (after dropping the redundant ones), for checks.
     pub fn last_constraints(&self) -> &[SegmentConstraint] {
         &self.constraints

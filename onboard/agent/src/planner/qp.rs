@@ -189,9 +189,8 @@ impl Layout {
     }
 }
 
-/// Triplet buffers kept between solves (the matrices change shape with the constraint set, so
-/// clarabel itself is set up anew each time).
-#[derive(Debug, Default)]
+/// Triplet buffers kept between solves, and the last solver (see `last`).
+#[derive(Default)]
 pub(crate) struct QpWorkspace {
     p_i: Vec<usize>,
     p_j: Vec<usize>,
@@ -202,6 +201,32 @@ pub(crate) struct QpWorkspace {
     a_v: Vec<f64>,
     b: Vec<f64>,
     settings: Option<DefaultSettings<f64>>,
+    /// The last solve's solver, with the shape of its problem: a solve of the same shape (the
+    /// same sparsity and cones, as when no half-space is near) updates its data instead of
+    /// setting a solver up again (a quarter of a solve: KKT assembly, AMD ordering,
+    /// equilibration). The equilibration of the first problem of the shape is kept.
+    last: Option<(Shape, DefaultSolver<f64>)>,
+    /// Solves that reused the last solver.
+    reuses: u64,
+}
+
+/// What a solver can be reused for: the dimensions and the cones (the sparsity of P and A is
+/// checked by clarabel's own data update).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Shape {
+    n: usize,
+    m: usize,
+    zero_rows: usize,
+    nonneg_rows: usize,
+}
+
+impl std::fmt::Debug for QpWorkspace {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("QpWorkspace")
+            .field("rows", &self.b.len())
+            .field("last_shape", &self.last.as_ref().map(|(shape, _)| shape))
+            .finish_non_exhaustive()
+    }
 }
 
 impl QpWorkspace {
@@ -228,6 +253,11 @@ impl QpWorkspace {
                 ..DefaultSettings::default()
             })
             .clone()
+    }
+
+    /// Solves that reused the last solver (see `last`).
+    pub(crate) fn reuses(&self) -> u64 {
+        self.reuses
     }
 
     fn cost(&mut self, i: usize, j: usize, v: f64) {
@@ -488,10 +518,32 @@ impl QpWorkspace {
             self.p_v.clone(),
         );
         let a = self.constraint_matrix(m, n);
-        let settings = self.settings();
-        let mut solver = DefaultSolver::new(&p, &self.q, &a, &self.b, &cones, settings)
-            .map_err(|e| QpError::Setup(e.to_string()))?;
+        let shape = Shape {
+            n,
+            m,
+            zero_rows,
+            nonneg_rows,
+        };
+        let reused = match self.last.take() {
+            Some((last_shape, mut solver)) if last_shape == shape => solver
+                .update_data(&p, &self.q, &a, &self.b)
+                .is_ok()
+                .then_some(solver),
+            _ => None,
+        };
+        let mut solver = match reused {
+            Some(solver) => {
+                self.reuses += 1;
+                solver
+            }
+            None => {
+                let settings = self.settings();
+                DefaultSolver::new(&p, &self.q, &a, &self.b, &cones, settings)
+                    .map_err(|e| QpError::Setup(e.to_string()))?
+            }
+        };
         solver.solve();
+        let solver = &self.last.insert((shape, solver)).1;
         let sol = &solver.solution;
         match sol.status {
             SolverStatus::Solved | SolverStatus::AlmostSolved => {}

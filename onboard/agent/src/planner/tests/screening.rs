@@ -1,8 +1,10 @@
-//! The constraint screen (`planner/screen.rs`) changes how fast a plan is found, not which plan:
-//! a drone crossing a crowd of hovering neighbours is planned with and without it, from the
-//! same states, and the plans agree to within the solver's tolerance.
+//! The planner's shortcuts change how fast a plan is found, not which plan: the constraint
+//! screen (`planner/screen.rs`) — a drone crossing a crowd of hovering neighbours is planned
+//! with and without it, from the same states — and the reuse of the last solver for a problem
+//! of the same shape (`qp.rs`).
 
 use super::*;
+use crate::planner::qp::{QpInput, QpWorkspace};
 
 fn hovering(name: &str, at: Vec3) -> NeighbourPath {
     NeighbourPath {
@@ -69,4 +71,59 @@ fn a_screened_solve_finds_the_plan_of_the_full_one() {
         "only {left_out} half-spaces were screened out"
     );
     assert!(largest_gap < 0.05, "the plans differ by {largest_gap} m");
+}
+
+#[test]
+fn a_reused_solver_finds_the_solution_of_a_fresh_one() {
+    let cfg = city_config();
+    let k = cfg.horizon_steps;
+    let reach = vec![f64::INFINITY; k];
+    let speed_bounds = vec![cfg.max_speed; k];
+    let mut reusing = QpWorkspace::default();
+    let mut largest_gap = 0.0_f64;
+    // A drone flying east past the map's middle: every step's problem has the same shape and
+    // different data (start, velocity, reference).
+    for step in 0..30 {
+        let p0 = Vec3::new(-20.0 + 0.5 * step as f64, 3.0, 12.0);
+        let v0 = Vec3::new(8.0, 0.0, 0.1 * (step % 3) as f64);
+        let reference = vec![Vec3::new(25.0, 3.0 + 0.1 * step as f64, 14.0); k];
+        let input = QpInput {
+            dt: cfg.dt,
+            p0,
+            v0,
+            a_prev: Vec3::zeros(),
+            reference: &reference,
+            velocity_reference: Vec3::new(cfg.max_speed, 0.0, 0.0),
+            speed_bounds: &speed_bounds,
+            climb_bound: cfg.max_climb_rate,
+            descent_bound: cfg.max_descent_rate,
+            max_accel: cfg.max_accel,
+            box_lo: cfg.shrunk_workspace().min,
+            box_hi: cfg.shrunk_workspace().max,
+            reach: &reach,
+            coast: &[],
+            constraints: &[],
+            weights: cfg.weights,
+            slack_weight: cfg.slack_weight,
+            workspace_slack_weight: cfg.slack_weight * k as f64,
+            floor_slack_weight: cfg.slack_weight * k as f64 * cfg.floor_weight_factor,
+        };
+        let (reused, fresh) = match (reusing.solve(&input), QpWorkspace::default().solve(&input)) {
+            (Ok(a), Ok(b)) => (a, b),
+            (a, b) => panic!("step {step}: {a:?} / {b:?}"),
+        };
+        for (a, b) in reused.accelerations.iter().zip(&fresh.accelerations) {
+            largest_gap = largest_gap.max((a - b).norm());
+        }
+    }
+    assert_eq!(
+        reusing.reuses(),
+        29,
+        "every solve after the first reuses the solver"
+    );
+    assert!(
+        largest_gap < 1e-4,
+        "accelerations differ by {largest_gap} m/s²"
+    );
+    eprintln!("accelerations differ by up to {largest_gap:.2e} m/s²");
 }
