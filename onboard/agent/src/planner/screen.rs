@@ -160,26 +160,14 @@ mod tests {
         let mut chosen = Vec::new();
         screen.chosen(&constraints, &mut chosen);
         assert_eq!(chosen, vec![constraints[1]]);
-        // A plan flying to x = 55 m violates the 50 m wall of segment 1, not the 60 m one.
-        let fast = Plan::integrate(
-            0.0,
-            0.1,
-            Vec3::new(54.0, 0.0, 0.0),
-            Vec3::zeros(),
-            vec![Vec3::zeros(); 4],
-        );
-        assert!(screen.missed(&constraints, &fast, 1.0));
+        // A plan at x = 54 m violates the 50 m wall of segment 1, not the 60 m one.
+        let far = Plan::hold(0.0, 0.1, 4, Vec3::new(54.0, 0.0, 0.0));
+        assert!(screen.missed(&constraints, &far, 1.0));
         screen.chosen(&constraints, &mut chosen);
         assert_eq!(chosen, vec![constraints[0], constraints[1]]);
-        // A second miss takes every half-space in.
-        let faster = Plan::integrate(
-            0.0,
-            0.1,
-            Vec3::new(70.0, 0.0, 0.0),
-            Vec3::zeros(),
-            vec![Vec3::zeros(); 4],
-        );
-        assert!(screen.missed(&constraints, &faster, 1.0));
+        // A second miss (x = 70 m, past the 60 m wall) takes every half-space in.
+        let farther = Plan::hold(0.0, 0.1, 4, Vec3::new(70.0, 0.0, 0.0));
+        assert!(screen.missed(&constraints, &farther, 1.0));
         screen.chosen(&constraints, &mut chosen);
         assert_eq!(chosen.len(), 3);
         assert_eq!(screen.solves(), 2);
