@@ -161,6 +161,18 @@ fn percentile(sorted: &[f64], q: f64) -> f64 {
     sorted[i.min(sorted.len() - 1)]
 }
 
+/// `p50=… p95=… max=…` of `values`.
+fn spread(values: impl Iterator<Item = f64>) -> String {
+    let mut sorted: Vec<f64> = values.collect();
+    sorted.sort_by(f64::total_cmp);
+    format!(
+        "p50={} p95={} max={}",
+        percentile(&sorted, 0.5),
+        percentile(&sorted, 0.95),
+        sorted.last().copied().unwrap_or(f64::NAN)
+    )
+}
+
 fn main() {
     let scenario = match Scenario::builtin("city") {
         Ok(s) => s,
@@ -189,25 +201,13 @@ fn main() {
         let mut sorted = out.solve_ms.clone();
         sorted.sort_by(f64::total_cmp);
         let mean = sorted.iter().sum::<f64>() / sorted.len().max(1) as f64;
-        let mut iterations: Vec<f64> = out.iterations.iter().map(|&i| f64::from(i)).collect();
-        iterations.sort_by(f64::total_cmp);
-        let mut constraints: Vec<f64> = out.constraints.iter().map(|&c| c as f64).collect();
-        constraints.sort_by(f64::total_cmp);
-        let mut in_qp: Vec<f64> = out.in_qp.iter().map(|&c| c as f64).collect();
-        in_qp.sort_by(f64::total_cmp);
         println!(
-            "  N={n}: solves={} mean_ms={mean:.3} max_ms={:.3} iterations p50={} p95={} max={} half-spaces p50={} p95={} max={} in_qp p50={} p95={} max={} qp_solves={} solver_reuses={} relaxed={} braking={} max_slack_m={:.3}",
+            "  N={n}: solves={} mean_ms={mean:.3} max_ms={:.3} iterations {} half-spaces {} in_qp {} qp_solves={} solver_reuses={} relaxed={} braking={} max_slack_m={:.3}",
             sorted.len(),
             sorted.last().copied().unwrap_or(f64::NAN),
-            percentile(&iterations, 0.5),
-            percentile(&iterations, 0.95),
-            iterations.last().copied().unwrap_or(f64::NAN),
-            percentile(&constraints, 0.5),
-            percentile(&constraints, 0.95),
-            constraints.last().copied().unwrap_or(f64::NAN),
-            percentile(&in_qp, 0.5),
-            percentile(&in_qp, 0.95),
-            in_qp.last().copied().unwrap_or(f64::NAN),
+            spread(out.iterations.iter().map(|&i| f64::from(i))),
+            spread(out.constraints.iter().map(|&c| c as f64)),
+            spread(out.in_qp.iter().map(|&c| c as f64)),
             out.qp_solves,
             out.solver_reuses,
             out.relaxed,

@@ -48,7 +48,7 @@ pub use constraints::{Downwash, HalfSpace, path_point, separating_half_space, ta
 pub use plan::{Plan, ReferenceState};
 pub use qp::{ConstraintKind, CostWeights, QpError, SegmentConstraint};
 
-use qp::{QpInput, QpOutput, QpWorkspace};
+use qp::{QpInput, QpWorkspace};
 use screen::Screen;
 use tacos_shared::geometry::is_finite;
 use tacos_shared::messages::PathMessage;
@@ -417,10 +417,7 @@ impl Planner {
             .z
             .max(ground + cfg.floor_clearance.min(lowest_wanted));
         let workspace_slack_weight = cfg.slack_weight * k as f64;
-        let warm: Option<&dyn Fn(f64) -> Vec3> = match previous {
-            Some(_) => Some(&lin),
-            None => None,
-        };
+        let warm = previous.map(|_| &lin as &dyn Fn(f64) -> Vec3);
         self.screen
             .start(&self.constraints, warm, dt, cfg.screen_distance);
         let mut iterations = 0;
@@ -449,7 +446,7 @@ impl Planner {
                 workspace_slack_weight,
                 floor_slack_weight: workspace_slack_weight * cfg.floor_weight_factor,
             };
-            let mut out: QpOutput = match self.qp.solve(&input) {
+            let mut out = match self.qp.solve(&input) {
                 Ok(out) => out,
                 Err(e) => return Ok(self.brake(now, position, velocity, e.into(), ignored)),
             };

@@ -189,6 +189,16 @@ impl Plan {
             vec![p, p + v * (dt / 2.0), self.positions[k + 1]]
         }
     }
+
+    /// The control points of segment `k` that a solve places: all but, in segment 0, the two
+    /// fixed by the current state (see [`Plan::control_points`]).
+    pub fn free_control_points(&self, k: usize) -> Vec<Vec3> {
+        let mut points = self.control_points(k);
+        if k == 0 {
+            points.drain(..2.min(points.len()));
+        }
+        points
+    }
 }
 
 #[cfg(test)]

@@ -15,7 +15,7 @@ use tacos_shared::Vec3;
 
 /// A left-out half-space counts as violated beyond this (metres). Far below the planner's slack
 /// tolerance, so a plan reported `Solved` keeps every half-space to within it.
-pub(super) const VIOLATION_TOLERANCE: f64 = 1e-4;
+const VIOLATION_TOLERANCE: f64 = 1e-4;
 
 /// More solves than this with a miss, and the next one holds every half-space.
 const SCREENED_SOLVES: u32 = 2;
@@ -78,12 +78,16 @@ impl Screen {
     ) -> bool {
         self.solves += 1;
         self.near.clear();
+        // Each segment's points once: a segment has a half-space per neighbour near it.
+        let points: Vec<Vec<Vec3>> = (0..plan.steps())
+            .map(|k| plan.free_control_points(k))
+            .collect();
         let mut missed = false;
         for (i, (c, chosen)) in constraints.iter().zip(&self.in_qp).enumerate() {
             if *chosen {
                 continue;
             }
-            let closest = closest_approach(c, plan);
+            let closest = closest_approach(c, points.get(c.segment).map_or(&[], Vec::as_slice));
             missed |= closest < -VIOLATION_TOLERANCE;
             if closest < distance {
                 self.near.push(i);
@@ -105,14 +109,11 @@ impl Screen {
     }
 }
 
-/// The smallest signed distance to the half-space's boundary of the control points of its
-/// segment that the QP moves (negative: outside).
-fn closest_approach(c: &SegmentConstraint, plan: &Plan) -> f64 {
-    // In segment 0 the first two points are fixed by the current state (see `Plan::control_points`).
-    let fixed = if c.segment == 0 { 2 } else { 0 };
-    plan.control_points(c.segment)
+/// The smallest signed distance of `points` (its segment's free control points) to the
+/// half-space's boundary (negative: outside).
+fn closest_approach(c: &SegmentConstraint, points: &[Vec3]) -> f64 {
+    points
         .iter()
-        .skip(fixed)
         .map(|p| c.half.signed_distance(p))
         .fold(f64::INFINITY, f64::min)
 }
@@ -186,7 +187,14 @@ mod tests {
             Vec3::new(-40.0, 0.0, 0.0),
             vec![Vec3::zeros(); 2],
         );
-        assert!(closest_approach(&wall(0, 1.95), &plan) > 0.9);
-        assert!(closest_approach(&wall(0, -5.0), &plan) < 0.0);
+        // Both walls left out: the previous plan was far behind them.
+        let warm = |_t: f64| Vec3::new(-100.0, 0.0, 0.0);
+        let mut screen = Screen::default();
+        let start_outside = [wall(0, 1.95)];
+        screen.start(&start_outside, Some(&warm), 0.1, 1.0);
+        assert!(!screen.missed(&start_outside, &plan, 1.0));
+        let free_points_outside = [wall(0, -5.0)];
+        screen.start(&free_points_outside, Some(&warm), 0.1, 1.0);
+        assert!(screen.missed(&free_points_outside, &plan, 1.0));
     }
 }

@@ -55,14 +55,11 @@ fn solve(
 fn assert_constraints_hold(p: &Planner, plan: &Plan, tolerance: f64) {
     assert!(!p.last_constraints().is_empty() || plan.steps() > 0);
     for c in p.last_constraints() {
-        let cps = plan.control_points(c.segment);
-        // In segment 0 the first two points are fixed by the current state.
-        let fixed = if c.segment == 0 { 2 } else { 0 };
-        for (i, cp) in cps.iter().enumerate().skip(fixed) {
+        for (i, cp) in plan.free_control_points(c.segment).iter().enumerate() {
             let d = c.half.signed_distance(cp);
             assert!(
                 d >= -tolerance,
-                "control point {i} of segment {} violates {:?} ({:?}) by {d}",
+                "free control point {i} of segment {} violates {:?} ({:?}) by {d}",
                 c.segment,
                 c.half,
                 c.kind
@@ -97,13 +94,9 @@ fn assert_within_limits(cfg: &PlannerConfig, plan: &Plan) {
     }
     let ws = cfg.shrunk_workspace();
     for k in 0..plan.steps() {
-        for cp in plan
-            .control_points(k)
-            .iter()
-            .skip(if k == 0 { 2 } else { 0 })
-        {
+        for cp in plan.free_control_points(k) {
             assert!(
-                ws.contains_with_margin(cp, -1e-4),
+                ws.contains_with_margin(&cp, -1e-4),
                 "{cp:?} leaves the workspace"
             );
         }
