@@ -26,16 +26,14 @@
 //! - A detour waypoint (see `route`) steers the reference around the first obstacle blocking the
 //!   straight line to the goal, to avoid the local minimum in front of it.
 //!
-//! Constraints that cannot be active are dropped before solving: a segment's control points
-//! stay within `max(max_speed, |v₀|) × (k + 1) dt` of the current position and within
-//! `|v₀| dt/2 + max_accel ((k + 1) dt)² / 2` of the coasting point `p₀ + v₀ (k + ½) dt`, so a
-//! half-space containing either ball is redundant. Neighbour sets are range-based (so symmetric):
-//! see [`neighbours_in_range`].
+//! Constraints that cannot be active are dropped before solving (see `reachable`). Neighbour
+//! sets are range-based (so symmetric): see [`neighbours_in_range`].
 
 mod config;
 pub mod constraints;
 pub mod plan;
 pub mod qp;
+mod reachable;
 pub mod recheck;
 mod route;
 mod screen;
@@ -49,6 +47,7 @@ pub use plan::{Plan, ReferenceState};
 pub use qp::{ConstraintKind, CostWeights, QpError, SegmentConstraint};
 
 use qp::{QpInput, QpWorkspace};
+use reachable::Reachable;
 use screen::Screen;
 use tacos_shared::geometry::is_finite;
 use tacos_shared::messages::PathMessage;
@@ -291,25 +290,9 @@ impl Planner {
             return Ok(self.brake(now, position, velocity, BrakeReason::BadGoal, 0));
         }
 
-        // Where segment k's control points can be: within `reach[k]` of the current position
-        // (speed bound), and within `drift[k]` of the coasting point p₀ + v₀ t_mid
-        // (acceleration bound). A half-space containing either ball cannot be active.
-        let fastest = cfg.max_speed.max(velocity.norm());
-        let reach: Vec<f64> = (0..k)
-            .map(|seg| fastest * (seg + 1) as f64 * dt + 1e-6)
-            .collect();
-        let coast: Vec<(Vec3, f64)> = (0..k)
-            .map(|seg| {
-                let t_end = (seg + 1) as f64 * dt;
-                let centre = position + velocity * ((seg as f64 + 0.5) * dt);
-                let radius = velocity.norm() * dt / 2.0 + 0.5 * cfg.max_accel * t_end * t_end;
-                (centre, radius + 1e-6)
-            })
-            .collect();
-        let redundant = |half: &HalfSpace, seg: usize| {
-            half.contains_ball(&position, reach[seg])
-                || half.contains_ball(&coast[seg].0, coast[seg].1)
-        };
+        // A half-space no plan the QP can return leaves cannot be active.
+        let reachable = Reachable::new(position, velocity, cfg.max_speed, cfg.max_accel, dt, k);
+        let redundant = |half: &HalfSpace, seg: usize| reachable.keeps_inside(half, seg);
         let speed_bounds: Vec<f64> = (1..=k)
             .map(|step| {
                 cfg.max_speed
@@ -438,8 +421,7 @@ impl Planner {
                 max_accel: cfg.max_accel,
                 box_lo: shrunk.min,
                 box_hi: shrunk.max,
-                reach: &reach,
-                coast: &coast,
+                reachable: &reachable,
                 constraints: &self.in_qp,
                 weights: cfg.weights,
                 slack_weight: cfg.slack_weight,

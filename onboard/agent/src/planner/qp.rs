@@ -16,6 +16,7 @@
 //! linear in between, so its norm (convex) is bounded by the larger of the two ends.
 
 use super::constraints::HalfSpace;
+use super::reachable::Reachable;
 use clarabel::algebra::CscMatrix;
 use clarabel::solver::{DefaultSettings, DefaultSolver, IPSolver, SolverStatus, SupportedConeT};
 use tacos_shared::Vec3;
@@ -71,11 +72,9 @@ pub(crate) struct QpInput<'a> {
     /// Workspace box for every non-constant control point.
     pub box_lo: Vec3,
     pub box_hi: Vec3,
-    /// Radius around p_0 that segment k's control points cannot leave, and a second ball
-    /// (centre, radius) they cannot leave either: a workspace wall that either ball keeps
-    /// clear of cannot be active, and its rows are left out.
-    pub reach: &'a [f64],
-    pub coast: &'a [(Vec3, f64)],
+    /// Where each segment's control points can be: a workspace wall they cannot leave is not
+    /// written as rows.
+    pub reachable: &'a Reachable,
     pub constraints: &'a [SegmentConstraint],
     pub weights: CostWeights,
     /// Price per metre of each obstacle or neighbour constraint's slack (one per segment).
@@ -434,12 +433,6 @@ impl QpWorkspace {
         let ws = layout.workspace_slack();
         let floor = layout.floor_slack();
         for seg in 0..k {
-            let reach = input.reach.get(seg).copied().unwrap_or(f64::INFINITY);
-            let (coast, drift) = input
-                .coast
-                .get(seg)
-                .copied()
-                .map_or((p0, f64::INFINITY), |(centre, r)| (centre - origin, r));
             let points = layout.control_points(seg, &p0, &input.v0, dt);
             // Skip the first point of segments ≥ 1: it is the last of the previous one.
             let skip = if seg == 0 { 0 } else { 1 };
@@ -449,12 +442,19 @@ impl QpWorkspace {
                 }
                 for axis in 0..3 {
                     let e = Vec3::ith(axis, 1.0);
-                    let beyond_hi = |c: &Vec3, r: f64| c[axis] + r > box_hi[axis];
-                    let beyond_lo = |c: &Vec3, r: f64| c[axis] - r < box_lo[axis];
-                    if beyond_hi(&p0, reach) && beyond_hi(&coast, drift) {
+                    // The walls in the world's coordinates, as the reachable balls are.
+                    let below_hi = HalfSpace {
+                        normal: -e,
+                        offset: -input.box_hi[axis],
+                    };
+                    let above_lo = HalfSpace {
+                        normal: e,
+                        offset: input.box_lo[axis],
+                    };
+                    if !input.reachable.keeps_inside(&below_hi, seg) {
                         self.le_row(&mut row, &e, point, box_hi[axis], &[(ws, -1.0)]);
                     }
-                    if beyond_lo(&p0, reach) && beyond_lo(&coast, drift) {
+                    if !input.reachable.keeps_inside(&above_lo, seg) {
                         let slack = if axis == 2 { floor } else { ws };
                         self.le_row(&mut row, &(-e), point, -box_lo[axis], &[(slack, -1.0)]);
                     }

@@ -5,6 +5,7 @@
 
 use super::*;
 use crate::planner::qp::{QpInput, QpWorkspace};
+use crate::planner::reachable::Reachable;
 
 fn hovering(name: &str, at: Vec3) -> NeighbourPath {
     NeighbourPath {
@@ -77,7 +78,6 @@ fn a_screened_solve_finds_the_plan_of_the_full_one() {
 fn a_reused_solver_finds_the_solution_of_a_fresh_one() {
     let cfg = city_config();
     let k = cfg.horizon_steps;
-    let reach = vec![f64::INFINITY; k];
     let speed_bounds = vec![cfg.max_speed; k];
     let mut reusing = QpWorkspace::default();
     let mut largest_gap = 0.0_f64;
@@ -100,8 +100,7 @@ fn a_reused_solver_finds_the_solution_of_a_fresh_one() {
             max_accel: cfg.max_accel,
             box_lo: cfg.shrunk_workspace().min,
             box_hi: cfg.shrunk_workspace().max,
-            reach: &reach,
-            coast: &[],
+            reachable: &Reachable::new(p0, v0, cfg.max_speed, cfg.max_accel, cfg.dt, k),
             constraints: &[],
             weights: cfg.weights,
             slack_weight: cfg.slack_weight,
