@@ -7,8 +7,11 @@
 //! tested without a process (`core::tests`; `core::purity` fails if a file here names tokio,
 //! zenoh, the link, the log writer, the model backend or a clock).
 //!
-//! Not in the core yet (issue 16 item 1): the layers' prompts, the repair loop and the sends,
-//! which still live in `engine`.
+//! The repair loop of a model call is here too (`repair`): the engine's `Caller` only asks the
+//! model and carries out its effects.
+//!
+//! Not in the core yet (issue 16 item 1): the layers' prompts and the sends, which still live
+//! in `engine`.
 
 mod adopt;
 mod book;
@@ -18,15 +21,20 @@ mod effect;
 mod membership;
 mod outcomes;
 mod plan_check;
+mod repair;
 mod snapshot;
 mod start;
 
+#[cfg(test)]
+mod cycles_tests;
 #[cfg(test)]
 mod plan_tests;
 #[cfg(test)]
 mod properties;
 #[cfg(test)]
 mod purity;
+#[cfg(test)]
+mod repair_tests;
 #[cfg(test)]
 mod replan_tests;
 #[cfg(test)]
@@ -42,5 +50,6 @@ pub(crate) use outcomes::{
     Rules, effect_holds, give_up_if_stuck, judge_monolithic, plan_ended, poll,
 };
 pub(crate) use plan_check::PlanCheck;
+pub(crate) use repair::{Checked, Next, Repair};
 pub(crate) use snapshot::Snapshot;
 pub(crate) use start::{Start, startable};

@@ -5,7 +5,7 @@ use super::log::RefusedBy;
 use std::time::Duration;
 use tacos_llm::LlmError;
 
-#[derive(Debug, thiserror::Error)]
+#[derive(Debug, PartialEq, thiserror::Error)]
 pub enum MissionError {
     #[error("{layer}: the model server failed: {error}")]
     Llm {

@@ -3,8 +3,8 @@
 
 use crate::mission::resume::{PlanTask, SavedPlan};
 use std::time::{Duration, Instant};
-use tacos_prompts::ActionName;
 use tacos_prompts::render::TaskStatus;
+use tacos_prompts::{ActionName, Call};
 use tacos_shared::DroneId;
 
 #[derive(Debug, Clone, PartialEq)]
@@ -27,6 +27,27 @@ impl ActivePlan {
             memory: saved.memory,
             cycles: saved.cycles,
             stuck_since: None,
+        }
+    }
+
+    /// `call` went to `drone` as its action `seq`: its task runs (a call the plan does not
+    /// hold, e.g. under a task id of the Supervisor's own, is added), and the Supervisor's
+    /// memory says so.
+    pub(crate) fn issued(&mut self, call: Call, drone: DroneId, seq: u64) {
+        self.memory.push(format!("issued {call}"));
+        let sent = Some((drone, seq));
+        match self.tasks.iter_mut().find(|t| t.call.task == call.task) {
+            Some(t) => {
+                t.call = call;
+                t.status = TaskStatus::Running;
+                t.sent = sent;
+            }
+            None => self.tasks.push(PlanTask {
+                call,
+                status: TaskStatus::Running,
+                sent,
+                failures: 0,
+            }),
         }
     }
 }
@@ -53,6 +74,18 @@ pub(crate) struct Monolithic {
     pub(crate) claimed_done: bool,
     pub(crate) active: bool,
     pub(crate) cycles: u32,
+}
+
+impl Monolithic {
+    /// `call` went to `drone` as its action `seq`.
+    pub(crate) fn issued(&mut self, call: Call, drone: DroneId, seq: u64) {
+        self.tasks.push(PlanTask {
+            call,
+            status: TaskStatus::Running,
+            sent: Some((drone, seq)),
+            failures: 0,
+        });
+    }
 }
 
 /// The plan in force (Coordinator and Supervisor) and the monolithic model's work.

@@ -1,6 +1,6 @@
 //! What the core asks the engine to do.
 
-use crate::mission::log::Record;
+use crate::mission::log::{Record, RefusedBy};
 use crate::mission::report::MissionUpdate;
 use tacos_prompts::render::HistoryEntry;
 
@@ -10,6 +10,13 @@ pub(crate) enum Effect {
     Note(Record),
     /// Tell the pilot (the terminal, a script, the evaluation).
     Tell(MissionUpdate),
+    /// A part of a model's reply was refused (by the checks or the safety gate): counted,
+    /// logged and told to the pilot.
+    Refused {
+        layer: &'static str,
+        refusal: String,
+        by: RefusedBy,
+    },
     /// Add to the Coordinator's memory of the mission (and to the log it is resumed from).
     Remember(HistoryEntry),
     /// The models' work was replaced or ended: a reply asked for before is not used.

@@ -20,7 +20,7 @@ use tacos_shared::{DroneId, DroneMode, Vec3};
 
 const GROUND: u64 = 1;
 
-fn gate() -> SafetyGate {
+pub(super) fn gate() -> SafetyGate {
     SafetyGate::new(Scenario::builtin("city").expect("city"))
 }
 
@@ -29,7 +29,7 @@ fn id(name: &str) -> DroneId {
 }
 
 /// A snapshot of the city at `now` with no drone heard yet.
-fn empty(now: Instant) -> Snapshot {
+pub(super) fn empty(now: Instant) -> Snapshot {
     Snapshot {
         swarm: SwarmView::default(),
         targets: Vec::new(),
@@ -39,7 +39,12 @@ fn empty(now: Instant) -> Snapshot {
 }
 
 /// `name` in `mode` above its pad (10 m up when airborne), heard just now, doing `action`.
-fn heard(snap: &mut Snapshot, name: &str, mode: DroneMode, action: Option<ActionProgress>) {
+pub(super) fn heard(
+    snap: &mut Snapshot,
+    name: &str,
+    mode: DroneMode,
+    action: Option<ActionProgress>,
+) {
     let home = gate()
         .scenario()
         .drones
@@ -57,7 +62,7 @@ fn heard_as(snap: &mut Snapshot, status: DroneStatus) {
     snap.swarm.apply_status(status, snap.now);
 }
 
-fn progress(seq: u64, action: Action, state: ActionState) -> Option<ActionProgress> {
+pub(super) fn progress(seq: u64, action: Action, state: ActionState) -> Option<ActionProgress> {
     Some(ActionProgress {
         seq,
         task_id: None,
@@ -122,7 +127,7 @@ fn alfa_busy_then_bravo(seq: u64) -> PlanBook {
     ])
 }
 
-fn rules(gate: &SafetyGate) -> Rules<'_> {
+pub(super) fn rules(gate: &SafetyGate) -> Rules<'_> {
     Rules {
         gate,
         mode: Mode::Tacos,
@@ -130,7 +135,7 @@ fn rules(gate: &SafetyGate) -> Rules<'_> {
     }
 }
 
-fn goto(task: &str, drone: &str, place: &str) -> Call {
+pub(super) fn goto(task: &str, drone: &str, place: &str) -> Call {
     Call::named(task, drone, ActionName::Goto, place)
 }
 

@@ -1,10 +1,10 @@
 //! The Coordinator layer: the pilot's instruction (or an automatic replan) in, a checked plan out.
 
 use super::Mission;
-use super::caller::Checked;
 use super::in_flight::{Answered, Coordination, CoordinatorAnswer, InFlight};
 use crate::mission::aids::Aid;
 use crate::mission::approval::HeldPlan;
+use crate::mission::core::Checked;
 use crate::mission::core::{PlanCheck, adopt, with_implied_takeoffs, without_repeated_work};
 use crate::mission::grounding;
 use crate::mission::log::Record;

@@ -2,17 +2,16 @@
 //! the live checks, and the sends.
 
 use super::Mission;
-use super::caller::Checked;
 use super::cycle_call::{CycleAsk, CycleChoice, CycleKind, CycleOutcome, CycleReply, CycleWork};
 use super::early::{Served, early_calls};
 use super::in_flight::{Answered, CycleAnswer, InFlight};
 use crate::mission::config::Mode;
+use crate::mission::core::Checked;
 use crate::mission::core::{
     CycleJudgement, check_live, effect_holds, judge_cycle, match_startable,
 };
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionError, MissionUpdate};
-use crate::mission::resume::PlanTask;
 use crate::safety::CheckedAction;
 use tacos_llm::ChatMessage;
 use tacos_prompts::offer::{Callable, callable_schema, startable_schema};
@@ -75,23 +74,8 @@ impl Mission {
             tasks: self.plan_lines(),
         };
         self.start_cycle_call(ask, CycleKind::Supervisor, |mission, call, drone, seq| {
-            let Some(plan) = mission.book.plan.as_mut() else {
-                return;
-            };
-            plan.memory.push(format!("issued {call}"));
-            let sent = Some((drone, seq));
-            match plan.tasks.iter_mut().find(|t| t.call.task == call.task) {
-                Some(t) => {
-                    t.call = call;
-                    t.status = TaskStatus::Running;
-                    t.sent = sent;
-                }
-                None => plan.tasks.push(PlanTask {
-                    call,
-                    status: TaskStatus::Running,
-                    sent,
-                    failures: 0,
-                }),
+            if let Some(plan) = mission.book.plan.as_mut() {
+                plan.issued(call, drone, seq);
             }
         });
         Ok(())
@@ -148,14 +132,7 @@ impl Mission {
         self.start_cycle_call(
             ask,
             CycleKind::Monolithic { offered },
-            |mission, call, drone, seq| {
-                mission.book.mnl.tasks.push(PlanTask {
-                    call,
-                    status: TaskStatus::Running,
-                    sent: Some((drone, seq)),
-                    failures: 0,
-                });
-            },
+            |mission, call, drone, seq| mission.book.mnl.issued(call, drone, seq),
         );
         Ok(())
     }

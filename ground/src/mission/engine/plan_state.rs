@@ -31,6 +31,14 @@ impl Mission {
             match effect {
                 Effect::Note(record) => self.log.note(record),
                 Effect::Tell(update) => self.tell(update),
+                Effect::Refused { layer, refusal, by } => super::caller::refused(
+                    &self.log,
+                    &self.updates,
+                    &self.stats,
+                    layer,
+                    refusal,
+                    by,
+                ),
                 Effect::Remember(entry) => self.remember(entry),
                 Effect::WorkReplaced => self.work_epoch += 1,
                 Effect::PlanCycles(cycles) => self.stats.update(|s| s.cycles_per_plan.push(cycles)),
