@@ -8,27 +8,43 @@
 //! zenoh, the link, the log writer, the model backend or a clock).
 //!
 //! The repair loop of a model call is here too (`repair`): the engine's `Caller` only asks the
-//! model and carries out its effects.
+//! model and carries out its effects; and which model call runs next and which one a newer
+//! event overtakes (`calls`).
 //!
-//! Not in the core yet (issue 16 item 1): the layers' prompts and the sends, which still live
-//! in `engine`.
+//! The swarm as the prompts show it is read from the snapshot (`prompt_view`), and the layers'
+//! requests are built here (`coordinator`, `cycle_ask`). Not in the core yet (issue 16 item 1):
+//! the sends, the timers and pilot lines, which still live in `engine`. World events are taken
+//! in here (`world`).
 
 mod adopt;
 mod book;
+mod calls;
 mod checks;
+mod coordinator;
 mod cycle;
+mod cycle_ask;
 mod effect;
 mod membership;
 mod outcomes;
 mod plan_check;
+mod prompt_view;
 mod repair;
 mod snapshot;
 mod start;
+mod world;
 
+#[cfg(test)]
+mod calls_tests;
+#[cfg(test)]
+mod coordinator_tests;
+#[cfg(test)]
+mod cycle_ask_tests;
 #[cfg(test)]
 mod cycles_tests;
 #[cfg(test)]
 mod plan_tests;
+#[cfg(test)]
+mod prompt_view_tests;
 #[cfg(test)]
 mod properties;
 #[cfg(test)]
@@ -39,17 +55,24 @@ mod repair_tests;
 mod replan_tests;
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod world_tests;
 
 pub(crate) use adopt::{adopt, with_implied_takeoffs, without_repeated_work};
 pub(crate) use book::{ActivePlan, PlanBook};
+pub(crate) use calls::{CallQueue, Coordination, NextCall};
 pub(crate) use checks::check_live;
+pub(crate) use coordinator::{CoordinatorAsk, CoordinatorContext, coordinator_ask};
+pub use coordinator::{coordinator_fixed_messages, coordinator_messages};
 pub(crate) use cycle::{CycleJudgement, first_call_per_drone, judge_cycle, match_startable};
+pub(crate) use cycle_ask::{CycleRequest, monolithic_ask, supervisor_ask};
+pub use cycle_ask::{monolithic_fixed_messages, supervisor_fixed_messages, supervisor_messages};
 pub(crate) use effect::Effect;
 pub(crate) use membership::membership_changed;
 pub(crate) use outcomes::{
     Rules, effect_holds, give_up_if_stuck, judge_monolithic, plan_ended, poll,
 };
-pub(crate) use plan_check::PlanCheck;
 pub(crate) use repair::{Checked, Next, Repair};
 pub(crate) use snapshot::Snapshot;
-pub(crate) use start::{Start, startable};
+pub(crate) use start::Start;
+pub(crate) use world::world_event;

@@ -10,17 +10,16 @@ mod cycles;
 mod early;
 mod in_flight;
 mod plan_state;
-mod prompt_state;
 
-pub use coordinator::coordinator_messages;
-pub use cycles::supervisor_messages;
+pub use super::core::coordinator_messages;
+pub use super::core::supervisor_messages;
 
 use super::addressed;
 use super::aids::{Aid, ModelAids};
 use super::approval::HeldPlan;
 use super::commands::DirectCommands;
 use super::config::{MissionConfig, Mode};
-use super::core::{ActivePlan, PlanBook};
+use super::core::{ActivePlan, CallQueue, Coordination, PlanBook};
 use super::directives;
 use super::input::MissionInputs;
 use super::log::{MissionLog, Record};
@@ -28,15 +27,14 @@ use super::report::{
     EventTopic, MissionError, MissionStats, MissionUpdate, Overtaken, SharedStats,
 };
 use super::resume::MissionMemory;
-use super::untrusted;
 use crate::link::GroundLink;
 use crate::safety::{CheckedAction, SafetyGate};
 use crate::swarm::{SwarmChange, membership_diff};
 use crate::task_guard::AbortOnDrop;
 use caller::Caller;
-use in_flight::{Coordination, Heard, InFlight};
+use in_flight::{Heard, InFlight};
 use plan_state::snapshot_of;
-use std::collections::{BTreeSet, VecDeque};
+use std::collections::BTreeSet;
 use std::sync::Arc;
 use std::time::Duration;
 use tacos_llm::LlmBackend;
@@ -60,15 +58,11 @@ pub struct Mission {
     stats: SharedStats,
     /// The model call running beside the engine (`in_flight`), if any.
     in_flight: Option<InFlight>,
-    /// Work waiting for the Coordinator while a call is in flight, in order.
-    queued: VecDeque<Coordination>,
-    /// A Supervisor (or monolithic) cycle is to start once no call is in flight.
-    cycle_due: bool,
+    /// Which call runs next, what waits for the Coordinator, whether a cycle is due, and the
+    /// work epoch (`core::CallQueue`).
+    calls: CallQueue,
     /// When the last cycle started (a cycle is due again after `cycle_timeout`).
     last_cycle: std::time::Instant,
-    /// Bumped whenever the models' work is replaced or ends (a plan adopted or finished, a
-    /// direct command, a monolithic instruction): a cycle's reply from before is not used.
-    work_epoch: u64,
     /// Counts the direct commands carried out; a change the engine has not yet seen means a
     /// model's proposal is older than the pilot's command (see `mission::input`).
     overrides: watch::Receiver<u64>,
@@ -116,10 +110,10 @@ async fn log_positions(link: Arc<GroundLink>, log: Arc<MissionLog>) {
 async fn warm_up(backend: Arc<dyn LlmBackend>, mode: Mode, aids: ModelAids) {
     let prefixes = match mode {
         Mode::Tacos | Mode::Wor => vec![
-            coordinator::coordinator_fixed_messages(!aids.is_on(Aid::PlanOnly)),
-            cycles::supervisor_fixed_messages(),
+            super::core::coordinator_fixed_messages(!aids.is_on(Aid::PlanOnly)),
+            super::core::supervisor_fixed_messages(),
         ],
-        Mode::Mnl => vec![cycles::monolithic_fixed_messages()],
+        Mode::Mnl => vec![super::core::monolithic_fixed_messages()],
     };
     for messages in prefixes {
         if let Err(e) = backend.warm_up(&messages).await {
@@ -186,10 +180,8 @@ impl Mission {
             book: PlanBook::default(),
             stats,
             in_flight: None,
-            queued: VecDeque::new(),
-            cycle_due: false,
+            calls: CallQueue::default(),
             last_cycle: link_now,
-            work_epoch: 0,
             // The engine's own, until `run_with` brings the pilot's.
             overrides,
             commands,
@@ -280,17 +272,18 @@ impl Mission {
                         if let Err(e) = self.pilot(&text).await {
                             self.tell(MissionUpdate::Error(e.to_string()));
                         }
-                        self.cycle_due |= self.busy();
+                        self.calls.cycle_due(self.busy());
                     }
                     None => {
-                        self.drop_call(Overtaken::SessionClosed);
+                        let effects = self.calls.drop_call(Overtaken::SessionClosed);
+                        self.apply(effects);
                         break;
                     }
                 },
                 change = membership.recv() => match change {
                     Ok(change) => {
                         self.membership_changed(change);
-                        self.cycle_due |= self.busy();
+                        self.calls.cycle_due(self.busy());
                     }
                     Err(tokio::sync::broadcast::error::RecvError::Lagged(missed)) => {
                         // More changes went by than the channel holds: the view says where
@@ -300,12 +293,12 @@ impl Mission {
                         for change in membership_diff(&self.present, &now_present) {
                             self.membership_changed(change);
                         }
-                        self.cycle_due |= self.busy();
+                        self.calls.cycle_due(self.busy());
                     }
                     Err(tokio::sync::broadcast::error::RecvError::Closed) => break,
                 },
                 event = events.recv() => if let Some(event) = event && self.world_event(event) {
-                    self.cycle_due |= self.busy();
+                    self.calls.cycle_due(self.busy());
                 },
                 heard = async {
                     match self.in_flight.as_mut() {
@@ -319,7 +312,8 @@ impl Mission {
                 _ = tick.tick() => {
                     let timed_out = self.busy()
                         && self.link.clock().instant().duration_since(self.last_cycle) >= self.cfg.cycle_timeout;
-                    self.cycle_due |= self.poll_outcomes() || timed_out;
+                    let due = self.poll_outcomes() || timed_out;
+                    self.calls.cycle_due(due);
                 }
             }
             self.take_override();
@@ -337,22 +331,8 @@ impl Mission {
             return false;
         }
         self.overrides.borrow_and_update();
-        self.drop_call(Overtaken::DirectCommand);
-        // Whatever waited for the Coordinator was typed (or raised) before the command, which
-        // overrides it: an instruction queued behind `land all` must not take the drones up again.
-        for work in std::mem::take(&mut self.queued) {
-            let text = match work {
-                Coordination::Pilot(line) => {
-                    format!("instruction {line:?} dropped: a direct command came after it")
-                }
-                Coordination::Replan(why) => {
-                    format!("replan dropped ({why}): a direct command ended the plan")
-                }
-            };
-            self.event(EventTopic::PlanEnded, text);
-        }
-        self.work_epoch += 1;
-        self.cycle_due = false;
+        let effects = self.calls.overridden();
+        self.apply(effects);
         if let Some(plan) = self.book.plan.take() {
             self.finish_plan(plan, "interrupted by a direct command");
         }
@@ -373,7 +353,7 @@ impl Mission {
         if text.is_empty() {
             return Ok(());
         }
-        let drones = self.swarm_ids();
+        let drones = self.snapshot().swarm_ids(self.gate.scenario());
         if let Some(directive) = directives::parse(text, &drones) {
             // The override it raises ends the plan (`take_override`).
             self.commands.execute(text, directive).await;
@@ -414,8 +394,9 @@ impl Mission {
         match self.cfg.mode {
             Mode::Mnl => {
                 // A cycle in flight was asked without this instruction.
-                self.drop_call(Overtaken::NewerWork);
-                self.work_epoch += 1;
+                let effects = self.calls.drop_call(Overtaken::NewerWork);
+                self.apply(effects);
+                self.calls.work_replaced();
                 self.book.mnl.instructions.push(text.to_owned());
                 self.book.mnl.active = true;
                 self.book.mnl.cycles = 0;
@@ -449,32 +430,14 @@ impl Mission {
     /// Takes in a world event whose names are the scenario's; one that is not is logged and
     /// left out of every prompt. True when it was taken in.
     fn world_event(&mut self, event: WorldEvent) -> bool {
-        let event = match untrusted::checked_event(event, self.gate.scenario()) {
-            Ok(event) => event,
-            Err(why) => {
-                tracing::warn!(%why, "world event ignored");
-                self.log.note(Record::Event {
-                    text: format!("world event ignored: {why}"),
-                });
-                return false;
-            }
-        };
-        let text = event.to_string();
-        self.events.push(text.clone());
-        let topic = match &event {
-            WorldEvent::Detection { .. } => EventTopic::Detection,
-            WorldEvent::FaultInjected { .. } => EventTopic::Failure,
-        };
-        self.log.note(Record::WorldEvent { text: text.clone() });
-        self.tell(MissionUpdate::Event {
-            topic,
-            text: text.clone(),
-        });
-        match self.cfg.mode {
-            Mode::Mnl => self.book.mnl.executed.push(format!("event: {text}")),
-            _ => self.remember(HistoryEntry::Event(text)),
+        let scenario = self.gate.scenario();
+        let (mode, book, events) = (self.cfg.mode, &mut self.book, &mut self.events);
+        let (taken, effects) = super::core::world_event(event, scenario, mode, book, events);
+        if !taken {
+            tracing::warn!(?effects, "world event ignored");
         }
-        true
+        self.apply(effects);
+        taken
     }
 
     /// Adds `entry` to the Coordinator's memory of the mission, and to the log it is resumed
@@ -518,7 +481,7 @@ impl Mission {
         self.history = history;
         self.events = world_events;
         self.book.plan = plan.map(ActivePlan::resumed);
-        self.cycle_due = self.book.plan.is_some();
+        self.calls.set_cycle_due(self.book.plan.is_some());
         self.tell(MissionUpdate::Event {
             topic: EventTopic::Note,
             text,

@@ -2,6 +2,7 @@
 //! calls that can start, the Supervisor's reply judged against them, the sends booked, and the
 //! drones' outcomes polled, until the plan is complete. No process, no clock, no model.
 
+use super::start::startable;
 use super::tests::{empty, gate, goto, heard, progress, rules};
 use super::*;
 use crate::mission::log::Record;

@@ -1,7 +1,7 @@
 //! What the core asks the engine to do.
 
 use crate::mission::log::{Record, RefusedBy};
-use crate::mission::report::MissionUpdate;
+use crate::mission::report::{MissionUpdate, Overtaken};
 use tacos_prompts::render::HistoryEntry;
 
 #[derive(Debug, Clone, PartialEq)]
@@ -21,6 +21,8 @@ pub(crate) enum Effect {
     Remember(HistoryEntry),
     /// The models' work was replaced or ended: a reply asked for before is not used.
     WorkReplaced,
+    /// Abort the model call in flight of `layer` and never use its reply (told to the pilot).
+    DropCall { layer: &'static str, by: Overtaken },
     /// A plan completed after this many cycles (the statistics' cycles per plan).
     PlanCycles(u32),
     /// Ask the Coordinator for an automatic replan with this instruction (queued after the work

@@ -20,7 +20,7 @@ fn id(name: &str) -> DroneId {
 }
 
 /// alfa flying to car_3 (seq 2), bravo chasing the van (seq 4, its task done: at its station).
-fn chase() -> (PlanBook, Snapshot) {
+pub(super) fn chase() -> (PlanBook, Snapshot) {
     let now = Instant::now();
     let mut swarm = SwarmView::default();
     let mut alfa = test_status("alfa", DroneMode::Flying);

@@ -2,6 +2,7 @@
 
 use super::book::{Monolithic, STUCK_AFTER};
 use super::outcomes::{following_of, judge_monolithic};
+use super::start::startable;
 use super::*;
 use crate::mission::config::Mode;
 use crate::mission::log::Record;

@@ -2,8 +2,8 @@
 //! (`mission::approval`). Direct commands never wait for it; one ends a held plan.
 
 use super::Mission;
-use super::in_flight::Coordination;
 use crate::mission::approval::{self, HeldPlan, Verdict};
+use crate::mission::core::Coordination;
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionError};
 

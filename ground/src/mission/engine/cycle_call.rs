@@ -2,9 +2,8 @@
 //! model gave it and as checked, and what the cycle did (`cycles` asks and answers).
 
 use super::Mission;
+use crate::mission::core::CycleRequest;
 use crate::safety::CheckedAction;
-use tacos_llm::ChatMessage;
-use tacos_prompts::render::TaskStatus;
 use tacos_prompts::schema::Output;
 use tacos_prompts::{Call, MonolithicReply, ReplyError, SupervisorReply};
 use tacos_shared::DroneId;
@@ -22,7 +21,7 @@ pub(super) enum CycleKind {
 pub(super) struct CycleWork {
     pub(super) kind: CycleKind,
     pub(super) issued: fn(&mut Mission, Call, DroneId, u64),
-    /// `Mission::work_epoch` when the call started: a reply from before a plan was adopted or
+    /// `CallQueue::epoch` when the call started: a reply from before a plan was adopted or
     /// ended is for other work.
     pub(super) epoch: u64,
 }
@@ -40,14 +39,9 @@ pub(super) struct CycleChoice {
 pub(super) struct CycleAsk {
     pub(super) layer: &'static str,
     pub(super) output: Output,
-    pub(super) messages: Vec<ChatMessage>,
-    pub(super) schema: serde_json::Value,
     pub(super) parse: fn(&str) -> Result<CycleReply, ReplyError>,
-    /// The calls the reply may choose from (the Supervisor's startable calls); `None`: any call
-    /// that passes the live checks (the monolithic model, which has no plan).
-    pub(super) only: Option<Vec<Call>>,
-    /// The tasks issued so far, so a running or finished task is not issued again.
-    pub(super) tasks: Vec<(Call, TaskStatus)>,
+    /// The messages, the schema, the calls the reply may choose from (`core::CycleRequest`).
+    pub(super) request: CycleRequest,
 }
 
 /// A Supervisor or monolithic reply: reasoning, calls to issue now, and the model's claim that

@@ -6,20 +6,16 @@ use super::cycle_call::{CycleAsk, CycleChoice, CycleKind, CycleOutcome, CycleRep
 use super::early::{Served, early_calls};
 use super::in_flight::{Answered, CycleAnswer, InFlight};
 use crate::mission::config::Mode;
-use crate::mission::core::Checked;
 use crate::mission::core::{
-    CycleJudgement, check_live, effect_holds, judge_cycle, match_startable,
+    Checked, CycleJudgement, CycleRequest, check_live, judge_cycle, match_startable,
+    monolithic_ask, supervisor_ask,
 };
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionError, MissionUpdate};
 use crate::safety::CheckedAction;
-use tacos_llm::ChatMessage;
-use tacos_prompts::offer::{Callable, callable_schema, startable_schema};
-use tacos_prompts::render::{self, TaskStatus};
 use tacos_prompts::schema::{self, Output};
-use tacos_prompts::{ActionName, Call, MonolithicReply, SupervisorReply, texts};
+use tacos_prompts::{Call, MonolithicReply, SupervisorReply};
 use tacos_shared::DroneId;
-use tacos_shared::action::Action;
 
 impl Mission {
     /// Starts one Supervisor (or monolithic) cycle, when there is a decision to make.
@@ -44,34 +40,24 @@ impl Mission {
             }
             return Ok(());
         }
-        // What could start now. When nothing can, the Supervisor has no decision to make: wait
-        // for the swarm (an outcome, a membership change or the cycle timeout wakes us again).
-        let startable = self.startable_calls();
-        if startable.is_empty() {
+        // One snapshot for the decision and the prompt: every line of it sees the same swarm.
+        let snap = self.snapshot();
+        let mode = self.cfg.mode;
+        let Some(request) = supervisor_ask(&self.book, &snap, &self.gate, &self.events, mode)
+        else {
+            // Nothing can start: wait for the swarm (an outcome, a membership change or the
+            // cycle timeout wakes us again).
             self.give_up_if_stuck();
             return Ok(());
-        }
-        // With nothing of the plan running, waiting cannot be right: nothing would change.
-        let idle = !plan.tasks.iter().any(|t| t.status == TaskStatus::Running);
-        let reasoning = (self.cfg.mode == Mode::Tacos).then(|| plan.reasoning.clone());
-        let user = render::supervisor_request(
-            reasoning.as_deref(),
-            &render::plan(&self.plan_lines()),
-            &render::swarm(&self.drone_lines()),
-            &self.world_text(),
-            &plan.memory,
-        );
+        };
         if let Some(plan) = self.book.plan.as_mut() {
             plan.stuck_since = None;
         }
         let ask = CycleAsk {
             layer: "supervisor",
             output: Output::Supervisor,
-            messages: supervisor_messages(user),
-            schema: startable_schema(&startable, idle),
             parse: |text| SupervisorReply::parse(text).map(CycleReply::from),
-            only: Some(startable),
-            tasks: self.plan_lines(),
+            request,
         };
         self.start_cycle_call(ask, CycleKind::Supervisor, |mission, call, drone, seq| {
             if let Some(plan) = mission.book.plan.as_mut() {
@@ -97,38 +83,18 @@ impl Mission {
             return Ok(());
         }
         // As for the Supervisor: when no drone can take an action, there is nothing to decide.
-        let callable = self.callable_now();
-        if callable.is_empty() {
+        let snap = self.snapshot();
+        let scenario = self.gate.scenario();
+        let Some((request, offered)) = monolithic_ask(&self.book, &snap, scenario, &self.events)
+        else {
             return Ok(());
-        }
-        let user = render::monolithic_request(
-            &self.book.mnl.instructions,
-            &render::swarm(&self.drone_lines()),
-            &self.world_text(),
-            &self.book.mnl.executed,
-        );
-        let (drones, places) = self.enums();
-        let trackable = self.trackable();
+        };
         let ask = CycleAsk {
             layer: "monolithic",
             output: Output::Monolithic,
-            messages: {
-                let mut messages = monolithic_fixed_messages();
-                messages.push(ChatMessage::user(user));
-                messages
-            },
-            schema: callable_schema(&callable, &drones, &places, &trackable),
             parse: |text| MonolithicReply::parse(text).map(CycleReply::from),
-            only: None,
-            tasks: self
-                .book
-                .mnl
-                .tasks
-                .iter()
-                .map(|t| (t.call.clone(), t.status.clone()))
-                .collect(),
+            request,
         };
-        let offered = callable.len() as u32;
         self.start_cycle_call(
             ask,
             CycleKind::Monolithic { offered },
@@ -152,11 +118,11 @@ impl Mission {
         let max_tokens = self
             .cfg
             .supervisor_max_tokens
-            .max(schema::token_budget(ask.output, self.swarm_ids().len()));
+            .max(schema::token_budget(ask.output, ask.request.drones));
         let (gate, link) = (self.gate.clone(), self.link.clone());
         let visible = self.visible_targets();
         let judge = {
-            let (only, tasks) = (ask.only.clone(), ask.tasks.clone());
+            let (only, tasks) = (ask.request.only.clone(), ask.request.tasks.clone());
             let (gate, link, visible) = (gate.clone(), link.clone(), visible.clone());
             move |calls: &[Call]| {
                 let calls = match &only {
@@ -167,24 +133,28 @@ impl Mission {
                 check_live(&calls, &gate, &snap, &tasks).0
             }
         };
-        let (on_written, seen, early) = early_calls(judge, issued, self.work_epoch);
+        let (on_written, seen, early) = early_calls(judge, issued, self.calls.epoch());
         let mut caller = self.caller.clone();
         caller.on_written = Some(on_written);
         let work = CycleWork {
             kind,
             issued,
-            epoch: self.work_epoch,
+            epoch: self.calls.epoch(),
         };
         let layer = ask.layer;
         let call = async move {
             let CycleAsk {
                 layer,
                 output,
-                messages,
-                schema,
                 parse,
-                only,
-                tasks,
+                request:
+                    CycleRequest {
+                        messages,
+                        schema,
+                        only,
+                        tasks,
+                        drones: _,
+                    },
             } = ask;
             let answer = caller
                 .ask(
@@ -234,6 +204,7 @@ impl Mission {
         let mut flight = InFlight::spawn(layer, call);
         flight.early = Some(early);
         self.in_flight = Some(flight);
+        self.calls.started(layer);
     }
 
     /// A cycle's checked reply: its calls sent (each checked by the gate again, against the
@@ -247,7 +218,7 @@ impl Mission {
         served: Served,
     ) -> Result<(), MissionError> {
         let choice = answer?;
-        if work.epoch != self.work_epoch {
+        if !self.calls.is_current(work.epoch) {
             let calls: Vec<String> = choice.accepted.iter().map(|(c, _)| c.to_string()).collect();
             self.event(
                 EventTopic::Note,
@@ -346,80 +317,4 @@ impl Mission {
             actions: cycle.sent,
         });
     }
-
-    /// What the monolithic model may call now: for each drone that can take an action, a fresh
-    /// task id and the actions its mode allows whose effect does not already hold. Points and
-    /// targets are checked per call afterwards, by `check_live` and the safety gate.
-    pub(super) fn callable_now(&self) -> Vec<Callable> {
-        let swarm = self.swarm_ids();
-        let pending = self.book.pending_drones();
-        let view = self.link.view();
-        let now = self.link.clock().instant();
-        let mut out = Vec::new();
-        for drone in swarm {
-            let Some(entry) = DroneId::new(&drone).ok().and_then(|id| view.get(&id)) else {
-                continue;
-            };
-            if !entry.ready(now) || pending.contains(&entry.id) {
-                continue;
-            }
-            let mode = entry.effective_mode(now);
-            let actions: Vec<ActionName> = ActionName::ALL
-                .into_iter()
-                .filter(|a| {
-                    !effect_holds(*a, mode)
-                        && tacos_shared::action::mode_forbids(&mode_probe(*a), mode).is_none()
-                })
-                .collect();
-            if actions.is_empty() {
-                continue;
-            }
-            out.push(Callable {
-                task: format!("A{}", self.book.mnl.next_task + 1 + out.len() as u32),
-                drone,
-                actions,
-            });
-        }
-        out
-    }
-}
-
-/// An action of this kind, for asking whether a mode allows it (the argument does not matter
-/// to the mode rules; the real argument is checked by the safety gate).
-pub(super) fn mode_probe(name: ActionName) -> Action {
-    match name {
-        ActionName::ArmTakeoff => Action::ArmTakeoff,
-        ActionName::Goto => Action::Goto {
-            target: tacos_shared::Vec3::default(),
-        },
-        ActionName::StartTracking => Action::StartTracking {
-            target: String::new(),
-        },
-        ActionName::StopTracking => Action::StopTracking,
-        ActionName::Land => Action::Land,
-        ActionName::Hold => Action::Hold,
-    }
-}
-
-/// The Supervisor's messages: its configuration prompt, the few-shot cycles, then the request.
-pub fn supervisor_messages(user: String) -> Vec<ChatMessage> {
-    let mut messages = supervisor_fixed_messages();
-    messages.push(ChatMessage::user(user));
-    messages
-}
-
-/// The beginning every monolithic request shares: its configuration prompt.
-pub fn monolithic_fixed_messages() -> Vec<ChatMessage> {
-    vec![ChatMessage::system(texts::MONOLITHIC)]
-}
-
-/// The beginning every Supervisor request shares: its configuration prompt and the few-shot
-/// cycles.
-pub fn supervisor_fixed_messages() -> Vec<ChatMessage> {
-    let mut messages = vec![ChatMessage::system(texts::SUPERVISOR)];
-    for example in texts::supervisor_examples().unwrap_or_default() {
-        messages.push(ChatMessage::user(example.context));
-        messages.push(ChatMessage::assistant(example.reply.to_string()));
-    }
-    messages
 }

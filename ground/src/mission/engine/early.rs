@@ -34,7 +34,7 @@ pub(super) struct EarlyCalls {
     /// `None` once the call's task has let go of its end.
     calls: Option<mpsc::UnboundedReceiver<EarlyCall>>,
     issued: fn(&mut Mission, Call, DroneId, u64),
-    /// `Mission::work_epoch` when the call started.
+    /// `CallQueue::epoch` when the call started.
     epoch: u64,
     served: Served,
 }
@@ -139,7 +139,7 @@ impl Mission {
         let Some(calls) = self.in_flight.as_ref().and_then(|f| f.early.as_ref()) else {
             return;
         };
-        if calls.epoch != self.work_epoch {
+        if !self.calls.is_current(calls.epoch) {
             return;
         }
         let issued = calls.issued;

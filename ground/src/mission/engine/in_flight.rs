@@ -1,17 +1,13 @@
 //! Model calls run beside the engine. A call (with its repair rounds) is a task of its own, so
 //! that while a model thinks — minutes with a small CPU model — the engine goes on taking in
-//! outcomes, lost drones, detections and pilot lines. One call is in flight at a time; work for
-//! the Coordinator that comes meanwhile (a newer instruction, an automatic replan) waits in
-//! order, and only a direct command, which overrides what came before it, drops it. A reply is
-//! used only if nothing overtook it: a direct command drops
-//! any call in flight, newer work for the Coordinator drops a Supervisor (or monolithic) call,
-//! and a cycle's reply for a plan that has since ended is dropped when it comes
-//! (`Mission::work_epoch`). Whatever is dropped is logged and told.
+//! outcomes, lost drones, detections and pilot lines. Which call runs next and which one is
+//! overtaken is decided by `core::CallQueue`; this runs them, aborts the dropped ones and takes
+//! the replies in.
 
 use super::Mission;
 use super::cycle_call::{CycleChoice, CycleWork};
 use super::early::{EarlyCall, EarlyCalls};
-use crate::mission::log::Record;
+use crate::mission::core::{Coordination, NextCall};
 use crate::mission::report::{MissionError, MissionUpdate, Overtaken};
 use crate::task_guard::AbortOnDrop;
 use std::future::Future;
@@ -63,11 +59,6 @@ impl InFlight {
         }
     }
 
-    /// A Supervisor or monolithic call (not the Coordinator's).
-    pub(super) fn is_cycle(&self) -> bool {
-        self.layer != "coordinator"
-    }
-
     /// The next thing heard from the call: a call of its reply sent early, or its answer.
     pub(super) async fn heard(&mut self) -> Heard {
         let early = async {
@@ -84,53 +75,36 @@ impl InFlight {
     }
 }
 
-/// Work waiting for the Coordinator, in the order it came.
-#[derive(Debug, Clone, PartialEq)]
-pub(super) enum Coordination {
-    /// The pilot's instruction (in the history already).
-    Pilot(String),
-    /// An automatic replan after a membership change, as its instruction.
-    Replan(String),
-}
-
 impl Mission {
-    /// Queues work for the Coordinator; a Supervisor (or monolithic) call in flight is for the
-    /// plan this work will change, and is dropped.
+    /// Queues work for the Coordinator (`core::CallQueue::want`).
     pub(super) fn want_coordination(&mut self, work: Coordination) {
-        if self.in_flight.as_ref().is_some_and(InFlight::is_cycle) {
-            self.drop_call(Overtaken::NewerWork);
-        }
-        self.queued.push_back(work);
+        let effects = self.calls.want(work);
+        self.apply(effects);
     }
 
-    /// Drops the call in flight, if any: its task is aborted and its reply never used.
-    pub(super) fn drop_call(&mut self, by: Overtaken) {
-        let Some(flight) = self.in_flight.take() else {
-            return;
-        };
-        let layer = flight.layer;
-        drop(flight);
-        self.log.note(Record::Event {
-            text: format!("the {layer}'s call in flight was dropped, overtaken by {by}"),
-        });
+    /// Aborts the call in flight (`Effect::DropCall`): its reply is never used.
+    pub(super) fn abort_call(&mut self, layer: &'static str, by: Overtaken) {
+        drop(self.in_flight.take());
         self.tell(MissionUpdate::CallDropped { layer, by });
     }
 
     /// With no call in flight: the next work waiting for the Coordinator, or else a cycle when
-    /// one is due. Errors are told to the pilot.
+    /// one is due (`core::CallQueue::next`). Errors are told to the pilot.
     pub(super) async fn start_next_call(&mut self) {
-        while self.in_flight.is_none() {
-            let Some(work) = self.queued.pop_front() else {
-                break;
+        while let Some(next) = self.calls.next(self.busy()) {
+            let started = match next {
+                NextCall::Coordinate(work) => self.coordinate(&work).await,
+                NextCall::Cycle => {
+                    self.last_cycle = self.link.clock().instant();
+                    let result = self.cycle();
+                    if let Err(e) = result {
+                        self.tell(MissionUpdate::Error(e.to_string()));
+                    }
+                    // A cycle that found nothing to ask waits for the next change.
+                    break;
+                }
             };
-            if let Err(e) = self.coordinate(&work).await {
-                self.tell(MissionUpdate::Error(e.to_string()));
-            }
-        }
-        if self.in_flight.is_none() && self.cycle_due && self.busy() {
-            self.cycle_due = false;
-            self.last_cycle = self.link.clock().instant();
-            if let Err(e) = self.cycle() {
+            if let Err(e) = started {
                 self.tell(MissionUpdate::Error(e.to_string()));
             }
         }
@@ -141,6 +115,7 @@ impl Mission {
         let Some(flight) = self.in_flight.take() else {
             return;
         };
+        self.calls.answered();
         let result = match joined {
             Err(e) => Err(format!("the {}'s call ended abnormally: {e}", flight.layer)),
             Ok(Answered::Coordinator {
@@ -150,7 +125,7 @@ impl Mission {
             }) => {
                 let result = self.coordinator_answered(instruction, grounded, answer);
                 // A new plan: its first cycle at once.
-                self.cycle_due = self.busy();
+                self.calls.set_cycle_due(self.busy());
                 result.map_err(|e| e.to_string())
             }
             Ok(Answered::Cycle { work, answer }) => {

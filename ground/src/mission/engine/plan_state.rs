@@ -2,10 +2,9 @@
 //! snapshot of the swarm per step, hands it to the core, and carries out the effects.
 
 use super::Mission;
-use super::in_flight::Coordination;
 use crate::link::GroundLink;
-use crate::mission::core::{self, Effect, Rules, Snapshot, Start};
-use tacos_prompts::Call;
+use crate::mission::core::{self, Coordination, Effect, Rules, Snapshot, Start};
+use crate::mission::untrusted;
 use tacos_shared::messages::TargetObservation;
 
 /// The link's view of the world now, with the targets seen (`Mission::visible_targets`).
@@ -25,6 +24,21 @@ impl Mission {
         snapshot_of(&self.link, self.visible_targets())
     }
 
+    /// The targets seen now that the scenario has: a name from the network reaches a prompt
+    /// only when it is one of the map's (`untrusted`).
+    pub(super) fn visible_targets(&self) -> Vec<TargetObservation> {
+        let seen = self.targets.borrow();
+        let known = untrusted::known_targets(&seen, self.gate.scenario());
+        let unknown = seen.len() - known.len();
+        if unknown > 0 {
+            tracing::debug!(
+                unknown,
+                "observations of targets the map does not have left out"
+            );
+        }
+        known
+    }
+
     /// Carries out the core's effects, in order.
     pub(super) fn apply(&mut self, effects: Vec<Effect>) {
         for effect in effects {
@@ -40,7 +54,8 @@ impl Mission {
                     by,
                 ),
                 Effect::Remember(entry) => self.remember(entry),
-                Effect::WorkReplaced => self.work_epoch += 1,
+                Effect::WorkReplaced => self.calls.work_replaced(),
+                Effect::DropCall { layer, by } => self.abort_call(layer, by),
                 Effect::PlanCycles(cycles) => self.stats.update(|s| s.cycles_per_plan.push(cycles)),
                 Effect::Replan(instruction) => {
                     self.want_coordination(Coordination::Replan(instruction))
@@ -60,15 +75,6 @@ impl Mission {
         let (effects, changed) = core::poll(&mut self.book, &snap, &rules);
         self.apply(effects);
         changed
-    }
-
-    /// The plan's calls that could start now (`core::startable`).
-    pub(super) fn startable_calls(&self) -> Vec<Call> {
-        let Some(plan) = self.book.plan.as_ref() else {
-            return Vec::new();
-        };
-        let snap = self.snapshot();
-        core::startable(plan, &Start::new(&snap, &self.gate, &self.book))
     }
 
     /// Runs `f` with the checks of whether a call can start, on one snapshot of the swarm.
