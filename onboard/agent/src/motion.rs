@@ -161,8 +161,12 @@ pub struct Motion {
     /// Whether this drone's vehicle is airborne, as the executor says (`set_airborne`): told
     /// to neighbours in every path.
     airborne: bool,
-    /// Seconds this process was stalled since the newest path came in: not the peers' silence.
-    peers_deaf_s: f64,
+    /// The spans (from, to) this process was stalled and could not listen (`crate::stall`): the
+    /// part of the peers' silence inside them is not silence. A path stamped inside a span
+    /// (published while this process was stopped, taken in after it) leaves the rest of the
+    /// span excused: resetting the excuse on any newer path made such a path, 1 s into a 5 s
+    /// stall, count the 4 s after it as silence, and the drone held.
+    deaf: Vec<(f64, f64)>,
 }
 
 impl Motion {
@@ -183,7 +187,7 @@ impl Motion {
             last_solve: None,
             last_path: None,
             stats: SolveStats::default(),
-            peers_deaf_s: 0.0,
+            deaf: Vec::new(),
             airborne: false,
         })
     }
@@ -215,17 +219,19 @@ impl Motion {
         match self.paths.get(&path.drone) {
             Some(held) if held.stamp >= path.stamp => {}
             _ => {
+                // A span that ended before this stamp cannot overlap a silence counted from it.
+                let stamp = path.stamp;
+                self.deaf.retain(|&(_, to)| to > stamp);
                 self.paths.insert(path.drone.clone(), path);
-                self.peers_deaf_s = 0.0;
             }
         }
     }
 
-    /// `deaf_s` seconds this process could not listen (a stall: `crate::stall`) are left out of
-    /// the peers' silence until a newer path is heard.
-    pub fn excuse_peers(&mut self, deaf_s: f64) {
-        if deaf_s.is_finite() && deaf_s > 0.0 {
-            self.peers_deaf_s += deaf_s;
+    /// The `deaf_s` seconds up to `now` this process could not listen (a stall:
+    /// `crate::stall`) are left out of the peers' silence.
+    pub fn excuse_peers(&mut self, deaf_s: f64, now: f64) {
+        if deaf_s.is_finite() && deaf_s > 0.0 && now.is_finite() {
+            self.deaf.push((now - deaf_s, now));
         }
     }
 
@@ -275,7 +281,12 @@ impl Motion {
             .filter(|p| self.known(p, now))
             .map(|p| p.stamp);
         let (count, newest) = stamps.fold((0, f64::NEG_INFINITY), |(n, m), t| (n + 1, m.max(t)));
-        (count >= 2).then(|| (now - newest - self.peers_deaf_s).max(0.0))
+        (count >= 2).then(|| {
+            let deaf: f64 = (self.deaf.iter())
+                .map(|&(from, to)| (to.min(now) - from.max(newest)).max(0.0))
+                .sum();
+            (now - newest - deaf).max(0.0)
+        })
     }
 
     /// The drones (me included) tracking `target` now, by their recent paths.

@@ -283,7 +283,7 @@ async fn run_inner(
                 let t = now();
                 if let Some(deaf_s) = stalls.tick(t) {
                     ground.failsafe.excuse(deaf_s, t);
-                    motion.excuse_peers(deaf_s);
+                    motion.excuse_peers(deaf_s, t);
                     if deaf_s >= 1.0 {
                         warn!(deaf_s, "this onboard stalled: the time is not counted as silence");
                     }

@@ -126,27 +126,55 @@ fn peers_silence_runs_from_the_newest_known_path() {
     assert_eq!(landed.peers_silence(111.0), None, "forgotten: none known");
 }
 
-/// Time this process spent stalled is not the peers' silence, until a newer path comes in.
+/// Time this process spent stalled is not the peers' silence.
 #[test]
 fn a_stall_is_left_out_of_the_peers_silence() {
     let mut m = motion("alfa");
     let p = Vec3::new(10.0, 0.0, 10.0);
     m.on_path(path("bravo", 100.0, p, None));
     m.on_path(path("charlie", 101.0, p, None));
-    m.excuse_peers(12.0);
+    m.excuse_peers(12.0, 113.0);
     assert_eq!(
         m.peers_silence(114.0),
         Some(1.0),
         "13 s since charlie, 12 of them deaf"
     );
-    m.excuse_peers(f64::NAN);
-    m.excuse_peers(-3.0);
+    m.excuse_peers(f64::NAN, 114.0);
+    m.excuse_peers(-3.0, 114.0);
     assert_eq!(m.peers_silence(114.0), Some(1.0), "nothing to excuse");
     m.on_path(path("bravo", 113.5, p, None));
     assert_eq!(
         m.peers_silence(114.0),
         Some(0.5),
         "a newer path: counted from it alone"
+    );
+}
+
+/// Seen in CI (`onboard_stall`): a 5 s stall, then the first path taken in was one a neighbour
+/// published 1 s into the stall (queued while this process was stopped). That path is newer
+/// than any held, but the stall after its stamp is still not silence: the drone must not hold.
+#[test]
+fn a_path_published_during_the_stall_leaves_the_rest_of_it_excused() {
+    let mut m = motion("alfa");
+    let p = Vec3::new(10.0, 0.0, 10.0);
+    m.on_path(path("bravo", 100.0, p, None));
+    m.on_path(path("charlie", 100.1, p, None));
+    // Stopped from 100.2 to 105.2; the stall is seen at the first tick after it.
+    m.excuse_peers(5.0, 105.2);
+    m.on_path(path("bravo", 101.2, p, None));
+    let silence = m.peers_silence(105.3).expect("two neighbours known");
+    assert!(
+        (silence - 0.1).abs() < 1e-9,
+        "{silence}: only the 0.1 s after the stall"
+    );
+    // Without newer paths the silence grows from the stall's end.
+    let silence = m.peers_silence(108.2).expect("two neighbours known");
+    assert!((silence - 3.0).abs() < 1e-9, "{silence}");
+    // A path from after the stall: counted from it, the stall forgotten.
+    m.on_path(path("charlie", 105.4, p, None));
+    assert_eq!(
+        m.peers_silence(105.5).map(|s| (s * 1e9).round() / 1e9),
+        Some(0.1)
     );
 }
 
