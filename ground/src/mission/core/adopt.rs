@@ -91,10 +91,7 @@ pub(crate) fn with_implied_takeoffs(
                 "{call}: {} is on the ground and the plan never takes it off: added {takeoff}",
                 call.drone
             );
-            effects.push(Effect::Note(Record::AidFired {
-                aid: Aid::ImpliedTakeoffs,
-                detail: text.clone(),
-            }));
+            effects.push(Effect::aid_fired(Aid::ImpliedTakeoffs, text.clone()));
             effects.push(Effect::Tell(MissionUpdate::Event {
                 topic: EventTopic::Note,
                 text,

@@ -11,7 +11,6 @@ use super::prompt_view::{plan_lines, trackable};
 use super::snapshot::Snapshot;
 use crate::mission::aids::{Aid, ModelAids};
 use crate::mission::grounding;
-use crate::mission::log::Record;
 use crate::mission::report::MissionError;
 use crate::mission::whole_swarm;
 use tacos_llm::ChatMessage;
@@ -89,7 +88,7 @@ pub(crate) fn coordinator_ask(
             places.len(),
             scope.join(", ")
         );
-        effects.push(aid_fired(Aid::PlaceScope, detail));
+        effects.push(Effect::aid_fired(Aid::PlaceScope, detail));
     }
     // A target the instruction asks to be followed must be tracked by the plan (or be
     // followed already); a drone named beside it is suggested only if it can fly.
@@ -110,7 +109,7 @@ pub(crate) fn coordinator_ask(
             "the instruction asks that {} be followed: the plan must track it",
             targets.join(", ")
         );
-        effects.push(aid_fired(Aid::FollowWords, detail));
+        effects.push(Effect::aid_fired(Aid::FollowWords, detail));
     }
     // The pilot's instruction for the whole swarm: the available drones and their modes, for
     // the reply check (`whole_swarm`; a replan's own words are not the pilot's).
@@ -175,10 +174,6 @@ pub(crate) fn coordinator_ask(
         check,
         grounded,
     })
-}
-
-fn aid_fired(aid: Aid, detail: String) -> Effect {
-    Effect::Note(Record::AidFired { aid, detail })
 }
 
 /// The Coordinator's messages: its configuration prompt, the few-shot examples as turns, then

@@ -1,5 +1,6 @@
 //! What the core asks the engine to do.
 
+use crate::mission::aids::Aid;
 use crate::mission::log::{Record, RefusedBy};
 use crate::mission::report::{MissionUpdate, Overtaken};
 use tacos_prompts::render::HistoryEntry;
@@ -28,4 +29,11 @@ pub(crate) enum Effect {
     /// Ask the Coordinator for an automatic replan with this instruction (queued after the work
     /// waiting for it; a cycle in flight is dropped).
     Replan(String),
+}
+
+impl Effect {
+    /// A small-model aid changed what happens: the record the log keeps of it.
+    pub(crate) fn aid_fired(aid: Aid, detail: String) -> Effect {
+        Effect::Note(Record::AidFired { aid, detail })
+    }
 }

@@ -7,7 +7,7 @@
 
 use super::effect::Effect;
 use crate::mission::aids::{Aid, ModelAids};
-use crate::mission::log::{Record, RefusedBy};
+use crate::mission::log::RefusedBy;
 use crate::mission::report::MissionError;
 use tacos_llm::{ChatMessage, LlmError};
 use tacos_prompts::ReplyError;
@@ -137,7 +137,7 @@ impl<U> Repair<U> {
                     "{}: {left_out} repeated items left out of the echoed reply",
                     self.layer
                 );
-                effects.push(aid_fired(Aid::CompactRepairEcho, detail));
+                effects.push(Effect::aid_fired(Aid::CompactRepairEcho, detail));
             }
             echo
         } else {
@@ -186,7 +186,7 @@ impl<U> Repair<U> {
                 "{}: kept what passed of the last reply; refused: {refused}",
                 self.layer
             );
-            effects.push(aid_fired(Aid::KeepPartialPlan, detail));
+            effects.push(Effect::aid_fired(Aid::KeepPartialPlan, detail));
             return Ok(checked.accepted);
         }
         Err(MissionError::NoValidReply {
@@ -228,13 +228,9 @@ impl<U> Repair<U> {
             "{}: the repair round failed ({why}); what passed the round before stays",
             self.layer
         );
-        effects.push(aid_fired(Aid::KeepPartialPlan, detail));
+        effects.push(Effect::aid_fired(Aid::KeepPartialPlan, detail));
         Some(passed)
     }
-}
-
-fn aid_fired(aid: Aid, detail: String) -> Effect {
-    Effect::Note(Record::AidFired { aid, detail })
 }
 
 /// `reply` as echoed back in a repair round: in its lists of objects, an item equal to an

@@ -4,6 +4,7 @@
 use super::Mission;
 use crate::link::GroundLink;
 use crate::mission::core::{self, Coordination, Effect, Rules, Snapshot, Start};
+use crate::mission::log::Record;
 use crate::mission::untrusted;
 use tacos_shared::messages::TargetObservation;
 
@@ -43,6 +44,7 @@ impl Mission {
     pub(super) fn apply(&mut self, effects: Vec<Effect>) {
         for effect in effects {
             match effect {
+                Effect::Note(Record::AidFired { aid, detail }) => self.log.aid_fired(aid, detail),
                 Effect::Note(record) => self.log.note(record),
                 Effect::Tell(update) => self.tell(update),
                 Effect::Refused { layer, refusal, by } => super::caller::refused(
