@@ -12,9 +12,14 @@
 //! event overtakes (`calls`).
 //!
 //! The swarm as the prompts show it is read from the snapshot (`prompt_view`), and the layers'
-//! requests are built here (`coordinator`, `cycle_ask`). Not in the core yet (issue 16 item 1):
-//! the sends, the timers and pilot lines, which still live in `engine`. World events are taken
-//! in here (`world`).
+//! requests are built here (`coordinator`, `cycle_ask`).
+//!
+//! [`Core`] (`state`) holds all of it with the memories and the plan held for the pilot, and is
+//! fed the engine's [`Input`]s one step at a time (`step`): pilot lines (`pilot`), membership
+//! changes, world events (`world`), ticks, direct commands carried out, the Coordinator's
+//! checked reply (`plan_reply`), a cycle's calls and reply with the results of their sends
+//! (`cycle_reply`: one `Effect::Send` at a time, each checked by the gate on its step's
+//! snapshot) and the session's end.
 
 mod adopt;
 mod book;
@@ -23,14 +28,19 @@ mod checks;
 mod coordinator;
 mod cycle;
 mod cycle_ask;
+mod cycle_reply;
 mod effect;
 mod membership;
 mod outcomes;
+mod pilot;
 mod plan_check;
+mod plan_reply;
 mod prompt_view;
 mod repair;
 mod snapshot;
 mod start;
+mod state;
+mod step;
 mod world;
 
 #[cfg(test)]
@@ -39,6 +49,8 @@ mod calls_tests;
 mod coordinator_tests;
 #[cfg(test)]
 mod cycle_ask_tests;
+#[cfg(test)]
+mod cycle_reply_tests;
 #[cfg(test)]
 mod cycles_tests;
 #[cfg(test)]
@@ -54,25 +66,39 @@ mod repair_tests;
 #[cfg(test)]
 mod replan_tests;
 #[cfg(test)]
+mod step_tests;
+#[cfg(test)]
 mod tests;
 #[cfg(test)]
 mod world_tests;
 
-pub(crate) use adopt::{adopt, with_implied_takeoffs, without_repeated_work};
-pub(crate) use book::{ActivePlan, PlanBook};
-pub(crate) use calls::{CallQueue, Coordination, NextCall};
+pub(crate) use adopt::adopt;
+pub(crate) use book::ActivePlan;
+pub(crate) use calls::{Coordination, NextCall};
 pub(crate) use checks::check_live;
 pub(crate) use coordinator::{CoordinatorAsk, CoordinatorContext, coordinator_ask};
 pub use coordinator::{coordinator_fixed_messages, coordinator_messages};
 pub(crate) use cycle::{CycleJudgement, first_call_per_drone, judge_cycle, match_startable};
 pub(crate) use cycle_ask::{CycleRequest, monolithic_ask, supervisor_ask};
 pub use cycle_ask::{monolithic_fixed_messages, supervisor_fixed_messages, supervisor_messages};
+pub(crate) use cycle_reply::{CycleAnswer, CycleChoice, CycleKind};
 pub(crate) use effect::Effect;
-pub(crate) use membership::membership_changed;
-pub(crate) use outcomes::{
-    Rules, effect_holds, give_up_if_stuck, judge_monolithic, plan_ended, poll,
-};
+pub(crate) use outcomes::{effect_holds, give_up_if_stuck};
 pub(crate) use repair::{Checked, Next, Repair};
 pub(crate) use snapshot::Snapshot;
-pub(crate) use start::Start;
-pub(crate) use world::world_event;
+pub(crate) use state::Core;
+pub(crate) use step::{CoordinatorAnswer, Input};
+
+// What the core's tests reach through `super::*`.
+#[cfg(test)]
+use adopt::{with_implied_takeoffs, without_repeated_work};
+#[cfg(test)]
+use book::PlanBook;
+#[cfg(test)]
+use calls::CallQueue;
+#[cfg(test)]
+use membership::membership_changed;
+#[cfg(test)]
+use outcomes::{Rules, judge_monolithic, plan_ended, poll};
+#[cfg(test)]
+use start::Start;

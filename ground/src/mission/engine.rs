@@ -2,7 +2,6 @@
 //! pending plan, the two memories, automatic replans, and the bookkeeping of what was sent.
 //! This file holds the engine's state and its event loop; its parts are the child modules.
 
-mod approval;
 mod caller;
 mod coordinator;
 mod cycle_call;
@@ -14,33 +13,27 @@ mod plan_state;
 pub use super::core::coordinator_messages;
 pub use super::core::supervisor_messages;
 
-use super::addressed;
 use super::aids::{Aid, ModelAids};
-use super::approval::HeldPlan;
 use super::commands::DirectCommands;
 use super::config::{MissionConfig, Mode};
-use super::core::{ActivePlan, CallQueue, Coordination, PlanBook};
-use super::directives;
+use super::core::{ActivePlan, Core, Input};
+use super::directives::Directive;
 use super::input::MissionInputs;
 use super::log::{MissionLog, Record};
-use super::report::{
-    EventTopic, MissionError, MissionStats, MissionUpdate, Overtaken, SharedStats,
-};
+use super::report::{EventTopic, MissionError, MissionStats, MissionUpdate, SharedStats};
 use super::resume::MissionMemory;
 use crate::link::GroundLink;
 use crate::safety::{CheckedAction, SafetyGate};
-use crate::swarm::{SwarmChange, membership_diff};
 use crate::task_guard::AbortOnDrop;
 use caller::Caller;
 use in_flight::{Heard, InFlight};
 use plan_state::snapshot_of;
-use std::collections::BTreeSet;
+use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::Duration;
 use tacos_llm::LlmBackend;
-use tacos_prompts::render::{HistoryEntry, TaskStatus};
-use tacos_shared::DroneId;
-use tacos_shared::messages::{TargetObservation, WorldEvent};
+use tacos_prompts::render::TaskStatus;
+use tacos_shared::messages::TargetObservation;
 use tokio::sync::{mpsc, watch};
 
 pub struct Mission {
@@ -51,29 +44,22 @@ pub struct Mission {
     log: Arc<MissionLog>,
     updates: mpsc::UnboundedSender<MissionUpdate>,
     targets: watch::Receiver<Vec<TargetObservation>>,
-    history: Vec<HistoryEntry>,
-    events: Vec<String>,
-    /// The plan in force and the monolithic model's work (`mission::core`).
-    book: PlanBook,
+    /// The plan book, the calls' schedule, the memories and the held plan (`mission::core`).
+    core: Core,
     stats: SharedStats,
     /// The model call running beside the engine (`in_flight`), if any.
     in_flight: Option<InFlight>,
-    /// Which call runs next, what waits for the Coordinator, whether a cycle is due, and the
-    /// work epoch (`core::CallQueue`).
-    calls: CallQueue,
-    /// When the last cycle started (a cycle is due again after `cycle_timeout`).
-    last_cycle: std::time::Instant,
     /// Counts the direct commands carried out; a change the engine has not yet seen means a
     /// model's proposal is older than the pilot's command (see `mission::input`).
     overrides: watch::Receiver<u64>,
     /// The direct commands: the engine carries out those among its lines, and keeps their
     /// memory of the last instruction (for `cancel` and `undo`).
     commands: DirectCommands,
-    /// A Coordinator plan held for the pilot's approval (`--confirm`).
-    held: Option<HeldPlan>,
-    /// The drones present as the membership changes the engine took in say; after changes
-    /// were missed (a lagging channel) the difference to the view is taken in instead.
-    present: BTreeSet<DroneId>,
+    /// Direct commands the core asked for in this step, carried out before the next
+    /// (`Effect::Direct`).
+    direct: Vec<(String, Directive)>,
+    /// Sends the core asked for (`Effect::Send`), carried out in order, each result fed back.
+    outgoing: VecDeque<(CheckedAction, String)>,
 }
 
 /// Logs where every live drone is, twice a second, for `tacos-ground plot`, until aborted.
@@ -163,10 +149,10 @@ impl Mission {
             seed: cfg.seed,
             on_written: None,
         };
-        let link_now = link.clock().instant();
         let (commands, overrides) =
             DirectCommands::new(link.clone(), gate.clone(), log.clone(), updates.clone());
         let resume = cfg.resume.take();
+        let core = Core::new(&cfg);
         let mut mission = Mission {
             cfg,
             caller,
@@ -175,18 +161,14 @@ impl Mission {
             log,
             updates,
             targets,
-            history: Vec::new(),
-            events: Vec::new(),
-            book: PlanBook::default(),
+            core,
             stats,
             in_flight: None,
-            calls: CallQueue::default(),
-            last_cycle: link_now,
             // The engine's own, until `run_with` brings the pilot's.
             overrides,
             commands,
-            present: BTreeSet::new(),
-            held: None,
+            direct: Vec::new(),
+            outgoing: VecDeque::new(),
         };
         if let Some(resume) = resume {
             mission.resume(&resume.path, resume.memory);
@@ -200,20 +182,11 @@ impl Mission {
 
     /// True while a plan (or the monolithic model's work) is under way.
     pub fn busy(&self) -> bool {
-        match self.cfg.mode {
-            Mode::Mnl => self.book.mnl.active,
-            _ => self.book.plan.is_some(),
-        }
+        self.core.busy()
     }
 
     fn tell(&self, update: MissionUpdate) {
         let _ = self.updates.send(update);
-    }
-
-    /// Logs an event and tells the pilot.
-    fn event(&self, topic: EventTopic, text: String) {
-        self.log.note(Record::Event { text: text.clone() });
-        self.tell(MissionUpdate::Event { topic, text });
     }
 
     /// Runs the mission until `inputs` closes: pilot lines in, cycles on every change.
@@ -237,7 +210,7 @@ impl Mission {
         self.commands = commands;
         let mut wake_open = true;
         let mut membership = self.link.membership();
-        self.present = self.link.view().present_ids();
+        self.step(Input::Started);
         let mut events = match self.link.watch_events().await {
             Ok(rx) => rx,
             Err(e) => {
@@ -253,13 +226,12 @@ impl Mission {
         )));
         let _warm_up = AbortOnDrop(tokio::spawn(warm_up(
             self.caller.backend.clone(),
-            self.cfg.mode,
-            self.cfg.aids,
+            self.core.mode,
+            self.core.aids,
         )));
         let mut tick = tokio::time::interval(Duration::from_millis(250));
         // After a busy spell, one tick, not a burst of the ones missed.
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-        self.last_cycle = self.link.clock().instant();
         loop {
             tokio::select! {
                 changed = wake.changed(), if wake_open => if changed.is_err() {
@@ -269,36 +241,22 @@ impl Mission {
                     Some(text) => {
                         // The pilot's direct command came before this line.
                         self.take_override();
-                        if let Err(e) = self.pilot(&text).await {
-                            self.tell(MissionUpdate::Error(e.to_string()));
-                        }
-                        self.calls.cycle_due(self.busy());
+                        self.step(Input::Pilot(text));
                     }
-                    None => {
-                        let effects = self.calls.drop_call(Overtaken::SessionClosed);
-                        self.apply(effects);
-                        break;
-                    }
+                    None => break,
                 },
                 change = membership.recv() => match change {
-                    Ok(change) => {
-                        self.membership_changed(change);
-                        self.calls.cycle_due(self.busy());
-                    }
+                    Ok(change) => self.step(Input::Membership(change)),
                     Err(tokio::sync::broadcast::error::RecvError::Lagged(missed)) => {
                         // More changes went by than the channel holds: the view says where
                         // they led.
                         tracing::warn!(missed, "membership changes missed; taken from the view");
-                        let now_present = self.link.view().present_ids();
-                        for change in membership_diff(&self.present, &now_present) {
-                            self.membership_changed(change);
-                        }
-                        self.calls.cycle_due(self.busy());
+                        self.step(Input::MembershipMissed);
                     }
                     Err(tokio::sync::broadcast::error::RecvError::Closed) => break,
                 },
-                event = events.recv() => if let Some(event) = event && self.world_event(event) {
-                    self.calls.cycle_due(self.busy());
+                event = events.recv() => if let Some(event) = event {
+                    self.step(Input::World(event));
                 },
                 heard = async {
                     match self.in_flight.as_mut() {
@@ -306,147 +264,51 @@ impl Mission {
                         None => std::future::pending().await,
                     }
                 } => match heard {
-                    Heard::Answer(answer) => self.answered(answer).await,
-                    Heard::Early(early) => self.send_early(early).await,
+                    Heard::Answer(answer) => self.answered(answer),
+                    Heard::Early(early) => self.send_early(early),
                 },
-                _ = tick.tick() => {
-                    let timed_out = self.busy()
-                        && self.link.clock().instant().duration_since(self.last_cycle) >= self.cfg.cycle_timeout;
-                    let due = self.poll_outcomes() || timed_out;
-                    self.calls.cycle_due(due);
-                }
+                _ = tick.tick() => self.step(Input::Tick),
             }
+            self.carry_out_queued().await;
             self.take_override();
             self.start_next_call().await;
         }
-        self.log.note(Record::MissionEnd {
-            outcome: "pilot closed the session".into(),
-        });
+        self.step(Input::Closed);
         self.stats()
     }
 
-    /// After a direct command: the models' plan ends. True when there was one.
-    fn take_override(&mut self) -> bool {
+    /// Carries out what the core's steps asked for that is awaited: the direct commands, then
+    /// the sends, each send's result fed back (`Input::Sent`), which may ask for the next.
+    async fn carry_out_queued(&mut self) {
+        loop {
+            if !self.direct.is_empty() {
+                for (text, directive) in std::mem::take(&mut self.direct) {
+                    self.commands.execute(&text, directive).await;
+                }
+                continue;
+            }
+            let Some((checked, task)) = self.outgoing.pop_front() else {
+                return;
+            };
+            let result = self.send(&checked, Some(task)).await;
+            self.step(Input::Sent(result));
+        }
+    }
+
+    /// Feeds `input` to the core with a snapshot taken now, and carries out its effects.
+    fn step(&mut self, input: Input) {
+        let snap = self.snapshot();
+        let effects = self.core.step(input, &snap, &self.gate);
+        self.apply(effects);
+    }
+
+    /// After a direct command: the models' plan ends (`Input::Overridden`).
+    fn take_override(&mut self) {
         if !self.overrides.has_changed().unwrap_or(false) {
-            return false;
+            return;
         }
         self.overrides.borrow_and_update();
-        let effects = self.calls.overridden();
-        self.apply(effects);
-        if let Some(plan) = self.book.plan.take() {
-            self.finish_plan(plan, "interrupted by a direct command");
-        }
-        if let Some(held) = self.held.take() {
-            let text = format!(
-                "the plan for {:?} awaiting approval ended: interrupted by a direct command",
-                held.instruction
-            );
-            self.event(EventTopic::PlanEnded, text);
-        }
-        self.book.mnl.active = false;
-        true
-    }
-
-    /// A line from the pilot: a direct command, or an instruction for the models.
-    pub async fn pilot(&mut self, text: &str) -> Result<(), MissionError> {
-        let text = text.trim();
-        if text.is_empty() {
-            return Ok(());
-        }
-        let drones = self.snapshot().swarm_ids(self.gate.scenario());
-        if let Some(directive) = directives::parse(text, &drones) {
-            // The override it raises ends the plan (`take_override`).
-            self.commands.execute(text, directive).await;
-            return Ok(());
-        }
-        if let Some(on) = super::approval::switch(text) {
-            self.cfg.confirm = on;
-            let what = if on {
-                "on: every plan waits for your approval"
-            } else {
-                "off: plans fly once checked"
-            };
-            self.event(EventTopic::Note, format!("confirm {what}"));
-            return Ok(());
-        }
-        if self.held.is_some()
-            && let approval::Answered::Done(result) = self.answer_held(text).await
-        {
-            return result;
-        }
-        self.log.note(Record::Pilot {
-            text: text.to_owned(),
-        });
-        let scenario = self.gate.scenario();
-        let unknown =
-            addressed::unknown_drones(text, &drones, &scenario.slot_ids(), &scenario.place_names());
-        if !unknown.is_empty() {
-            let refusal = MissionError::UnknownDrones {
-                names: unknown,
-                swarm: drones,
-            };
-            self.log.note(Record::Event {
-                text: format!("instruction refused: {refusal}"),
-            });
-            return Err(refusal);
-        }
-        self.commands.begin_instruction(text);
-        match self.cfg.mode {
-            Mode::Mnl => {
-                // A cycle in flight was asked without this instruction.
-                let effects = self.calls.drop_call(Overtaken::NewerWork);
-                self.apply(effects);
-                self.calls.work_replaced();
-                self.book.mnl.instructions.push(text.to_owned());
-                self.book.mnl.active = true;
-                self.book.mnl.cycles = 0;
-                self.book.mnl.claimed_done = false;
-                self.book
-                    .mnl
-                    .tasks
-                    .retain(|t| t.status == TaskStatus::Running);
-                Ok(())
-            }
-            Mode::Tacos | Mode::Wor => {
-                self.remember(HistoryEntry::Pilot(text.to_owned()));
-                self.want_coordination(Coordination::Pilot(text.to_owned()));
-                Ok(())
-            }
-        }
-    }
-
-    fn membership_changed(&mut self, change: SwarmChange) {
-        match &change {
-            SwarmChange::Joined(d) => self.present.insert(d.clone()),
-            SwarmChange::Left(d) => self.present.remove(d),
-            SwarmChange::Status(_) => false,
-        };
-        let snap = self.snapshot();
-        let effects =
-            super::core::membership_changed(&mut self.book, &snap, self.cfg.mode, &change);
-        self.apply(effects);
-    }
-
-    /// Takes in a world event whose names are the scenario's; one that is not is logged and
-    /// left out of every prompt. True when it was taken in.
-    fn world_event(&mut self, event: WorldEvent) -> bool {
-        let scenario = self.gate.scenario();
-        let (mode, book, events) = (self.cfg.mode, &mut self.book, &mut self.events);
-        let (taken, effects) = super::core::world_event(event, scenario, mode, book, events);
-        if !taken {
-            tracing::warn!(?effects, "world event ignored");
-        }
-        self.apply(effects);
-        taken
-    }
-
-    /// Adds `entry` to the Coordinator's memory of the mission, and to the log it is resumed
-    /// from.
-    fn remember(&mut self, entry: HistoryEntry) {
-        self.log.note(Record::History {
-            entry: entry.clone(),
-        });
-        self.history.push(entry);
+        self.step(Input::Overridden);
     }
 
     /// Goes on with a mission the ground station ran before it restarted: its history, world
@@ -478,10 +340,10 @@ impl Mission {
                 None => "no plan in force".to_owned(),
             }
         );
-        self.history = history;
-        self.events = world_events;
-        self.book.plan = plan.map(ActivePlan::resumed);
-        self.calls.set_cycle_due(self.book.plan.is_some());
+        self.core.history = history;
+        self.core.events = world_events;
+        self.core.book.plan = plan.map(ActivePlan::resumed);
+        self.core.calls.set_cycle_due(self.core.book.plan.is_some());
         self.tell(MissionUpdate::Event {
             topic: EventTopic::Note,
             text,

@@ -1,8 +1,10 @@
 //! What the core asks the engine to do.
 
 use crate::mission::aids::Aid;
+use crate::mission::directives::Directive;
 use crate::mission::log::{Record, RefusedBy};
 use crate::mission::report::{MissionUpdate, Overtaken};
+use crate::safety::CheckedAction;
 use tacos_prompts::render::HistoryEntry;
 
 #[derive(Debug, Clone, PartialEq)]
@@ -19,9 +21,23 @@ pub(crate) enum Effect {
         by: RefusedBy,
     },
     /// Add to the Coordinator's memory of the mission (and to the log it is resumed from).
+    /// Kept by the core (`Core::absorb`), as are `WorkReplaced` and `Replan`.
     Remember(HistoryEntry),
     /// The models' work was replaced or ended: a reply asked for before is not used.
     WorkReplaced,
+    /// Carry out the pilot's direct command `text` at once (`commands`); the override it
+    /// raises comes back as `Input::Overridden`.
+    Direct { text: String, directive: Directive },
+    /// The pilot's instruction was taken: what the drones did before it is kept for `undo`.
+    InstructionBegun(String),
+    /// Send `checked` (checked by the gate on this step's snapshot) for plan task `task`; the
+    /// result comes back as `Input::Sent`.
+    Send {
+        checked: CheckedAction,
+        task: String,
+    },
+    /// A Supervisor (or monolithic) cycle was done (the statistics' cycles).
+    CycleCounted,
     /// Abort the model call in flight of `layer` and never use its reply (told to the pilot).
     DropCall { layer: &'static str, by: Overtaken },
     /// A plan completed after this many cycles (the statistics' cycles per plan).

@@ -3,19 +3,17 @@
 //! is complete long before the reply is, and a small model on a CPU writes for seconds more.
 //! So each call is judged as soon as it is whole in the streamed reply — the same checks as the
 //! whole reply (one call per drone, among the startable calls, the live checks and the safety
-//! gate) — and those that pass go to the engine, which checks them with the gate again against
-//! the swarm as it is then and sends them. The whole reply is still judged when it is in; the
+//! gate) — and those that pass go to the core, which checks them with the gate again against
+//! the swarm as it is then and has them sent (`core::cycle_reply`). The whole reply is still judged when it is in; the
 //! calls already sent are not sent again.
 
 use super::Mission;
-use crate::mission::core::first_call_per_drone;
-use crate::mission::report::{EventTopic, MissionUpdate};
+use crate::mission::core::{Input, first_call_per_drone};
 use crate::safety::CheckedAction;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use tacos_prompts::Call;
 use tacos_prompts::partial::partial_reply;
-use tacos_shared::DroneId;
 use tokio::sync::mpsc;
 
 /// A call that passed the checks while its reply was still being written.
@@ -33,18 +31,6 @@ pub(super) type OnWritten = Arc<dyn Fn(&str) + Send + Sync>;
 pub(super) struct EarlyCalls {
     /// `None` once the call's task has let go of its end.
     calls: Option<mpsc::UnboundedReceiver<EarlyCall>>,
-    issued: fn(&mut Mission, Call, DroneId, u64),
-    /// `CallQueue::epoch` when the call started.
-    epoch: u64,
-    served: Served,
-}
-
-/// What became of the calls handed on early: sent, or refused by the gate when they were to
-/// go (their drones are left out of the whole reply all the same).
-#[derive(Default)]
-pub(super) struct Served {
-    pub(super) sent: Vec<Call>,
-    pub(super) refused: usize,
 }
 
 impl EarlyCalls {
@@ -58,10 +44,6 @@ impl EarlyCalls {
             self.calls = None;
         }
         call
-    }
-
-    pub(super) fn served(self) -> Served {
-        self.served
     }
 }
 
@@ -83,8 +65,6 @@ impl Seen {
 /// keeps the calls that pass the whole reply's checks (with their checked actions).
 pub(super) fn early_calls(
     judge: impl Fn(&[Call]) -> Vec<(Call, CheckedAction)> + Send + Sync + 'static,
-    issued: fn(&mut Mission, Call, DroneId, u64),
-    epoch: u64,
 ) -> (OnWritten, Seen, EarlyCalls) {
     let (tx, rx) = mpsc::unbounded_channel();
     let started = Instant::now();
@@ -123,48 +103,19 @@ pub(super) fn early_calls(
             });
         }
     };
-    let early = EarlyCalls {
-        calls: Some(rx),
-        issued,
-        epoch,
-        served: Served::default(),
-    };
+    let early = EarlyCalls { calls: Some(rx) };
     (Arc::new(hook), seen, early)
 }
 
 impl Mission {
-    /// Sends a call that passed while its reply is still being written, if its work is still
-    /// current, with the gate's check again (as every cycle's call).
-    pub(super) async fn send_early(&mut self, early: EarlyCall) {
-        let Some(calls) = self.in_flight.as_ref().and_then(|f| f.early.as_ref()) else {
-            return;
-        };
-        if !self.calls.is_current(calls.epoch) {
-            return;
-        }
-        let issued = calls.issued;
-        let text = early.call.to_string();
-        match self
-            .send_cycle_call(early.call.clone(), &early.checked, issued)
-            .await
-        {
-            Ok(true) => {
-                if let Some(calls) = self.in_flight.as_mut().and_then(|f| f.early.as_mut()) {
-                    calls.served.sent.push(early.call);
-                }
-                let text = format!(
-                    "{text}: sent {:.1} s into the call, while the reply was still being written",
-                    early.after.as_secs_f64()
-                );
-                self.event(EventTopic::Note, text);
-            }
-            Ok(false) => {
-                if let Some(calls) = self.in_flight.as_mut().and_then(|f| f.early.as_mut()) {
-                    calls.served.refused += 1;
-                }
-            }
-            Err(e) => self.tell(MissionUpdate::Error(e.to_string())),
-        }
+    /// A call that passed while its reply is still being written: the core sends it if its
+    /// work is still current, with the gate's check again (`Input::EarlyCall`).
+    pub(super) fn send_early(&mut self, early: EarlyCall) {
+        self.step(Input::EarlyCall {
+            call: early.call,
+            checked: early.checked,
+            after: early.after,
+        });
     }
 }
 
@@ -207,7 +158,7 @@ mod tests {
                 })
                 .collect()
         };
-        let (hook, seen, mut early) = early_calls(judge, |_, _, _, _| {}, 0);
+        let (hook, seen, mut early) = early_calls(judge);
         let head = r#"{"reasoning":"Go.","actions":["#;
         hook(&format!("{head}{},", call("T2", "alfa")));
         hook(&format!(

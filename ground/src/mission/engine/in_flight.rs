@@ -5,18 +5,11 @@
 //! the replies in.
 
 use super::Mission;
-use super::cycle_call::{CycleChoice, CycleWork};
 use super::early::{EarlyCall, EarlyCalls};
-use crate::mission::core::{Coordination, NextCall};
-use crate::mission::report::{MissionError, MissionUpdate, Overtaken};
+use crate::mission::core::{CoordinatorAnswer, CycleAnswer, Input, NextCall};
+use crate::mission::report::{MissionUpdate, Overtaken};
 use crate::task_guard::AbortOnDrop;
 use std::future::Future;
-use tacos_prompts::Call;
-
-/// The Coordinator's checked reply: its reasoning, the calls that passed, and its refusal.
-pub(super) type CoordinatorAnswer = Result<(String, Vec<Call>, Option<String>), MissionError>;
-/// A Supervisor's or monolithic model's checked reply.
-pub(super) type CycleAnswer = Result<CycleChoice, MissionError>;
 
 /// A call's reply with what it was asked for, as its task hands it back.
 pub(super) enum Answered {
@@ -26,10 +19,8 @@ pub(super) enum Answered {
         grounded: Vec<String>,
         answer: CoordinatorAnswer,
     },
-    Cycle {
-        work: CycleWork,
-        answer: CycleAnswer,
-    },
+    /// A Supervisor's or monolithic model's checked reply.
+    Cycle(CycleAnswer),
 }
 
 /// What a call in flight tells the engine.
@@ -76,12 +67,6 @@ impl InFlight {
 }
 
 impl Mission {
-    /// Queues work for the Coordinator (`core::CallQueue::want`).
-    pub(super) fn want_coordination(&mut self, work: Coordination) {
-        let effects = self.calls.want(work);
-        self.apply(effects);
-    }
-
     /// Aborts the call in flight (`Effect::DropCall`): its reply is never used.
     pub(super) fn abort_call(&mut self, layer: &'static str, by: Overtaken) {
         drop(self.in_flight.take());
@@ -91,11 +76,10 @@ impl Mission {
     /// With no call in flight: the next work waiting for the Coordinator, or else a cycle when
     /// one is due (`core::CallQueue::next`). Errors are told to the pilot.
     pub(super) async fn start_next_call(&mut self) {
-        while let Some(next) = self.calls.next(self.busy()) {
+        while let Some(next) = self.core.next_call(self.link.clock().instant()) {
             let started = match next {
                 NextCall::Coordinate(work) => self.coordinate(&work).await,
                 NextCall::Cycle => {
-                    self.last_cycle = self.link.clock().instant();
                     let result = self.cycle();
                     if let Err(e) = result {
                         self.tell(MissionUpdate::Error(e.to_string()));
@@ -111,32 +95,26 @@ impl Mission {
     }
 
     /// The call in flight answered: its reply is taken in.
-    pub(super) async fn answered(&mut self, joined: Result<Answered, tokio::task::JoinError>) {
+    pub(super) fn answered(&mut self, joined: Result<Answered, tokio::task::JoinError>) {
         let Some(flight) = self.in_flight.take() else {
             return;
         };
-        self.calls.answered();
-        let result = match joined {
-            Err(e) => Err(format!("the {}'s call ended abnormally: {e}", flight.layer)),
+        self.core.calls.answered();
+        match joined {
+            Err(e) => self.tell(MissionUpdate::Error(format!(
+                "the {}'s call ended abnormally: {e}",
+                flight.layer
+            ))),
             Ok(Answered::Coordinator {
                 instruction,
                 grounded,
                 answer,
-            }) => {
-                let result = self.coordinator_answered(instruction, grounded, answer);
-                // A new plan: its first cycle at once.
-                self.calls.set_cycle_due(self.busy());
-                result.map_err(|e| e.to_string())
-            }
-            Ok(Answered::Cycle { work, answer }) => {
-                let served = flight.early.map(EarlyCalls::served).unwrap_or_default();
-                self.cycle_answered(work, answer, served)
-                    .await
-                    .map_err(|e| e.to_string())
-            }
-        };
-        if let Err(e) = result {
-            self.tell(MissionUpdate::Error(e));
+            }) => self.step(Input::CoordinatorReply {
+                instruction,
+                grounded,
+                answer,
+            }),
+            Ok(Answered::Cycle(answer)) => self.step(Input::CycleReply(answer)),
         }
     }
 }

@@ -3,7 +3,7 @@
 
 use super::Mission;
 use crate::link::GroundLink;
-use crate::mission::core::{self, Coordination, Effect, Rules, Snapshot, Start};
+use crate::mission::core::{self, Effect, Snapshot};
 use crate::mission::log::Record;
 use crate::mission::untrusted;
 use tacos_shared::messages::TargetObservation;
@@ -40,9 +40,9 @@ impl Mission {
         known
     }
 
-    /// Carries out the core's effects, in order.
+    /// Carries out the core's effects, in order, once the core kept its own (`Core::absorb`).
     pub(super) fn apply(&mut self, effects: Vec<Effect>) {
-        for effect in effects {
+        for effect in self.core.absorb(effects) {
             match effect {
                 Effect::Note(Record::AidFired { aid, detail }) => self.log.aid_fired(aid, detail),
                 Effect::Note(record) => self.log.note(record),
@@ -55,51 +55,22 @@ impl Mission {
                     refusal,
                     by,
                 ),
-                Effect::Remember(entry) => self.remember(entry),
-                Effect::WorkReplaced => self.calls.work_replaced(),
                 Effect::DropCall { layer, by } => self.abort_call(layer, by),
                 Effect::PlanCycles(cycles) => self.stats.update(|s| s.cycles_per_plan.push(cycles)),
-                Effect::Replan(instruction) => {
-                    self.want_coordination(Coordination::Replan(instruction))
-                }
+                Effect::Direct { text, directive } => self.direct.push((text, directive)),
+                Effect::InstructionBegun(text) => self.commands.begin_instruction(&text),
+                Effect::Send { checked, task } => self.outgoing.push_back((checked, task)),
+                Effect::CycleCounted => self.stats.update(|s| s.cycles_total += 1),
+                // Kept by the core in `absorb`: they never come out of it.
+                Effect::Remember(_) | Effect::WorkReplaced | Effect::Replan(_) => {}
             }
         }
-    }
-
-    /// Looks for finished actions; true when any task changed state.
-    pub(super) fn poll_outcomes(&mut self) -> bool {
-        let snap = self.snapshot();
-        let rules = Rules {
-            gate: &self.gate,
-            mode: self.cfg.mode,
-            max_task_failures: self.cfg.max_task_failures,
-        };
-        let (effects, changed) = core::poll(&mut self.book, &snap, &rules);
-        self.apply(effects);
-        changed
-    }
-
-    /// Runs `f` with the checks of whether a call can start, on one snapshot of the swarm.
-    pub(super) fn with_start<R>(&self, f: impl FnOnce(&Start<'_>) -> R) -> R {
-        let snap = self.snapshot();
-        f(&Start::new(&snap, &self.gate, &self.book))
     }
 
     /// Gives the plan up when it has been stuck too long (`core::give_up_if_stuck`).
     pub(super) fn give_up_if_stuck(&mut self) {
         let snap = self.snapshot();
-        let effects = core::give_up_if_stuck(&mut self.book, &snap, &self.gate);
-        self.apply(effects);
-    }
-
-    /// Ends `plan` `how` ("complete", or why not).
-    pub(super) fn finish_plan(&mut self, plan: core::ActivePlan, how: &str) {
-        self.apply(core::plan_ended(plan, how));
-    }
-
-    /// The monolithic model's work is complete when its claim stands and nothing it issued runs.
-    pub(super) fn judge_monolithic(&mut self) {
-        let effects = core::judge_monolithic(&mut self.book.mnl);
+        let effects = core::give_up_if_stuck(&mut self.core.book, &snap, &self.gate);
         self.apply(effects);
     }
 }

@@ -1,0 +1,105 @@
+//! The Coordinator's checked reply taken in: a refusal without a plan is the pilot's answer
+//! (nothing is sent, the plan in force stays); a plan has its repeats dropped, its forgotten
+//! take-offs added (`implied-takeoffs`), and is held for the pilot (`confirm on`) or adopted.
+
+use super::adopt::{adopt, with_implied_takeoffs, without_repeated_work};
+use super::effect::Effect;
+use super::snapshot::Snapshot;
+use super::state::{Core, told};
+use super::step::CoordinatorAnswer;
+use crate::mission::aids::Aid;
+use crate::mission::approval::HeldPlan;
+use crate::mission::log::Record;
+use crate::mission::report::{EventTopic, MissionError, MissionUpdate};
+use crate::safety::SafetyGate;
+use tacos_prompts::render::HistoryEntry;
+
+impl Core {
+    /// The reply to `instruction` (`grounded`: the drones on the ground when it was asked).
+    pub(super) fn coordinator_answered(
+        &mut self,
+        instruction: String,
+        grounded: Vec<String>,
+        answer: CoordinatorAnswer,
+        snap: &Snapshot,
+        gate: &SafetyGate,
+    ) -> Vec<Effect> {
+        let mut effects = Vec::new();
+        if let Err(e) = self.take_plan(instruction, grounded, answer, snap, gate, &mut effects) {
+            effects.push(Effect::Tell(MissionUpdate::Error(e.to_string())));
+        }
+        effects
+    }
+
+    fn take_plan(
+        &mut self,
+        instruction: String,
+        grounded: Vec<String>,
+        answer: CoordinatorAnswer,
+        snap: &Snapshot,
+        gate: &SafetyGate,
+        effects: &mut Vec<Effect>,
+    ) -> Result<(), MissionError> {
+        let (reasoning, calls, refusal) = answer?;
+        if let Some(refusal) = refusal {
+            if calls.is_empty() {
+                return Err(declined(reasoning, refusal, effects));
+            }
+            // A plan with a refusal: what it can do flies, and the pilot hears what it cannot.
+            let text = format!("the Coordinator says: {refusal}");
+            effects.extend(told(EventTopic::Note, text));
+        }
+        if calls.is_empty() {
+            // Every call of the last attempt was refused: the plan in force (if any) stays, and
+            // the refusals are in the log's repair requests.
+            return Err(MissionError::NoValidReply {
+                layer: "coordinator",
+                attempts: self.bounds.max_repairs + 1,
+                reason: "no call of its plan passed the checks".into(),
+            });
+        }
+        let (calls, repeats) = without_repeated_work(calls);
+        for call in repeats {
+            let text = format!("{call}: repeats {}'s previous task: dropped", call.drone);
+            effects.extend(told(EventTopic::Note, text));
+        }
+        let calls = if self.aids.is_on(Aid::ImpliedTakeoffs) {
+            let (calls, fired) = with_implied_takeoffs(calls, &grounded);
+            effects.extend(fired);
+            calls
+        } else {
+            calls
+        };
+        effects.push(Effect::Note(Record::Plan {
+            reasoning: reasoning.clone(),
+            plan: serde_json::to_value(&calls).unwrap_or_default(),
+        }));
+        effects.push(Effect::Tell(MissionUpdate::Plan {
+            reasoning: reasoning.clone(),
+            calls: calls.iter().map(|c| c.to_string()).collect(),
+        }));
+        if self.confirm {
+            let plan = HeldPlan {
+                instruction,
+                reasoning,
+                calls,
+            };
+            self.hold_for_approval(plan, snap, gate, effects);
+            return Ok(());
+        }
+        effects.extend(adopt(&mut self.book, reasoning, calls));
+        Ok(())
+    }
+}
+
+/// The Coordinator answered the pilot instead of planning: nothing is sent, the plan in force
+/// (if any) stays, and the next request's history says what was declined and why.
+fn declined(reasoning: String, refusal: String, effects: &mut Vec<Effect>) -> MissionError {
+    effects.push(Effect::Note(Record::Event {
+        text: format!("instruction declined by the Coordinator: {refusal} ({reasoning})"),
+    }));
+    effects.push(Effect::Remember(HistoryEntry::Event(format!(
+        "the Coordinator declined the instruction: {refusal}"
+    ))));
+    MissionError::Declined { refusal }
+}

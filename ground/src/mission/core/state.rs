@@ -1,0 +1,171 @@
+//! The mission core's state: the plan book, the calls' schedule, the two memories (the
+//! Coordinator's history and the world's events), the plan held for the pilot, and what the
+//! core knows of the swarm's membership and the last cycle's time. [`Core::step`] (`step`)
+//! takes the engine's inputs in; [`Core::absorb`] keeps the effects that only change this
+//! state, so what reaches the engine is what it must do outside.
+
+use super::book::PlanBook;
+use super::calls::{CallQueue, Coordination, NextCall};
+use super::cycle_reply::CycleSends;
+use super::effect::Effect;
+use super::outcomes::plan_ended;
+use crate::mission::aids::ModelAids;
+use crate::mission::approval::HeldPlan;
+use crate::mission::config::{MissionConfig, Mode};
+use crate::mission::log::Record;
+use crate::mission::report::{EventTopic, MissionUpdate};
+use std::collections::BTreeSet;
+use std::time::{Duration, Instant};
+use tacos_prompts::render::HistoryEntry;
+use tacos_shared::DroneId;
+
+/// The engine's bounds the core decides by (from `MissionConfig`).
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct Bounds {
+    /// A cycle is due at the latest this long after the last one while the models have work.
+    pub(crate) cycle_timeout: Duration,
+    pub(crate) max_cycles_per_plan: u32,
+    pub(crate) max_task_failures: u32,
+    /// Repair rounds per model call (named in the error when none passed).
+    pub(crate) max_repairs: u32,
+}
+
+/// Everything the mission decides by, but the swarm (which each step's `Snapshot` brings).
+#[derive(Debug, Clone)]
+pub(crate) struct Core {
+    pub(crate) mode: Mode,
+    pub(crate) aids: ModelAids,
+    /// Every Coordinator plan waits for the pilot's approval (`confirm on`).
+    pub(crate) confirm: bool,
+    pub(crate) bounds: Bounds,
+    /// The plan in force and the monolithic model's work.
+    pub(crate) book: PlanBook,
+    /// Which model call runs next, what waits for the Coordinator, and the work epoch.
+    pub(crate) calls: CallQueue,
+    /// The Coordinator's memory of the mission.
+    pub(crate) history: Vec<HistoryEntry>,
+    /// The world's events as the prompts show them.
+    pub(crate) events: Vec<String>,
+    /// A Coordinator plan held for the pilot's approval.
+    pub(crate) held: Option<HeldPlan>,
+    /// The drones present as the membership changes taken in say (after changes were missed,
+    /// the difference to the snapshot's view is taken in instead).
+    pub(super) present: BTreeSet<DroneId>,
+    /// When the last cycle started (the first tick's time until one has).
+    pub(super) last_cycle: Option<Instant>,
+    /// The cycle whose call is in flight or whose calls are being sent (`cycle_reply`).
+    pub(super) cycle: Option<CycleSends>,
+}
+
+impl Core {
+    pub(crate) fn new(cfg: &MissionConfig) -> Core {
+        Core {
+            mode: cfg.mode,
+            aids: cfg.aids,
+            confirm: cfg.confirm,
+            bounds: Bounds {
+                cycle_timeout: cfg.cycle_timeout,
+                max_cycles_per_plan: cfg.max_cycles_per_plan,
+                max_task_failures: cfg.max_task_failures,
+                max_repairs: cfg.max_repairs,
+            },
+            book: PlanBook::default(),
+            calls: CallQueue::default(),
+            history: Vec::new(),
+            events: Vec::new(),
+            held: None,
+            present: BTreeSet::new(),
+            last_cycle: None,
+            cycle: None,
+        }
+    }
+
+    /// True while a plan (or the monolithic model's work) is under way.
+    pub(crate) fn busy(&self) -> bool {
+        match self.mode {
+            Mode::Mnl => self.book.mnl.active,
+            Mode::Tacos | Mode::Wor => self.book.plan.is_some(),
+        }
+    }
+
+    /// Carries out the effects that change only the core (remembering, replacing the work,
+    /// queueing a replan) and hands back the rest, in order.
+    pub(crate) fn absorb(&mut self, effects: Vec<Effect>) -> Vec<Effect> {
+        let mut out = Vec::with_capacity(effects.len());
+        for effect in effects {
+            match effect {
+                Effect::Remember(entry) => {
+                    out.push(Effect::Note(Record::History {
+                        entry: entry.clone(),
+                    }));
+                    self.history.push(entry);
+                }
+                Effect::WorkReplaced => self.calls.work_replaced(),
+                Effect::Replan(instruction) => {
+                    let dropped = self.calls.want(Coordination::Replan(instruction));
+                    out.extend(dropped);
+                }
+                other => out.push(other),
+            }
+        }
+        out
+    }
+
+    /// The model call to start now, if any (`CallQueue::next`); a cycle's start is its time.
+    pub(crate) fn next_call(&mut self, now: Instant) -> Option<NextCall> {
+        let next = self.calls.next(self.busy());
+        if next == Some(NextCall::Cycle) {
+            self.last_cycle = Some(now);
+        }
+        next
+    }
+
+    /// Whether a cycle may be asked for: not when the monolithic model claimed its work done
+    /// (its outcomes are awaited), nor past the cycles a plan may take, which ends the work
+    /// with an error for the pilot.
+    pub(crate) fn cycle_allowed(&mut self, effects: &mut Vec<Effect>) -> bool {
+        let max = self.bounds.max_cycles_per_plan;
+        match self.mode {
+            Mode::Tacos | Mode::Wor => {
+                let Some(plan) = self.book.plan.as_ref() else {
+                    return false;
+                };
+                if plan.cycles < max {
+                    return true;
+                }
+                if let Some(plan) = self.book.plan.take() {
+                    effects.extend(plan_ended(plan, "abandoned after too many cycles"));
+                    effects.push(Effect::Tell(MissionUpdate::Error(format!(
+                        "the plan was not complete after {max} Supervisor cycles"
+                    ))));
+                }
+                false
+            }
+            Mode::Mnl => {
+                let mnl = &mut self.book.mnl;
+                if mnl.claimed_done {
+                    return false;
+                }
+                if mnl.cycles < max {
+                    return true;
+                }
+                mnl.active = false;
+                let text = format!(
+                    "the monolithic model did not carry out the instructions in {} cycles",
+                    mnl.cycles
+                );
+                effects.push(Effect::Note(Record::Event { text: text.clone() }));
+                effects.push(Effect::Tell(MissionUpdate::Error(text)));
+                false
+            }
+        }
+    }
+}
+
+/// An event the log keeps and the pilot is told.
+pub(crate) fn told(topic: EventTopic, text: String) -> [Effect; 2] {
+    [
+        Effect::Note(Record::Event { text: text.clone() }),
+        Effect::Tell(MissionUpdate::Event { topic, text }),
+    ]
+}

@@ -1,0 +1,297 @@
+//! The core fed inputs (`Core::step`), as the engine feeds it: a lost drone and a direct command
+//! while models think, an instruction naming a drone the swarm lacks, a plan held for the
+//! pilot and answered, the cycle timeout, the cycle limit. No process, no clock, no model.
+
+use super::replan_tests::chase;
+use super::*;
+use crate::mission::config::{MissionConfig, Mode};
+use crate::mission::directives::Directive;
+use crate::mission::log::Record;
+use crate::mission::report::{MissionUpdate, Overtaken};
+use crate::safety::SafetyGate;
+use crate::swarm::{SwarmChange, SwarmView, test_status};
+use std::time::{Duration, Instant};
+use tacos_prompts::render::HistoryEntry;
+use tacos_prompts::{ActionName, Call};
+use tacos_shared::scenario::Scenario;
+use tacos_shared::{DroneId, DroneMode};
+
+fn gate() -> SafetyGate {
+    SafetyGate::new(Scenario::builtin("city").expect("city"))
+}
+
+fn core(mode: Mode) -> Core {
+    Core::new(&MissionConfig {
+        mode,
+        ..MissionConfig::default()
+    })
+}
+
+/// alfa, bravo and charlie on the ground, heard at `now`.
+fn grounded(now: Instant) -> Snapshot {
+    let mut swarm = SwarmView::default();
+    for name in ["alfa", "bravo", "charlie"] {
+        swarm.apply_status(test_status(name, DroneMode::Idle), now);
+    }
+    Snapshot {
+        swarm,
+        targets: Vec::new(),
+        now,
+        ground: 1,
+    }
+}
+
+fn errors(effects: &[Effect]) -> Vec<&str> {
+    effects
+        .iter()
+        .filter_map(|e| match e {
+            Effect::Tell(MissionUpdate::Error(text)) => Some(text.as_str()),
+            _ => None,
+        })
+        .collect()
+}
+
+fn events(effects: &[Effect]) -> Vec<&str> {
+    effects
+        .iter()
+        .filter_map(|e| match e {
+            Effect::Note(Record::Event { text }) => Some(text.as_str()),
+            _ => None,
+        })
+        .collect()
+}
+
+fn dropped(effects: &[Effect]) -> Vec<(&'static str, Overtaken)> {
+    effects
+        .iter()
+        .filter_map(|e| match e {
+            Effect::DropCall { layer, by } => Some((*layer, *by)),
+            _ => None,
+        })
+        .collect()
+}
+
+fn take_offs() -> Vec<Call> {
+    vec![
+        Call::named("T1", "alfa", ActionName::ArmTakeoff, "none"),
+        Call::named("T2", "bravo", ActionName::ArmTakeoff, "none"),
+    ]
+}
+
+fn reply(calls: Vec<Call>) -> Input {
+    Input::CoordinatorReply {
+        instruction: "alfa and bravo, take off".into(),
+        grounded: vec!["alfa".into(), "bravo".into(), "charlie".into()],
+        answer: Ok(("Both go up.".into(), calls, None)),
+    }
+}
+
+#[test]
+fn a_lost_drone_then_a_direct_command_while_models_think() {
+    let (book, snap) = chase();
+    let gate = gate();
+    let mut core = core(Mode::Tacos);
+    core.book = book;
+    core.step(Input::Started, &snap, &gate);
+    core.calls.cycle_due(true);
+    assert_eq!(core.next_call(snap.now), Some(NextCall::Cycle));
+    core.calls.started("supervisor");
+    // bravo, chasing the van, is lost while the Supervisor thinks: its call is dropped, the
+    // replan is queued and goes first, and the history remembers the loss.
+    let bravo = DroneId::new("bravo").expect("valid");
+    let effects = core.step(Input::Membership(SwarmChange::Left(bravo)), &snap, &gate);
+    assert_eq!(dropped(&effects), [("supervisor", Overtaken::NewerWork)]);
+    assert!(
+        effects
+            .iter()
+            .any(|e| matches!(e, Effect::Note(Record::Replan { .. })))
+    );
+    assert!(matches!(
+        core.history.last(),
+        Some(HistoryEntry::Event(text)) if text == "bravo became unavailable"
+    ));
+    let Some(NextCall::Coordinate(Coordination::Replan(why))) = core.next_call(snap.now) else {
+        panic!("the replan goes next")
+    };
+    assert!(why.contains("van"), "{why}");
+    core.calls.started("coordinator");
+    // The pilot types `land all` while the Coordinator thinks: the core hands the directive to
+    // the engine, which carries it out and feeds the override back.
+    let effects = core.step(Input::Pilot("land all".into()), &snap, &gate);
+    assert_eq!(
+        effects,
+        [Effect::Direct {
+            text: "land all".into(),
+            directive: Directive::LandAll
+        }]
+    );
+    let effects = core.step(Input::Overridden, &snap, &gate);
+    assert_eq!(
+        dropped(&effects),
+        [("coordinator", Overtaken::DirectCommand)]
+    );
+    assert!(core.book.plan.is_none(), "the plan in force ended");
+    assert!(
+        effects.iter().any(|e| matches!(
+            e,
+            Effect::Note(Record::PlanEnded { how }) if how == "interrupted by a direct command"
+        )),
+        "{effects:?}"
+    );
+    assert_eq!(
+        core.next_call(snap.now),
+        None,
+        "nothing is asked after the command"
+    );
+}
+
+#[test]
+fn an_instruction_naming_a_drone_the_swarm_lacks_is_refused_before_any_model() {
+    let snap = grounded(Instant::now());
+    let gate = gate();
+    let mut core = core(Mode::Tacos);
+    let effects = core.step(Input::Pilot("zulu, take off".into()), &snap, &gate);
+    assert_eq!(
+        errors(&effects),
+        [
+            "there is no drone zulu in this swarm (its drones: alfa, bravo, charlie); nothing was \
+             sent: address one of those"
+        ]
+    );
+    assert!(
+        effects
+            .iter()
+            .any(|e| matches!(e, Effect::Note(Record::Pilot { .. })))
+    );
+    assert!(
+        !effects
+            .iter()
+            .any(|e| matches!(e, Effect::InstructionBegun(_)))
+    );
+    assert_eq!(core.next_call(snap.now), None, "no model is asked");
+    // An instruction to the swarm's drones goes to the Coordinator, remembered and begun.
+    let effects = core.step(Input::Pilot("alfa, take off".into()), &snap, &gate);
+    assert!(effects.contains(&Effect::InstructionBegun("alfa, take off".into())));
+    assert!(effects.contains(&Effect::Note(Record::History {
+        entry: HistoryEntry::Pilot("alfa, take off".into())
+    })));
+    assert_eq!(
+        core.next_call(snap.now),
+        Some(NextCall::Coordinate(Coordination::Pilot(
+            "alfa, take off".into()
+        )))
+    );
+}
+
+#[test]
+fn a_held_plan_is_shown_and_flies_only_once_the_pilot_approves_what_is_left_of_it() {
+    let snap = grounded(Instant::now());
+    let gate = gate();
+    let mut core = core(Mode::Tacos);
+    core.step(Input::Pilot("confirm on".into()), &snap, &gate);
+    let effects = core.step(reply(take_offs()), &snap, &gate);
+    assert!(core.book.plan.is_none() && core.held.is_some());
+    assert!(
+        events(&effects)
+            .iter()
+            .any(|t| t.contains("awaits your approval") && t.contains("T2 bravo arm_takeoff()")),
+        "{effects:?}"
+    );
+    assert_eq!(core.next_call(snap.now), None, "a held plan has no cycle");
+    let effects = core.step(Input::Pilot("drop T9".into()), &snap, &gate);
+    assert!(events(&effects).iter().any(|t| t.contains("no task T9")));
+    core.step(Input::Pilot("drop T2".into()), &snap, &gate);
+    core.step(Input::Pilot("approve".into()), &snap, &gate);
+    let plan = core
+        .book
+        .plan
+        .as_ref()
+        .expect("the approved plan is in force");
+    let tasks: Vec<&str> = plan.tasks.iter().map(|t| t.call.task.as_str()).collect();
+    assert_eq!(tasks, ["T1"]);
+    assert_eq!(core.next_call(snap.now), Some(NextCall::Cycle));
+}
+
+#[test]
+fn a_rejected_plan_goes_back_to_the_coordinator_with_the_pilot_s_words() {
+    let snap = grounded(Instant::now());
+    let gate = gate();
+    let mut core = core(Mode::Tacos);
+    core.step(Input::Pilot("confirm on".into()), &snap, &gate);
+    core.step(reply(take_offs()), &snap, &gate);
+    core.step(Input::Pilot("reject bravo stays down".into()), &snap, &gate);
+    assert!(core.held.is_none() && core.book.plan.is_none());
+    let again = "The pilot rejected your plan for \"alfa and bravo, take off\": bravo stays \
+                 down. Plan again.";
+    assert_eq!(
+        core.next_call(snap.now),
+        Some(NextCall::Coordinate(Coordination::Pilot(again.into())))
+    );
+    // A direct command ends a plan still held.
+    core.step(reply(take_offs()), &snap, &gate);
+    let effects = core.step(Input::Overridden, &snap, &gate);
+    assert!(core.held.is_none());
+    assert!(
+        events(&effects)
+            .iter()
+            .any(|t| t.contains("awaiting approval ended"))
+    );
+}
+
+#[test]
+fn while_work_is_under_way_a_cycle_is_due_after_the_timeout_and_not_before() {
+    let t0 = Instant::now();
+    let gate = gate();
+    let mut core = core(Mode::Tacos);
+    core.step(Input::Started, &grounded(t0), &gate);
+    core.step(reply(take_offs()), &grounded(t0), &gate);
+    assert_eq!(
+        core.next_call(t0),
+        Some(NextCall::Cycle),
+        "a new plan's first cycle"
+    );
+    let timeout = core.bounds.cycle_timeout;
+    core.step(Input::Tick, &grounded(t0 + timeout / 2), &gate);
+    assert_eq!(core.next_call(t0 + timeout / 2), None);
+    let later = t0 + timeout + Duration::from_millis(1);
+    core.step(Input::Tick, &grounded(later), &gate);
+    assert_eq!(core.next_call(later), Some(NextCall::Cycle));
+}
+
+#[test]
+fn a_plan_past_its_cycles_ends_with_an_error_and_no_cycle_is_asked() {
+    let snap = grounded(Instant::now());
+    let gate = gate();
+    let mut core = core(Mode::Tacos);
+    core.step(reply(take_offs()), &snap, &gate);
+    let mut effects = Vec::new();
+    assert!(core.cycle_allowed(&mut effects));
+    if let Some(plan) = core.book.plan.as_mut() {
+        plan.cycles = core.bounds.max_cycles_per_plan;
+    }
+    assert!(!core.cycle_allowed(&mut effects));
+    assert!(core.book.plan.is_none());
+    assert_eq!(
+        errors(&effects),
+        ["the plan was not complete after 30 Supervisor cycles"]
+    );
+}
+
+#[test]
+fn the_session_s_end_drops_the_call_in_flight_and_ends_the_log() {
+    let snap = grounded(Instant::now());
+    let gate = gate();
+    let mut core = core(Mode::Mnl);
+    core.step(Input::Pilot("alfa, take off".into()), &snap, &gate);
+    assert_eq!(core.next_call(snap.now), Some(NextCall::Cycle));
+    core.calls.started("monolithic");
+    let effects = core.step(Input::Closed, &snap, &gate);
+    assert_eq!(
+        dropped(&effects),
+        [("monolithic", Overtaken::SessionClosed)]
+    );
+    assert!(matches!(
+        effects.last(),
+        Some(Effect::Note(Record::MissionEnd { .. }))
+    ));
+}
