@@ -1,13 +1,13 @@
-//! What the engine does with what a model says and when: positions logged while it thinks, plans
-//! held to the places the pilot named, a chase handed on, a failed repair round, unknown drones.
+//! What the engine does with what a model says and when: positions logged while it thinks, a
+//! chase handed on, unknown drones. (Places held to the pilot's words, a failed repair round and
+//! a refusal the map contradicts are the core's tests: `core/plan_tests.rs`, `repair_tests.rs`.)
 
 use super::kit::*;
 use serde_json::json;
-use std::sync::Arc;
 use std::time::Duration;
 use tacos_ground::mission::log::{self, Record};
-use tacos_ground::mission::{Aid, MissionUpdate, ModelAids};
-use tacos_llm::{ChatRequest, LlmError};
+use tacos_ground::mission::{Aid, MissionUpdate};
+use tacos_llm::ChatRequest;
 use tacos_shared::DroneId;
 use tacos_tests::prompt_text::request_text;
 use tacos_tests::{PolicyBackend, within};
@@ -73,45 +73,6 @@ async fn positions_are_logged_while_a_model_thinks() -> anyhow::Result<()> {
                 "positions logged in a burst: {pair:?}"
             );
         }
-        anyhow::Ok(())
-    })
-    .await
-}
-
-/// A plan that sends a drone to a place the instruction does not name, while it names another,
-/// is rejected with the places it may use (for a server that ignores the schema's narrowed
-/// target list), and the repaired plan is the one flown.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_plan_off_the_places_the_pilot_named_is_sent_back() -> anyhow::Result<()> {
-    stopping_after(start("scope").await?, async |run| {
-        let supervisor = offered_policy(json!([]), false);
-        let schemas = Arc::new(std::sync::Mutex::new(Vec::new()));
-        let seen = schemas.clone();
-        let policy = move |request: &ChatRequest| {
-            if !request.messages[0].content.starts_with("You are the Coordinator") {
-                return supervisor(request);
-            }
-            if let (Ok(mut seen), Some(s)) = (seen.lock(), &request.schema) {
-                seen.push(s.schema.clone());
-            }
-            let goal = if repairs(request) == 0 { "car_2" } else { "car_11" };
-            Ok(json!({ "reasoning": "Alfa goes.", "plan": [call("T1", "alfa", "arm_takeoff", "none"), call("T2", "alfa", "goto", goal)] }).to_string())
-        };
-        let (mut updates, lines, log_path, _) = run_with_backend(run, "scopelog", PolicyBackend::new(policy), "alfa, check car_11").await?;
-        plan_complete(&mut updates, Duration::from_secs(120)).await?;
-        drop(lines);
-        let records = log::read(&log_path)?;
-        let rejected: Vec<&String> = records.iter().filter_map(|l| match &l.record { Record::GateRejected { call, .. } => Some(call), _ => None }).collect();
-        assert_eq!(rejected.len(), 1, "{rejected:?}");
-        assert!(rejected[0].contains("T2 alfa goto(car_2): car_2 is neither named in the instruction nor in the pending plan; the places for this plan are: car_11"), "{rejected:?}");
-        let gotos: Vec<&String> = records.iter().filter_map(|l| match &l.record { Record::ActionSent { action, .. } if action.starts_with("goto") => Some(action), _ => None }).collect();
-        assert_eq!(gotos.len(), 1, "{gotos:?}");
-        // The schema offered the Coordinator only the named place for a goto's target.
-        let schemas = schemas.lock().map_err(|_| anyhow::anyhow!("poisoned"))?;
-        let goto = schemas[0]["properties"]["plan"]["items"]["anyOf"][1].clone();
-        assert_eq!(goto["properties"]["action"]["enum"], json!(["goto"]));
-        assert_eq!(goto["properties"]["target"]["enum"], json!(["none", "car_11"]));
-        assert!(records.iter().any(|l| matches!(&l.record, Record::AidFired { aid: Aid::PlaceScope, .. })));
         anyhow::Ok(())
     })
     .await
@@ -236,59 +197,6 @@ async fn a_chase_is_held_to_the_pilot_and_handed_on_when_its_tracker_dies() -> a
     .await
 }
 
-/// A repair round the backend cannot answer (the embedded model's window is full, as seen with
-/// a 6-drone repair prompt) leaves what passed in the reply before it: alfa's take-off flies,
-/// the refused call does not.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_repair_round_that_fails_leaves_what_passed_before() -> anyhow::Result<()> {
-    stopping_after(start("repairfail").await?, async |run| {
-        let supervisor = offered_policy(json!([]), false);
-        let model = move |request: &ChatRequest| {
-            if !request.messages[0]
-                .content
-                .starts_with("You are the Coordinator")
-            {
-                return supervisor(request);
-            }
-            if repairs(request) > 0 {
-                return Err(LlmError::Generation(
-                    "the prompt has 4387 tokens; the embedded model's window is 4096".into(),
-                ));
-            }
-            let plan = json!([
-                call("T1", "alfa", "arm_takeoff", "none"),
-                call("T2", "alfa", "start_tracking", "car_1"),
-            ]);
-            Ok(json!({ "reasoning": "Alfa takes off.", "plan": plan }).to_string())
-        };
-        let (mut updates, lines, log_path, _) = run_with_backend(
-            run,
-            "repairfaillog",
-            PolicyBackend::new(model),
-            "alfa, take off",
-        )
-        .await?;
-        plan_complete(&mut updates, Duration::from_secs(90))
-        .await?;
-        drop(lines);
-        let lines = log::read(&log_path)?;
-        assert_eq!(
-            sent_tasks(&lines),
-            vec![("T1".to_owned(), "alfa".to_owned())]
-        );
-        assert!(
-            lines.iter().any(|l| matches!(&l.record, Record::LlmError { attempt: 2, error, .. } if error.contains("window"))),
-            "the repair round's failure is not in the log"
-        );
-        assert!(
-            lines.iter().any(|l| matches!(&l.record, Record::AidFired { aid: Aid::KeepPartialPlan, .. })),
-            "the aid that kept the take-off is not in the log"
-        );
-        anyhow::Ok(())
-    })
-    .await
-}
-
 /// "zulu, take off" in a swarm without zulu: the pilot is told there is no zulu and which
 /// drones there are, before any model is asked, and nothing is sent. (A capable model answered
 /// "Zulu is already flying" and planned take-offs for the others.)
@@ -313,62 +221,6 @@ async fn an_instruction_to_a_drone_the_swarm_lacks_is_refused_with_the_swarm_s_d
             "a model was asked"
         );
         assert!(sent_tasks(&lines).is_empty());
-        anyhow::Ok(())
-    })
-    .await
-}
-
-/// A Coordinator that declines (the `plan-only` aid off), saying the place the pilot named is
-/// not on the map when it is (the 1.5B model did so for "charlie, search the business_district"
-/// on the lab map): the refusal is sent back with the fact, and the plan of the repair round
-/// flies.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_refusal_contradicted_by_the_map_is_sent_back() -> anyhow::Result<()> {
-    stopping_after(start("refusal").await?, async |run| {
-        let supervisor = offered_policy(json!([]), false);
-        let policy = move |request: &ChatRequest| {
-            if !request.messages[0].content.starts_with("You are the Coordinator") {
-                return supervisor(request);
-            }
-            let offered = request
-                .schema
-                .as_ref()
-                .is_some_and(|s| s.schema.pointer("/properties/refusal").is_some());
-            Ok(if repairs(request) == 0 && offered {
-                json!({ "reasoning": "No such place.", "plan": [], "refusal": "car_11 is not a place on this map." })
-            } else {
-                json!({ "reasoning": "Alfa goes.", "plan": [call("T1", "alfa", "arm_takeoff", "none"), call("T2", "alfa", "goto", "car_11")] })
-            }
-            .to_string())
-        };
-        let (mut updates, lines, log_path, _) = run_with_aids(
-            run,
-            "refusallog",
-            PolicyBackend::new(policy),
-            "alfa, check car_11",
-            ModelAids::small().with(Aid::PlanOnly, false),
-        )
-        .await?;
-        plan_complete(&mut updates, Duration::from_secs(120)).await?;
-        drop(lines);
-        let records = log::read(&log_path)?;
-        let rejected: Vec<&String> = records
-            .iter()
-            .filter_map(|l| match &l.record {
-                Record::GateRejected { call, .. } => Some(call),
-                _ => None,
-            })
-            .collect();
-        assert_eq!(
-            rejected,
-            [
-                "the refusal: car_11 is a place on this map (the pilot named it), and a goto can reach it"
-            ],
-        );
-        assert_eq!(
-            sent_tasks(&records),
-            [("T1".to_owned(), "alfa".to_owned()), ("T2".into(), "alfa".into())]
-        );
         anyhow::Ok(())
     })
     .await
