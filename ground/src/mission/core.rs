@@ -91,14 +91,12 @@ pub(crate) use step::{CoordinatorAnswer, Input};
 
 // What the core's tests reach through `super::*`.
 #[cfg(test)]
-use adopt::{with_implied_takeoffs, without_repeated_work};
-#[cfg(test)]
 use book::PlanBook;
 #[cfg(test)]
 use calls::CallQueue;
 #[cfg(test)]
 use membership::membership_changed;
 #[cfg(test)]
-use outcomes::{Rules, judge_monolithic, plan_ended, poll};
+use outcomes::{Rules, plan_ended, poll};
 #[cfg(test)]
 use start::Start;
