@@ -73,7 +73,6 @@ mod tests;
 mod world_tests;
 
 pub(crate) use adopt::adopt;
-pub(crate) use book::ActivePlan;
 pub(crate) use calls::{Coordination, NextCall};
 pub(crate) use checks::check_live;
 pub(crate) use coordinator::{CoordinatorAsk, CoordinatorContext, coordinator_ask};
@@ -91,7 +90,7 @@ pub(crate) use step::{CoordinatorAnswer, Input};
 
 // What the core's tests reach through `super::*`.
 #[cfg(test)]
-use book::PlanBook;
+use book::{ActivePlan, PlanBook};
 #[cfg(test)]
 use calls::CallQueue;
 #[cfg(test)]

@@ -16,7 +16,7 @@ pub use super::core::supervisor_messages;
 use super::aids::{Aid, ModelAids};
 use super::commands::DirectCommands;
 use super::config::{MissionConfig, Mode};
-use super::core::{ActivePlan, Core, Input};
+use super::core::{Core, Input};
 use super::directives::Directive;
 use super::input::MissionInputs;
 use super::log::{MissionLog, Record};
@@ -32,7 +32,6 @@ use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::Duration;
 use tacos_llm::LlmBackend;
-use tacos_prompts::render::TaskStatus;
 use tacos_shared::messages::TargetObservation;
 use tokio::sync::{mpsc, watch};
 
@@ -319,31 +318,11 @@ impl Mission {
             from: from.display().to_string(),
             memory: memory.clone(),
         });
-        let MissionMemory {
-            history,
-            world_events,
-            plan,
-        } = memory;
         let text = format!(
-            "mission resumed from {}: {} history entries, {}",
+            "mission resumed from {}: {}",
             from.display(),
-            history.len(),
-            match &plan {
-                Some(plan) => {
-                    let open = plan
-                        .tasks
-                        .iter()
-                        .filter(|t| t.status != TaskStatus::Done)
-                        .count();
-                    format!("a plan of {} tasks, {open} not done", plan.tasks.len())
-                }
-                None => "no plan in force".to_owned(),
-            }
+            self.core.resume(memory)
         );
-        self.core.history = history;
-        self.core.events = world_events;
-        self.core.book.plan = plan.map(ActivePlan::resumed);
-        self.core.calls.set_cycle_due(self.core.book.plan.is_some());
         self.tell(MissionUpdate::Event {
             topic: EventTopic::Note,
             text,

@@ -132,12 +132,15 @@ impl Core {
         snap: &Snapshot,
         gate: &SafetyGate,
     ) -> Vec<Effect> {
-        let Some(mut cycle) = self.cycle.take() else {
-            return Vec::new();
-        };
         let choice = match answer {
             Ok(choice) => choice,
-            Err(e) => return vec![Effect::Tell(MissionUpdate::Error(e.to_string()))],
+            Err(e) => {
+                self.cycle = None;
+                return vec![Effect::Tell(MissionUpdate::Error(e.to_string()))];
+            }
+        };
+        let Some(mut cycle) = self.cycle.take() else {
+            return Vec::new();
         };
         let mut effects = Vec::new();
         if !self.calls.is_current(cycle.epoch) {

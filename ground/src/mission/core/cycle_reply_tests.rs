@@ -310,3 +310,85 @@ fn the_monolithic_claim_stands_only_when_every_call_was_sent() {
         core.calls.set_cycle_due(true);
     }
 }
+
+#[test]
+fn a_failed_early_send_is_told_and_the_whole_reply_still_goes() {
+    let (gate, snap) = (gate(), grounded(Instant::now(), None));
+    let mut core = planned(&snap, &gate);
+    core.step(
+        Input::EarlyCall {
+            call: take_off("T1", "alfa"),
+            checked: checked(&gate, &snap, "alfa"),
+            after: Duration::from_millis(900),
+        },
+        &snap,
+        &gate,
+    );
+    let failure = MissionError::Send {
+        drone: "alfa".into(),
+        action: "arm_takeoff".into(),
+        reason: "the link is down".into(),
+    };
+    let told = failure.to_string();
+    let effects = core.step(Input::Sent(Err(failure)), &snap, &gate);
+    assert_eq!(effects, [Effect::Tell(MissionUpdate::Error(told))]);
+    core.calls.answered();
+    // alfa was not served: the whole reply sends its call, then bravo's.
+    let calls = [take_off("T1", "alfa"), take_off("T2", "bravo")];
+    let effects = core.step(
+        Input::CycleReply(Ok(choice(&gate, &snap, &calls))),
+        &snap,
+        &gate,
+    );
+    assert_eq!(sends(&effects), [("T1".to_owned(), "alfa".to_owned())]);
+    let effects = core.step(Input::Sent(Ok(4)), &snap, &gate);
+    assert_eq!(sends(&effects), [("T2".to_owned(), "bravo".to_owned())]);
+    let effects = core.step(Input::Sent(Ok(5)), &snap, &gate);
+    assert_eq!(cycles_logged(&effects).len(), 1);
+}
+
+#[test]
+fn an_early_call_the_gate_refuses_when_it_is_to_go_keeps_the_monolithic_claim_from_standing() {
+    let gate = gate();
+    let t0 = Instant::now();
+    let snap = grounded(t0, None);
+    let mut core = Core::new(&MissionConfig {
+        mode: Mode::Mnl,
+        ..MissionConfig::default()
+    });
+    core.step(
+        Input::Pilot("alfa and bravo, take off".into()),
+        &snap,
+        &gate,
+    );
+    assert_eq!(core.next_call(t0), Some(NextCall::Cycle));
+    core.calls.started("monolithic");
+    core.cycle_started(CycleKind::Monolithic { offered: 2 });
+    // alfa's call passed as the reply was written, but alfa is not heard by the step that
+    // would send it.
+    let mut stale = grounded(t0 + Duration::from_secs(5), Some("alfa"));
+    stale
+        .swarm
+        .apply_status(test_status("alfa", DroneMode::Idle), t0);
+    let effects = core.step(
+        Input::EarlyCall {
+            call: take_off("T1", "alfa"),
+            checked: checked(&gate, &snap, "alfa"),
+            after: Duration::from_millis(700),
+        },
+        &stale,
+        &gate,
+    );
+    assert!(sends(&effects).is_empty());
+    core.calls.answered();
+    let mut reply = choice(&gate, &snap, &[take_off("T2", "bravo")]);
+    reply.claim = true;
+    let effects = core.step(Input::CycleReply(Ok(reply)), &snap, &gate);
+    assert_eq!(sends(&effects), [("T2".to_owned(), "bravo".to_owned())]);
+    core.step(Input::Sent(Ok(2)), &snap, &gate);
+    assert!(
+        !core.book.mnl.claimed_done,
+        "a claim over a refused call stood"
+    );
+    assert_eq!(core.book.mnl.cycles, 1);
+}

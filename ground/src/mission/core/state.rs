@@ -4,7 +4,7 @@
 //! takes the engine's inputs in; [`Core::absorb`] keeps the effects that only change this
 //! state, so what reaches the engine is what it must do outside.
 
-use super::book::PlanBook;
+use super::book::{ActivePlan, PlanBook};
 use super::calls::{CallQueue, Coordination, NextCall};
 use super::cycle_reply::CycleSends;
 use super::effect::Effect;
@@ -14,9 +14,10 @@ use crate::mission::approval::HeldPlan;
 use crate::mission::config::{MissionConfig, Mode};
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionUpdate};
+use crate::mission::resume::MissionMemory;
 use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
-use tacos_prompts::render::HistoryEntry;
+use tacos_prompts::render::{HistoryEntry, TaskStatus};
 use tacos_shared::DroneId;
 
 /// The engine's bounds the core decides by (from `MissionConfig`).
@@ -118,6 +119,37 @@ impl Core {
             self.last_cycle = Some(now);
         }
         next
+    }
+
+    /// Goes on with a mission from its log (`mission::resume`): its history, world events and
+    /// plan in force, with what each task was sent as so the outcomes the drones report now are
+    /// matched to them; the first cycle is due at once. Returns what the pilot is told.
+    pub(crate) fn resume(&mut self, memory: MissionMemory) -> String {
+        let MissionMemory {
+            history,
+            world_events,
+            plan,
+        } = memory;
+        let told = format!(
+            "{} history entries, {}",
+            history.len(),
+            match &plan {
+                Some(plan) => {
+                    let open = plan
+                        .tasks
+                        .iter()
+                        .filter(|t| t.status != TaskStatus::Done)
+                        .count();
+                    format!("a plan of {} tasks, {open} not done", plan.tasks.len())
+                }
+                None => "no plan in force".to_owned(),
+            }
+        );
+        self.history = history;
+        self.events = world_events;
+        self.book.plan = plan.map(ActivePlan::resumed);
+        self.calls.set_cycle_due(self.book.plan.is_some());
+        told
     }
 
     /// Whether a cycle may be asked for: not when the monolithic model claimed its work done

@@ -244,16 +244,19 @@ fn while_work_is_under_way_a_cycle_is_due_after_the_timeout_and_not_before() {
     let gate = gate();
     let mut core = core(Mode::Tacos);
     core.step(Input::Started, &grounded(t0), &gate);
-    core.step(reply(take_offs()), &grounded(t0), &gate);
-    assert_eq!(
-        core.next_call(t0),
-        Some(NextCall::Cycle),
-        "a new plan's first cycle"
-    );
     let timeout = core.bounds.cycle_timeout;
-    core.step(Input::Tick, &grounded(t0 + timeout / 2), &gate);
-    assert_eq!(core.next_call(t0 + timeout / 2), None);
-    let later = t0 + timeout + Duration::from_millis(1);
+    // The plan comes, and its first cycle starts, well after the mission started: the timeout
+    // counts from that cycle.
+    let t1 = t0 + timeout * 2;
+    core.step(reply(take_offs()), &grounded(t1), &gate);
+    assert_eq!(
+        core.next_call(t1),
+        Some(NextCall::Cycle),
+        "the plan's first cycle"
+    );
+    core.step(Input::Tick, &grounded(t1 + timeout / 2), &gate);
+    assert_eq!(core.next_call(t1 + timeout / 2), None);
+    let later = t1 + timeout + Duration::from_millis(1);
     core.step(Input::Tick, &grounded(later), &gate);
     assert_eq!(core.next_call(later), Some(NextCall::Cycle));
 }
