@@ -6,7 +6,7 @@
 //! prompt and schema that let a reply decline, as with `--aids none`).
 
 use tacos_embedded::{EmbeddedBackend, EmbeddedOptions};
-use tacos_ground::mission::engine::coordinator_messages;
+use tacos_ground::mission::driver::coordinator_messages;
 use tacos_ground::mission::grounding;
 use tacos_llm::{ChatRequest, LlmBackend, ResponseSchema};
 use tacos_prompts::render::{self, DroneLine, HistoryEntry};

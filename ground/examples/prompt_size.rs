@@ -3,7 +3,7 @@
 //! Run: `cargo run -p tacos-ground --example prompt_size`
 
 use tacos_embedded::{EmbeddedBackend, EmbeddedOptions};
-use tacos_ground::mission::engine::coordinator_messages;
+use tacos_ground::mission::driver::coordinator_messages;
 use tacos_llm::{ChatMessage, ChatRequest};
 use tacos_prompts::render::{self, DroneLine, TaskStatus};
 use tacos_prompts::{ActionName, Call, texts};

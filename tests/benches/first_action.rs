@@ -1,5 +1,5 @@
 //! How much sooner a Supervisor cycle's first action flies when calls are sent as the reply is
-//! written (`mission::engine::early`) than when the whole reply is awaited: a program that prints
+//! written (`mission::driver::early`) than when the whole reply is awaited: a program that prints
 //! figures, asserting no speed.
 //!
 //! For the two Supervisor requests of the model benchmark (`tacos_tests::probes`: the six

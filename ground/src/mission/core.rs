@@ -2,7 +2,7 @@
 //! when a plan is complete, given up or stuck (`outcomes`), and whether a call can start now
 //! (`start`), what a cycle's reply and a Coordinator's plan come to (`cycle`,
 //! `checks`, `plan_check`), each decided from one [`Snapshot`] of the swarm, the targets and the time, handing
-//! back [`Effect`]s for the engine (the async shell in `engine`) to carry out. Nothing here does
+//! back [`Effect`]s for the driver (the async shell in `driver`) to carry out. Nothing here does
 //! I/O or reads a clock, so the same book and snapshot give the same effects, and the rules are
 //! tested without a process (`core::tests`; `core::purity` fails if a file here names tokio,
 //! zenoh, the link, the log writer, the model backend or a clock).

@@ -3,7 +3,7 @@
 //! terminal, the `--say` session, scripts and the evaluation all start it here.
 
 use super::config::MissionConfig;
-use super::engine::Mission;
+use super::driver::Mission;
 use super::input::PilotInput;
 use super::log::MissionLog;
 use super::report::{MissionStats, MissionUpdate};

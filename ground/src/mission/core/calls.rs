@@ -3,7 +3,7 @@
 //! replan) waits in order, and drops a Supervisor (or monolithic) call in flight, whose reply
 //! would act on the plan before it. A direct command drops the call in flight and everything
 //! waiting. A cycle's reply is used only if the models' work has not been replaced since it was
-//! asked (the work epoch). The engine runs the calls (`engine::in_flight`); this decides.
+//! asked (the work epoch). The engine runs the calls (`driver::in_flight`); this decides.
 
 use super::effect::Effect;
 use crate::mission::log::Record;

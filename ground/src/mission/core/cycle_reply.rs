@@ -2,7 +2,7 @@
 //! each is checked by the gate again on the step's snapshot (the swarm may have moved on since
 //! the reply was judged) and handed to the engine as `Effect::Send`; the send's result comes
 //! back as `Input::Sent` and books the call, then the next goes. Calls that passed while the
-//! reply was still being written (`engine::early`) come as `Input::EarlyCall` and go the same
+//! reply was still being written (`driver::early`) come as `Input::EarlyCall` and go the same
 //! way; the whole reply leaves their drones out. When the last call is sent the cycle is
 //! counted and logged; a failed send ends it there, told to the pilot.
 

@@ -1,6 +1,9 @@
-//! The mission engine: Coordinator, Supervisor (or the monolithic model), the repair loop, the
-//! pending plan, the two memories, automatic replans, and the bookkeeping of what was sent.
-//! This file holds the engine's state and its event loop; its parts are the child modules.
+//! The mission's driver, its only async part: it takes one snapshot of the swarm per step and
+//! feeds the pure core (`mission::core`) its inputs — pilot lines, membership changes, world
+//! events, ticks, direct commands carried out, model replies, send results — and carries out
+//! the effects the core hands back: records, the pilot's updates, model calls run beside the
+//! mission (`in_flight`, `caller`), the sends and direct commands it awaits. This file holds the
+//! driver's state and its event loop; its parts are the child modules.
 
 mod caller;
 mod coordinator;

@@ -19,7 +19,7 @@ use tokio::sync::mpsc;
 const WRITING_EVERY: Duration = Duration::from_millis(250);
 
 /// Asks models: the backend, the repair loop's bounds, and where calls are recorded. A clone
-/// runs each call on its own task, beside the engine (`engine::in_flight`).
+/// runs each call on its own task, beside the engine (`driver::in_flight`).
 #[derive(Clone)]
 pub(super) struct Caller {
     pub(super) backend: Arc<dyn LlmBackend>,
