@@ -13,8 +13,10 @@ use crate::swarm::{SwarmChange, SwarmView, test_status};
 use std::time::{Duration, Instant};
 use tacos_prompts::render::HistoryEntry;
 use tacos_prompts::{ActionName, Call};
+use tacos_shared::action::Action;
+use tacos_shared::messages::WorldEvent;
 use tacos_shared::scenario::Scenario;
-use tacos_shared::{DroneId, DroneMode};
+use tacos_shared::{DroneId, DroneMode, Vec3};
 
 fn gate() -> SafetyGate {
     SafetyGate::new(Scenario::builtin("city").expect("city"))
@@ -297,4 +299,91 @@ fn the_session_s_end_drops_the_call_in_flight_and_ends_the_log() {
         effects.last(),
         Some(Effect::Note(Record::MissionEnd { .. }))
     ));
+}
+
+/// A mission's worth of inputs, each with its step's snapshot: an instruction, its plan, a
+/// cycle whose call is sent, a detection, a lost drone, `land all`, the end.
+fn a_mission(t0: Instant, gate: &SafetyGate) -> Vec<(Input, Snapshot)> {
+    let at = |s: u64| grounded(t0 + Duration::from_secs(s));
+    let alfa_up = || {
+        let snap = at(3);
+        let checked = gate
+            .check(&snap.swarm, "alfa", &Action::ArmTakeoff, snap.now)
+            .expect("alfa may take off");
+        CycleChoice {
+            reasoning: "Alfa first.".into(),
+            claim: false,
+            all_passed: true,
+            accepted: vec![(take_offs()[0].clone(), checked)],
+            later: Vec::new(),
+        }
+    };
+    let mut lost = at(20);
+    lost.swarm = SwarmView::default();
+    for name in ["alfa", "charlie"] {
+        lost.swarm
+            .apply_status(test_status(name, DroneMode::Idle), lost.now);
+    }
+    vec![
+        (Input::Started, at(0)),
+        (Input::Pilot("alfa and bravo, take off".into()), at(1)),
+        (reply(take_offs()), at(2)),
+        (Input::CycleReply(Ok(alfa_up())), at(3)),
+        (Input::Sent(Ok(1)), at(3)),
+        (Input::Tick, at(4)),
+        (
+            Input::World(WorldEvent::Detection {
+                drone: DroneId::new("alfa").expect("valid"),
+                target: "suspect".into(),
+                landmark: None,
+                position: Vec3::new(10.0, 20.0, 0.0),
+            }),
+            at(5),
+        ),
+        (Input::Tick, at(16)),
+        (
+            Input::Membership(SwarmChange::Left(DroneId::new("bravo").expect("valid"))),
+            lost.clone(),
+        ),
+        (Input::Pilot("land all".into()), lost.clone()),
+        (Input::Overridden, lost.clone()),
+        (Input::Closed, lost),
+    ]
+}
+
+/// Runs `a_mission` on a fresh core, starting each cycle the core asks for; the effects of
+/// every step, and the core's book and history at the end.
+fn run(t0: Instant) -> (Vec<Vec<Effect>>, PlanBook, Vec<HistoryEntry>) {
+    let gate = gate();
+    let mut core = core(Mode::Tacos);
+    let mut effects = Vec::new();
+    for (input, snap) in a_mission(t0, &gate) {
+        let reply = matches!(input, Input::CycleReply(_));
+        if reply {
+            core.calls.answered();
+        }
+        effects.push(core.step(input, &snap, &gate));
+        if let Some(NextCall::Cycle) = core.next_call(snap.now) {
+            core.calls.started("supervisor");
+            core.cycle_started(CycleKind::Supervisor);
+        }
+    }
+    (effects, core.book, core.history)
+}
+
+#[test]
+fn the_same_inputs_and_snapshots_give_the_same_effects() {
+    let t0 = Instant::now();
+    let (first, book, history) = run(t0);
+    // The run did what a mission does: alfa's take-off sent, the detection and the loss
+    // remembered with the instruction and its plan, the plan ended by the direct command.
+    let sent: Vec<&Effect> = first
+        .iter()
+        .flatten()
+        .filter(|e| matches!(e, Effect::Send { .. }))
+        .collect();
+    assert_eq!(sent.len(), 1, "{first:#?}");
+    assert!(book.plan.is_none());
+    assert_eq!(history.len(), 4, "{history:?}");
+    assert_eq!(run(t0), (first, book, history));
 }
