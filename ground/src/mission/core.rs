@@ -29,6 +29,7 @@ mod coordinator;
 mod cycle;
 mod cycle_ask;
 mod cycle_reply;
+mod cycle_start;
 mod effect;
 mod membership;
 mod outcomes;
@@ -78,11 +79,12 @@ pub(crate) use checks::check_live;
 pub(crate) use coordinator::{CoordinatorAsk, CoordinatorContext, coordinator_ask};
 pub use coordinator::{coordinator_fixed_messages, coordinator_messages};
 pub(crate) use cycle::{CycleJudgement, first_call_per_drone, judge_cycle, match_startable};
-pub(crate) use cycle_ask::{CycleRequest, monolithic_ask, supervisor_ask};
+pub(crate) use cycle_ask::CycleRequest;
 pub use cycle_ask::{monolithic_fixed_messages, supervisor_fixed_messages, supervisor_messages};
 pub(crate) use cycle_reply::{CycleAnswer, CycleChoice, CycleKind};
+pub(crate) use cycle_start::CycleStart;
 pub(crate) use effect::Effect;
-pub(crate) use outcomes::{effect_holds, give_up_if_stuck};
+pub(crate) use outcomes::effect_holds;
 pub(crate) use repair::{Checked, Next, Repair};
 pub(crate) use snapshot::Snapshot;
 pub(crate) use state::Core;
@@ -96,6 +98,6 @@ use calls::CallQueue;
 #[cfg(test)]
 use membership::membership_changed;
 #[cfg(test)]
-use outcomes::{Rules, plan_ended, poll};
+use outcomes::{Rules, give_up_if_stuck, plan_ended, poll};
 #[cfg(test)]
 use start::Start;

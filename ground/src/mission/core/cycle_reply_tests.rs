@@ -15,12 +15,12 @@ use tacos_shared::DroneMode;
 use tacos_shared::action::Action;
 use tacos_shared::scenario::Scenario;
 
-fn gate() -> SafetyGate {
+pub(super) fn gate() -> SafetyGate {
     SafetyGate::new(Scenario::builtin("city").expect("city"))
 }
 
 /// alfa, bravo and charlie on the ground, heard at `now`; `gone` is not heard at all.
-fn grounded(now: Instant, gone: Option<&str>) -> Snapshot {
+pub(super) fn grounded(now: Instant, gone: Option<&str>) -> Snapshot {
     let mut swarm = SwarmView::default();
     for name in ["alfa", "bravo", "charlie"] {
         if Some(name) != gone {
@@ -81,6 +81,22 @@ fn choice(gate: &SafetyGate, snap: &Snapshot, calls: &[Call]) -> CycleChoice {
     }
 }
 
+/// The cycle call answers with the whole reply of `calls`, judged on `judged`, taken in on
+/// `snap`.
+fn answer(
+    core: &mut Core,
+    gate: &SafetyGate,
+    (judged, snap): (&Snapshot, &Snapshot),
+    calls: &[Call],
+) -> Vec<Effect> {
+    core.calls.answered();
+    core.step(
+        Input::CycleReply(Ok(choice(gate, judged, calls))),
+        snap,
+        gate,
+    )
+}
+
 fn sends(effects: &[Effect]) -> Vec<(String, String)> {
     effects
         .iter()
@@ -113,13 +129,8 @@ fn statuses(core: &Core) -> Vec<TaskStatus> {
 fn a_reply_s_calls_go_one_at_a_time_and_the_cycle_is_counted_after_the_last() {
     let (gate, snap) = (gate(), grounded(Instant::now(), None));
     let mut core = planned(&snap, &gate);
-    core.calls.answered();
     let calls = [take_off("T1", "alfa"), take_off("T2", "bravo")];
-    let effects = core.step(
-        Input::CycleReply(Ok(choice(&gate, &snap, &calls))),
-        &snap,
-        &gate,
-    );
+    let effects = answer(&mut core, &gate, (&snap, &snap), &calls);
     assert_eq!(sends(&effects), [("T1".to_owned(), "alfa".to_owned())]);
     let effects = core.step(Input::Sent(Ok(11)), &snap, &gate);
     assert_eq!(sends(&effects), [("T2".to_owned(), "bravo".to_owned())]);
@@ -154,19 +165,13 @@ fn a_call_the_gate_refuses_by_the_time_it_is_to_go_is_not_sent() {
     let t0 = Instant::now();
     let snap = grounded(t0, None);
     let mut core = planned(&snap, &gate);
-    core.calls.answered();
     let calls = [take_off("T1", "alfa"), take_off("T2", "bravo")];
     // By the reply's step, alfa has not been heard for long: its status is stale.
-    let later = grounded(t0 + Duration::from_secs(5), Some("alfa"));
-    let mut later = later;
+    let mut later = grounded(t0 + Duration::from_secs(5), Some("alfa"));
     later
         .swarm
         .apply_status(test_status("alfa", DroneMode::Idle), t0);
-    let effects = core.step(
-        Input::CycleReply(Ok(choice(&gate, &snap, &calls))),
-        &later,
-        &gate,
-    );
+    let effects = answer(&mut core, &gate, (&snap, &later), &calls);
     assert_eq!(sends(&effects), [("T2".to_owned(), "bravo".to_owned())]);
     assert!(
         effects.iter().any(|e| matches!(
@@ -201,14 +206,9 @@ fn a_call_sent_early_is_booked_and_its_drone_left_out_of_the_whole_reply() {
         e,
         Effect::Note(Record::Event { text }) if text.contains("sent 1.5 s into the call")
     )));
-    core.calls.answered();
     // The whole reply names alfa's take-off again and charlie's: only charlie's goes.
     let calls = [take_off("T1", "alfa"), take_off("T3", "charlie")];
-    let effects = core.step(
-        Input::CycleReply(Ok(choice(&gate, &snap, &calls))),
-        &snap,
-        &gate,
-    );
+    let effects = answer(&mut core, &gate, (&snap, &snap), &calls);
     assert_eq!(sends(&effects), [("T3".to_owned(), "charlie".to_owned())]);
     let effects = core.step(Input::Sent(Ok(8)), &snap, &gate);
     assert_eq!(
@@ -232,13 +232,8 @@ fn a_call_sent_early_is_booked_and_its_drone_left_out_of_the_whole_reply() {
 fn a_failed_send_ends_the_cycle_there_and_a_reply_for_ended_work_sends_nothing() {
     let (gate, snap) = (gate(), grounded(Instant::now(), None));
     let mut core = planned(&snap, &gate);
-    core.calls.answered();
     let calls = [take_off("T1", "alfa"), take_off("T2", "bravo")];
-    core.step(
-        Input::CycleReply(Ok(choice(&gate, &snap, &calls))),
-        &snap,
-        &gate,
-    );
+    answer(&mut core, &gate, (&snap, &snap), &calls);
     let failure = || MissionError::Overridden {
         drone: "alfa".into(),
         action: "arm_takeoff".into(),
@@ -259,11 +254,7 @@ fn a_failed_send_ends_the_cycle_there_and_a_reply_for_ended_work_sends_nothing()
     core.calls.started("supervisor");
     core.cycle_started(CycleKind::Supervisor);
     core.step(Input::Overridden, &snap, &gate);
-    let effects = core.step(
-        Input::CycleReply(Ok(choice(&gate, &snap, &calls))),
-        &snap,
-        &gate,
-    );
+    let effects = answer(&mut core, &gate, (&snap, &snap), &calls);
     assert!(sends(&effects).is_empty());
     assert!(effects.iter().any(|e| matches!(
         e,
@@ -332,14 +323,9 @@ fn a_failed_early_send_is_told_and_the_whole_reply_still_goes() {
     let told = failure.to_string();
     let effects = core.step(Input::Sent(Err(failure)), &snap, &gate);
     assert_eq!(effects, [Effect::Tell(MissionUpdate::Error(told))]);
-    core.calls.answered();
     // alfa was not served: the whole reply sends its call, then bravo's.
     let calls = [take_off("T1", "alfa"), take_off("T2", "bravo")];
-    let effects = core.step(
-        Input::CycleReply(Ok(choice(&gate, &snap, &calls))),
-        &snap,
-        &gate,
-    );
+    let effects = answer(&mut core, &gate, (&snap, &snap), &calls);
     assert_eq!(sends(&effects), [("T1".to_owned(), "alfa".to_owned())]);
     let effects = core.step(Input::Sent(Ok(4)), &snap, &gate);
     assert_eq!(sends(&effects), [("T2".to_owned(), "bravo".to_owned())]);

@@ -8,7 +8,6 @@ use super::book::{ActivePlan, PlanBook};
 use super::calls::{CallQueue, Coordination, NextCall};
 use super::cycle_reply::CycleSends;
 use super::effect::Effect;
-use super::outcomes::plan_ended;
 use crate::mission::aids::ModelAids;
 use crate::mission::approval::HeldPlan;
 use crate::mission::config::{MissionConfig, Mode};
@@ -150,47 +149,6 @@ impl Core {
         self.book.plan = plan.map(ActivePlan::resumed);
         self.calls.set_cycle_due(self.book.plan.is_some());
         told
-    }
-
-    /// Whether a cycle may be asked for: not when the monolithic model claimed its work done
-    /// (its outcomes are awaited), nor past the cycles a plan may take, which ends the work
-    /// with an error for the pilot.
-    pub(crate) fn cycle_allowed(&mut self, effects: &mut Vec<Effect>) -> bool {
-        let max = self.bounds.max_cycles_per_plan;
-        match self.mode {
-            Mode::Tacos | Mode::Wor => {
-                let Some(plan) = self.book.plan.as_ref() else {
-                    return false;
-                };
-                if plan.cycles < max {
-                    return true;
-                }
-                if let Some(plan) = self.book.plan.take() {
-                    effects.extend(plan_ended(plan, "abandoned after too many cycles"));
-                    effects.push(Effect::Tell(MissionUpdate::Error(format!(
-                        "the plan was not complete after {max} Supervisor cycles"
-                    ))));
-                }
-                false
-            }
-            Mode::Mnl => {
-                let mnl = &mut self.book.mnl;
-                if mnl.claimed_done {
-                    return false;
-                }
-                if mnl.cycles < max {
-                    return true;
-                }
-                mnl.active = false;
-                let text = format!(
-                    "the monolithic model did not carry out the instructions in {} cycles",
-                    mnl.cycles
-                );
-                effects.push(Effect::Note(Record::Event { text: text.clone() }));
-                effects.push(Effect::Tell(MissionUpdate::Error(text)));
-                false
-            }
-        }
     }
 }
 

@@ -1,7 +1,8 @@
-//! The core fed inputs (`Core::step`), as the engine feeds it: a lost drone and a direct command
+//! The core fed inputs (`Core::step`), as the driver feeds it: a lost drone and a direct command
 //! while models think, an instruction naming a drone the swarm lacks, a plan held for the
 //! pilot and answered, the cycle timeout, the cycle limit. No process, no clock, no model.
 
+use super::cycle_reply_tests::gate;
 use super::replan_tests::chase;
 use super::*;
 use crate::mission::config::{MissionConfig, Mode};
@@ -15,12 +16,7 @@ use tacos_prompts::render::HistoryEntry;
 use tacos_prompts::{ActionName, Call};
 use tacos_shared::action::Action;
 use tacos_shared::messages::WorldEvent;
-use tacos_shared::scenario::Scenario;
 use tacos_shared::{DroneId, DroneMode, Vec3};
-
-fn gate() -> SafetyGate {
-    SafetyGate::new(Scenario::builtin("city").expect("city"))
-}
 
 fn core(mode: Mode) -> Core {
     Core::new(&MissionConfig {
@@ -31,16 +27,7 @@ fn core(mode: Mode) -> Core {
 
 /// alfa, bravo and charlie on the ground, heard at `now`.
 fn grounded(now: Instant) -> Snapshot {
-    let mut swarm = SwarmView::default();
-    for name in ["alfa", "bravo", "charlie"] {
-        swarm.apply_status(test_status(name, DroneMode::Idle), now);
-    }
-    Snapshot {
-        swarm,
-        targets: Vec::new(),
-        now,
-        ground: 1,
-    }
+    super::cycle_reply_tests::grounded(now, None)
 }
 
 fn errors(effects: &[Effect]) -> Vec<&str> {
@@ -386,4 +373,49 @@ fn the_same_inputs_and_snapshots_give_the_same_effects() {
     assert!(book.plan.is_none());
     assert_eq!(history.len(), 4, "{history:?}");
     assert_eq!(run(t0), (first, book, history));
+}
+
+#[test]
+fn a_cycle_starts_only_with_a_decision_to_make_and_a_plan_stuck_too_long_is_given_up() {
+    let t0 = Instant::now();
+    let gate = gate();
+    let mut core = core(Mode::Tacos);
+    // A goto for alfa on the ground, with no take-off (none was added: nobody was grounded
+    // when the plan was asked for, as far as the reply says).
+    core.step(
+        Input::CoordinatorReply {
+            instruction: "alfa, to car_2".into(),
+            grounded: Vec::new(),
+            answer: Ok((
+                "Alfa goes.".into(),
+                vec![Call::named("T1", "alfa", ActionName::Goto, "car_2")],
+                None,
+            )),
+        },
+        &grounded(t0),
+        &gate,
+    );
+    let (start, effects) = core.start_cycle(&grounded(t0), &gate);
+    assert!(start.is_none() && effects.is_empty(), "{effects:?}");
+    let later = t0 + super::book::STUCK_AFTER + Duration::from_secs(1);
+    let (start, effects) = core.start_cycle(&grounded(later), &gate);
+    assert!(start.is_none());
+    assert!(core.book.plan.is_none(), "the stuck plan was not given up");
+    assert!(
+        errors(&effects)
+            .iter()
+            .any(|e| e.starts_with("the plan was given up: nothing has run or could start")),
+        "{effects:?}"
+    );
+    // A plan whose take-offs can start: the cycle starts, and its call is in flight.
+    core.step(reply(take_offs()), &grounded(later), &gate);
+    let (start, _) = core.start_cycle(&grounded(later), &gate);
+    let start = start.expect("a cycle to ask for");
+    assert_eq!(
+        (start.layer, start.kind),
+        ("supervisor", CycleKind::Supervisor)
+    );
+    assert_eq!(start.request.only.map(|c| c.len()), Some(2));
+    core.calls.cycle_due(true);
+    assert_eq!(core.next_call(later), None, "a call is in flight");
 }

@@ -1,85 +1,51 @@
-//! The Supervisor's and the monolithic model's cycles: what may start now, and the model's call
-//! with its choice judged by the live checks as it comes (its reply and its sends are the core's:
-//! `core::cycle_reply`).
+//! The Supervisor's and the monolithic model's cycles: the model's call for the cycle the core
+//! starts (`core::cycle_start`), with its choice judged by the live checks as it comes (its
+//! reply and its sends are the core's: `core::cycle_reply`).
 
 use super::Mission;
 use super::cycle_call::{CycleAsk, CycleReply};
 use super::early::early_calls;
 use super::in_flight::{Answered, InFlight};
-use crate::mission::config::Mode;
 use crate::mission::core::{
-    Checked, CycleChoice, CycleJudgement, CycleKind, CycleRequest, check_live, judge_cycle,
-    match_startable, monolithic_ask, supervisor_ask,
+    Checked, CycleChoice, CycleJudgement, CycleKind, CycleRequest, CycleStart, check_live,
+    judge_cycle, match_startable,
 };
-use crate::mission::report::{MissionError, MissionUpdate};
+use crate::mission::report::MissionUpdate;
 use tacos_prompts::schema::{self, Output};
 use tacos_prompts::{Call, MonolithicReply, SupervisorReply};
 
 impl Mission {
-    /// Starts one Supervisor (or monolithic) cycle, when there is a decision to make and the
-    /// work has cycles left (`Core::cycle_allowed`).
-    pub(super) fn cycle(&mut self) -> Result<(), MissionError> {
-        let mut effects = Vec::new();
-        let allowed = self.core.cycle_allowed(&mut effects);
-        self.apply(effects);
-        if !allowed {
-            return Ok(());
-        }
-        match self.core.mode {
-            Mode::Mnl => self.monolithic_cycle(),
-            Mode::Tacos | Mode::Wor => self.supervisor_cycle(),
-        }
-    }
-
-    pub(super) fn supervisor_cycle(&mut self) -> Result<(), MissionError> {
+    /// Starts one Supervisor (or monolithic) cycle when the core has one to start
+    /// (`Core::start_cycle`: within the cycle limit, with a decision to make).
+    pub(super) fn cycle(&mut self) {
         // One snapshot for the decision and the prompt: every line of it sees the same swarm.
         let snap = self.snapshot();
-        let mode = self.core.mode;
-        let Some(request) =
-            supervisor_ask(&self.core.book, &snap, &self.gate, &self.core.events, mode)
-        else {
-            // Nothing can start: wait for the swarm (an outcome, a membership change or the
-            // cycle timeout wakes us again).
-            self.give_up_if_stuck();
-            return Ok(());
-        };
-        if let Some(plan) = self.core.book.plan.as_mut() {
-            plan.stuck_since = None;
+        let (start, effects) = self.core.start_cycle(&snap, &self.gate);
+        self.apply(effects);
+        if let Some(start) = start {
+            self.start_cycle_call(start);
         }
-        let ask = CycleAsk {
-            layer: "supervisor",
-            output: Output::Supervisor,
-            parse: |text| SupervisorReply::parse(text).map(CycleReply::from),
-            request,
-        };
-        self.start_cycle_call(ask, CycleKind::Supervisor);
-        Ok(())
-    }
-
-    pub(super) fn monolithic_cycle(&mut self) -> Result<(), MissionError> {
-        // As for the Supervisor: when no drone can take an action, there is nothing to decide.
-        let snap = self.snapshot();
-        let scenario = self.gate.scenario();
-        let Some((request, offered)) =
-            monolithic_ask(&self.core.book, &snap, scenario, &self.core.events)
-        else {
-            return Ok(());
-        };
-        let ask = CycleAsk {
-            layer: "monolithic",
-            output: Output::Monolithic,
-            parse: |text| MonolithicReply::parse(text).map(CycleReply::from),
-            request,
-        };
-        self.start_cycle_call(ask, CycleKind::Monolithic { offered });
-        Ok(())
     }
 
     /// The common part of a Supervisor and a monolithic cycle: starts the model's call (with the
     /// repair loop) beside the engine, keeping the calls that are among `only` (when given) and
     /// pass `check_live` and the safety gate as the reply comes; the core takes the calls that
     /// pass early (`Input::EarlyCall`) and the reply (`Input::CycleReply`) and sends them.
-    pub(super) fn start_cycle_call(&mut self, ask: CycleAsk, kind: CycleKind) {
+    pub(super) fn start_cycle_call(&mut self, start: CycleStart) {
+        let ask = match start.kind {
+            CycleKind::Supervisor => CycleAsk {
+                layer: start.layer,
+                output: Output::Supervisor,
+                parse: |text| SupervisorReply::parse(text).map(CycleReply::from),
+                request: start.request,
+            },
+            CycleKind::Monolithic { .. } => CycleAsk {
+                layer: start.layer,
+                output: Output::Monolithic,
+                parse: |text| MonolithicReply::parse(text).map(CycleReply::from),
+                request: start.request,
+            },
+        };
         self.tell(MissionUpdate::Thinking { layer: ask.layer });
         self.stats.update(|s| s.supervisor_calls += 1);
         let max_tokens = self
@@ -166,7 +132,5 @@ impl Mission {
         let mut flight = InFlight::spawn(layer, call);
         flight.early = Some(early);
         self.in_flight = Some(flight);
-        self.core.calls.started(layer);
-        self.core.cycle_started(kind);
     }
 }

@@ -80,10 +80,7 @@ impl Mission {
             let started = match next {
                 NextCall::Coordinate(work) => self.coordinate(&work).await,
                 NextCall::Cycle => {
-                    let result = self.cycle();
-                    if let Err(e) = result {
-                        self.tell(MissionUpdate::Error(e.to_string()));
-                    }
+                    self.cycle();
                     // A cycle that found nothing to ask waits for the next change.
                     break;
                 }

@@ -1,9 +1,9 @@
-//! The engine's shell around the core's plan bookkeeping (`mission::core`): it takes one
+//! The driver's shell around the core (`mission::core`): it takes one
 //! snapshot of the swarm per step, hands it to the core, and carries out the effects.
 
 use super::Mission;
 use crate::link::GroundLink;
-use crate::mission::core::{self, Effect, Snapshot};
+use crate::mission::core::{Effect, Snapshot};
 use crate::mission::log::Record;
 use crate::mission::untrusted;
 use tacos_shared::messages::TargetObservation;
@@ -65,12 +65,5 @@ impl Mission {
                 Effect::Remember(_) | Effect::WorkReplaced | Effect::Replan(_) => {}
             }
         }
-    }
-
-    /// Gives the plan up when it has been stuck too long (`core::give_up_if_stuck`).
-    pub(super) fn give_up_if_stuck(&mut self) {
-        let snap = self.snapshot();
-        let effects = core::give_up_if_stuck(&mut self.core.book, &snap, &self.gate);
-        self.apply(effects);
     }
 }
