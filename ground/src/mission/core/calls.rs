@@ -7,7 +7,7 @@
 
 use super::effect::Effect;
 use crate::mission::log::Record;
-use crate::mission::report::{EventTopic, MissionUpdate, Overtaken};
+use crate::mission::report::{EventTopic, Overtaken};
 use std::collections::VecDeque;
 
 /// Work waiting for the Coordinator, in the order it came.
@@ -114,11 +114,7 @@ impl CallQueue {
                     format!("replan dropped ({why}): a direct command ended the plan")
                 }
             };
-            effects.push(Effect::Note(Record::Event { text: text.clone() }));
-            effects.push(Effect::Tell(MissionUpdate::Event {
-                topic: EventTopic::PlanEnded,
-                text,
-            }));
+            effects.extend(Effect::told(EventTopic::PlanEnded, text));
         }
         self.epoch += 1;
         self.cycle_due = false;

@@ -9,7 +9,7 @@
 use super::effect::Effect;
 use super::outcomes::judge_monolithic;
 use super::snapshot::Snapshot;
-use super::state::{Core, told};
+use super::state::Core;
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionError, MissionUpdate};
 use crate::safety::{CheckedAction, SafetyGate};
@@ -149,7 +149,7 @@ impl Core {
                 "a reply for work that ended meanwhile was dropped, nothing of it sent: [{}]",
                 calls.join("; ")
             );
-            effects.extend(told(EventTopic::Note, text));
+            effects.extend(Effect::told(EventTopic::Note, text));
             return effects;
         }
         if !choice.later.is_empty() {
@@ -157,7 +157,7 @@ impl Core {
                 "later steps in the same reply, left for a later cycle: {}",
                 choice.later.join("; ")
             );
-            effects.extend(told(EventTopic::Note, text));
+            effects.extend(Effect::told(EventTopic::Note, text));
         }
         let served = &cycle.served;
         let queue = choice
@@ -210,7 +210,7 @@ impl Core {
                          written",
                         after.as_secs_f64()
                     );
-                    effects.extend(told(EventTopic::Note, text));
+                    effects.extend(Effect::told(EventTopic::Note, text));
                     cycle.served.push(call);
                 }
                 (None, Some(reply)) => reply.sent.push(call.to_string()),
@@ -319,7 +319,10 @@ fn recheck(
     match gate.check(&snap.swarm, drone, checked.action(), snap.now) {
         Ok(checked) => Some(checked),
         Err(why) => {
-            effects.extend(told(EventTopic::Note, format!("{call}: not sent: {why}")));
+            effects.extend(Effect::told(
+                EventTopic::Note,
+                format!("{call}: not sent: {why}"),
+            ));
             None
         }
     }

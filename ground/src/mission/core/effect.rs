@@ -3,7 +3,7 @@
 use crate::mission::aids::Aid;
 use crate::mission::directives::Directive;
 use crate::mission::log::{Record, RefusedBy};
-use crate::mission::report::{MissionUpdate, Overtaken};
+use crate::mission::report::{EventTopic, MissionUpdate, Overtaken};
 use crate::safety::CheckedAction;
 use tacos_prompts::render::HistoryEntry;
 
@@ -51,5 +51,13 @@ impl Effect {
     /// A small-model aid changed what happens: the record the log keeps of it.
     pub(crate) fn aid_fired(aid: Aid, detail: String) -> Effect {
         Effect::Note(Record::AidFired { aid, detail })
+    }
+
+    /// An event the log keeps and the pilot is told.
+    pub(crate) fn told(topic: EventTopic, text: String) -> [Effect; 2] {
+        [
+            Effect::Note(Record::Event { text: text.clone() }),
+            Effect::Tell(MissionUpdate::Event { topic, text }),
+        ]
     }
 }

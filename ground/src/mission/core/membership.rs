@@ -8,7 +8,7 @@ use super::outcomes::following_of;
 use super::snapshot::Snapshot;
 use crate::mission::config::Mode;
 use crate::mission::log::Record;
-use crate::mission::report::{EventTopic, MissionUpdate};
+use crate::mission::report::EventTopic;
 use crate::swarm::SwarmChange;
 use tacos_prompts::render::HistoryEntry;
 
@@ -24,13 +24,7 @@ pub(crate) fn membership_changed(
         SwarmChange::Left(d) => (EventTopic::Failure, format!("{d} became unavailable")),
         SwarmChange::Status(_) => return Vec::new(),
     };
-    let mut effects = vec![
-        Effect::Note(Record::Event { text: text.clone() }),
-        Effect::Tell(MissionUpdate::Event {
-            topic,
-            text: text.clone(),
-        }),
-    ];
+    let mut effects = Effect::told(topic, text.clone()).to_vec();
     // What the lost drone leaves undone, named in the replan's instruction so the Coordinator
     // hands exactly that on (a done start_tracking is still work while the drone follows:
     // without this, the chase would end with its tracker).

@@ -7,7 +7,7 @@ use super::calls::Coordination;
 use super::effect::Effect;
 use super::snapshot::Snapshot;
 use super::start::Start;
-use super::state::{Core, told};
+use super::state::Core;
 use crate::mission::addressed;
 use crate::mission::approval::{self, HeldPlan, Verdict};
 use crate::mission::config::Mode;
@@ -39,7 +39,7 @@ impl Core {
             } else {
                 "off: plans fly once checked"
             };
-            return told(EventTopic::Note, format!("confirm {what}")).into();
+            return Effect::told(EventTopic::Note, format!("confirm {what}")).into();
         }
         let mut effects = Vec::new();
         if self.held.is_some() && self.answer_held(text, snap, gate, &mut effects) {
@@ -92,7 +92,7 @@ impl Core {
     ) {
         let start = Start::new(snap, gate, &self.book);
         let verdicts: Vec<Option<String>> = plan.calls.iter().map(|c| start.blocker(c)).collect();
-        effects.extend(told(EventTopic::Note, plan.describe(&verdicts)));
+        effects.extend(Effect::told(EventTopic::Note, plan.describe(&verdicts)));
         self.held = Some(plan);
     }
 
@@ -113,7 +113,7 @@ impl Core {
                 "the plan for {:?} was not approved: a new instruction came",
                 plan.instruction
             );
-            effects.extend(told(EventTopic::Note, text));
+            effects.extend(Effect::told(EventTopic::Note, text));
             return false;
         };
         effects.push(Effect::Note(Record::Pilot {
@@ -122,18 +122,21 @@ impl Core {
         match verdict {
             Verdict::Approve => {
                 let text = format!("plan for {:?} approved", plan.instruction);
-                effects.extend(told(EventTopic::Note, text));
+                effects.extend(Effect::told(EventTopic::Note, text));
                 effects.extend(super::adopt(&mut self.book, plan.reasoning, plan.calls));
             }
             Verdict::Drop(ids) => {
                 if let Err(why) = plan.drop_tasks(&ids) {
-                    effects.extend(told(EventTopic::Note, format!("nothing dropped: {why}")));
+                    effects.extend(Effect::told(
+                        EventTopic::Note,
+                        format!("nothing dropped: {why}"),
+                    ));
                 } else if plan.calls.is_empty() {
                     let text = format!(
                         "every call dropped: the plan for {:?} ends",
                         plan.instruction
                     );
-                    effects.extend(told(EventTopic::Note, text));
+                    effects.extend(Effect::told(EventTopic::Note, text));
                     return true;
                 }
                 self.hold_for_approval(plan, snap, gate, effects);
@@ -145,7 +148,7 @@ impl Core {
                     why
                 };
                 let text = format!("plan for {:?} rejected: {why}", plan.instruction);
-                effects.extend(told(EventTopic::Note, text));
+                effects.extend(Effect::told(EventTopic::Note, text));
                 let again = format!(
                     "The pilot rejected your plan for \"{}\": {why}. Plan again.",
                     plan.instruction

@@ -5,7 +5,7 @@
 use super::adopt::{adopt, with_implied_takeoffs, without_repeated_work};
 use super::effect::Effect;
 use super::snapshot::Snapshot;
-use super::state::{Core, told};
+use super::state::Core;
 use super::step::CoordinatorAnswer;
 use crate::mission::aids::Aid;
 use crate::mission::approval::HeldPlan;
@@ -47,7 +47,7 @@ impl Core {
             }
             // A plan with a refusal: what it can do flies, and the pilot hears what it cannot.
             let text = format!("the Coordinator says: {refusal}");
-            effects.extend(told(EventTopic::Note, text));
+            effects.extend(Effect::told(EventTopic::Note, text));
         }
         if calls.is_empty() {
             // Every call of the last attempt was refused: the plan in force (if any) stays, and
@@ -61,7 +61,7 @@ impl Core {
         let (calls, repeats) = without_repeated_work(calls);
         for call in repeats {
             let text = format!("{call}: repeats {}'s previous task: dropped", call.drone);
-            effects.extend(told(EventTopic::Note, text));
+            effects.extend(Effect::told(EventTopic::Note, text));
         }
         let calls = if self.aids.is_on(Aid::ImpliedTakeoffs) {
             let (calls, fired) = with_implied_takeoffs(calls, &grounded);

@@ -12,7 +12,6 @@ use crate::mission::aids::ModelAids;
 use crate::mission::approval::HeldPlan;
 use crate::mission::config::{MissionConfig, Mode};
 use crate::mission::log::Record;
-use crate::mission::report::{EventTopic, MissionUpdate};
 use crate::mission::resume::MissionMemory;
 use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
@@ -150,12 +149,4 @@ impl Core {
         self.calls.set_cycle_due(self.book.plan.is_some());
         told
     }
-}
-
-/// An event the log keeps and the pilot is told.
-pub(crate) fn told(topic: EventTopic, text: String) -> [Effect; 2] {
-    [
-        Effect::Note(Record::Event { text: text.clone() }),
-        Effect::Tell(MissionUpdate::Event { topic, text }),
-    ]
 }

@@ -8,7 +8,7 @@ use super::effect::Effect;
 use super::membership::membership_changed;
 use super::outcomes::{Rules, plan_ended, poll};
 use super::snapshot::Snapshot;
-use super::state::{Core, told};
+use super::state::Core;
 use super::world::world_event;
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionError, Overtaken};
@@ -163,7 +163,7 @@ impl Core {
                 "the plan for {:?} awaiting approval ended: interrupted by a direct command",
                 held.instruction
             );
-            effects.extend(told(EventTopic::PlanEnded, text));
+            effects.extend(Effect::told(EventTopic::PlanEnded, text));
         }
         self.book.mnl.active = false;
         effects
