@@ -2,8 +2,9 @@
 //! time, each booked when its result comes back; a call the gate refuses by the time it is to
 //! go; an early call and the whole reply; a failed send; a reply for work that ended.
 
+use super::step_tests::core;
 use super::*;
-use crate::mission::config::{MissionConfig, Mode};
+use crate::mission::config::Mode;
 use crate::mission::log::Record;
 use crate::mission::report::{MissionError, MissionUpdate};
 use crate::safety::{CheckedAction, SafetyGate};
@@ -42,7 +43,7 @@ fn take_off(task: &str, drone: &str) -> Call {
 /// A Tacos core with the plan "T1 alfa, T2 bravo, T3 charlie: take off" in force, and a
 /// Supervisor call started.
 fn planned(snap: &Snapshot, gate: &SafetyGate) -> Core {
-    let mut core = Core::new(&MissionConfig::default());
+    let mut core = core(Mode::Tacos);
     let calls = vec![
         take_off("T1", "alfa"),
         take_off("T2", "bravo"),
@@ -267,10 +268,7 @@ fn the_monolithic_claim_stands_only_when_every_call_was_sent() {
     let gate = gate();
     let t0 = Instant::now();
     let snap = grounded(t0, None);
-    let mut core = Core::new(&MissionConfig {
-        mode: Mode::Mnl,
-        ..MissionConfig::default()
-    });
+    let mut core = core(Mode::Mnl);
     core.step(Input::Pilot("all drones take off".into()), &snap, &gate);
     for refused in [true, false] {
         assert_eq!(core.next_call(snap.now), Some(NextCall::Cycle));
@@ -338,10 +336,7 @@ fn an_early_call_the_gate_refuses_when_it_is_to_go_keeps_the_monolithic_claim_fr
     let gate = gate();
     let t0 = Instant::now();
     let snap = grounded(t0, None);
-    let mut core = Core::new(&MissionConfig {
-        mode: Mode::Mnl,
-        ..MissionConfig::default()
-    });
+    let mut core = core(Mode::Mnl);
     core.step(
         Input::Pilot("alfa and bravo, take off".into()),
         &snap,

@@ -18,7 +18,8 @@ use tacos_shared::action::Action;
 use tacos_shared::messages::WorldEvent;
 use tacos_shared::{DroneId, DroneMode, Vec3};
 
-fn core(mode: Mode) -> Core {
+/// A fresh core of `mode` with the default configuration.
+pub(super) fn core(mode: Mode) -> Core {
     Core::new(&MissionConfig {
         mode,
         ..MissionConfig::default()
