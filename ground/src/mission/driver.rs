@@ -57,11 +57,22 @@ pub struct Mission {
     /// The direct commands: the engine carries out those among its lines, and keeps their
     /// memory of the last instruction (for `cancel` and `undo`).
     commands: DirectCommands,
-    /// Direct commands the core asked for in this step, carried out before the next
-    /// (`Effect::Direct`).
-    direct: Vec<(String, Directive)>,
-    /// Sends the core asked for (`Effect::Send`), carried out in order, each result fed back.
-    outgoing: VecDeque<(CheckedAction, String)>,
+    /// What the core asked for that is awaited (`Effect::Direct`, `Effect::Send`), carried out
+    /// in order before the next `select!`.
+    awaited: VecDeque<Awaited>,
+}
+
+/// An effect the driver awaits.
+enum Awaited {
+    Direct {
+        text: String,
+        directive: Directive,
+    },
+    /// Its result goes back to the core (`Input::Sent`).
+    Send {
+        checked: CheckedAction,
+        task: String,
+    },
 }
 
 /// Logs where every live drone is, twice a second, for `tacos-ground plot`, until aborted.
@@ -169,8 +180,7 @@ impl Mission {
             // The engine's own, until `run_with` brings the pilot's.
             overrides,
             commands,
-            direct: Vec::new(),
-            outgoing: VecDeque::new(),
+            awaited: VecDeque::new(),
         };
         if let Some(resume) = resume {
             mission.resume(&resume.path, resume.memory);
@@ -279,21 +289,19 @@ impl Mission {
         self.stats()
     }
 
-    /// Carries out what the core's steps asked for that is awaited: the direct commands, then
-    /// the sends, each send's result fed back (`Input::Sent`), which may ask for the next.
+    /// Carries out what the core's steps asked for that is awaited, in order: a direct command,
+    /// or a send whose result is fed back (`Input::Sent`), which may ask for the next.
     async fn carry_out_queued(&mut self) {
-        loop {
-            if !self.direct.is_empty() {
-                for (text, directive) in std::mem::take(&mut self.direct) {
+        while let Some(awaited) = self.awaited.pop_front() {
+            match awaited {
+                Awaited::Direct { text, directive } => {
                     self.commands.execute(&text, directive).await;
                 }
-                continue;
+                Awaited::Send { checked, task } => {
+                    let result = self.send(&checked, Some(task)).await;
+                    self.step(Input::Sent(result));
+                }
             }
-            let Some((checked, task)) = self.outgoing.pop_front() else {
-                return;
-            };
-            let result = self.send(&checked, Some(task)).await;
-            self.step(Input::Sent(result));
         }
     }
 

@@ -1,7 +1,7 @@
 //! The driver's shell around the core (`mission::core`): it takes one
 //! snapshot of the swarm per step, hands it to the core, and carries out the effects.
 
-use super::Mission;
+use super::{Awaited, Mission};
 use crate::link::GroundLink;
 use crate::mission::core::{Effect, Snapshot};
 use crate::mission::log::Record;
@@ -57,9 +57,13 @@ impl Mission {
                 ),
                 Effect::DropCall { layer, by } => self.abort_call(layer, by),
                 Effect::PlanCycles(cycles) => self.stats.update(|s| s.cycles_per_plan.push(cycles)),
-                Effect::Direct { text, directive } => self.direct.push((text, directive)),
+                Effect::Direct { text, directive } => {
+                    self.awaited.push_back(Awaited::Direct { text, directive })
+                }
                 Effect::InstructionBegun(text) => self.commands.begin_instruction(&text),
-                Effect::Send { checked, task } => self.outgoing.push_back((checked, task)),
+                Effect::Send { checked, task } => {
+                    self.awaited.push_back(Awaited::Send { checked, task })
+                }
                 Effect::CycleCounted => self.stats.update(|s| s.cycles_total += 1),
                 // Kept by the core in `absorb`: they never come out of it.
                 Effect::Remember(_) | Effect::WorkReplaced | Effect::Replan(_) => {}
