@@ -23,6 +23,7 @@
 
 mod adopt;
 mod book;
+mod call_start;
 mod calls;
 mod checks;
 mod coordinator;
@@ -74,9 +75,10 @@ mod tests;
 mod world_tests;
 
 pub(crate) use adopt::adopt;
-pub(crate) use calls::{Coordination, NextCall};
+pub(crate) use call_start::Ask;
+pub(crate) use calls::Coordination;
 pub(crate) use checks::check_live;
-pub(crate) use coordinator::{CoordinatorAsk, CoordinatorContext, coordinator_ask};
+pub(crate) use coordinator::CoordinatorAsk;
 pub use coordinator::{coordinator_fixed_messages, coordinator_messages};
 pub(crate) use cycle::{CycleJudgement, first_call_per_drone, judge_cycle, match_startable};
 pub(crate) use cycle_ask::CycleRequest;
@@ -94,7 +96,9 @@ pub(crate) use step::{CoordinatorAnswer, Input};
 #[cfg(test)]
 use book::{ActivePlan, PlanBook};
 #[cfg(test)]
-use calls::CallQueue;
+use calls::{CallQueue, NextCall};
+#[cfg(test)]
+use coordinator::{CoordinatorContext, coordinator_ask};
 #[cfg(test)]
 use membership::membership_changed;
 #[cfg(test)]

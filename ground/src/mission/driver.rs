@@ -19,7 +19,7 @@ pub use super::core::supervisor_messages;
 use super::aids::{Aid, ModelAids};
 use super::commands::DirectCommands;
 use super::config::{MissionConfig, Mode};
-use super::core::{Core, Input};
+use super::core::{Coordination, Core, Input, Snapshot};
 use super::directives::Directive;
 use super::input::MissionInputs;
 use super::log::{MissionLog, Record};
@@ -73,6 +73,8 @@ enum Awaited {
         checked: CheckedAction,
         task: String,
     },
+    /// The Coordinator's work, fed back on a snapshot with a drone heard (`Input::Coordinate`).
+    Coordinate(Coordination),
 }
 
 /// Logs where every live drone is, twice a second, for `tacos-ground plot`, until aborted.
@@ -301,6 +303,7 @@ impl Mission {
                     let result = self.send(&checked, Some(task)).await;
                     self.step(Input::Sent(result));
                 }
+                Awaited::Coordinate(work) => self.coordinate(work).await,
             }
         }
     }
@@ -308,6 +311,11 @@ impl Mission {
     /// Feeds `input` to the core with a snapshot taken now, and carries out its effects.
     fn step(&mut self, input: Input) {
         let snap = self.snapshot();
+        self.step_on(input, snap);
+    }
+
+    /// Feeds `input` to the core with `snap`, and carries out its effects.
+    fn step_on(&mut self, input: Input, snap: Snapshot) {
         let effects = self.core.step(input, &snap, &self.gate);
         self.apply(effects);
     }

@@ -21,6 +21,7 @@ use tacos_shared::DroneMode;
 use tacos_shared::scenario::Scenario;
 
 /// What the Coordinator is asked.
+#[derive(Debug, Clone, PartialEq)]
 pub(crate) struct CoordinatorAsk {
     pub(crate) instruction: String,
     pub(crate) messages: Vec<ChatMessage>,

@@ -1,5 +1,7 @@
 //! What the core asks the engine to do.
 
+use super::call_start::Ask;
+use super::calls::Coordination;
 use crate::mission::aids::Aid;
 use crate::mission::directives::Directive;
 use crate::mission::log::{Record, RefusedBy};
@@ -42,6 +44,12 @@ pub(crate) enum Effect {
     DropCall { layer: &'static str, by: Overtaken },
     /// A plan completed after this many cycles (the statistics' cycles per plan).
     PlanCycles(u32),
+    /// Run this model call beside the mission (one at a time); its reply comes back as an
+    /// input.
+    Ask(Ask),
+    /// Take a snapshot with a drone heard (waiting a little for a silent swarm) and feed
+    /// `Input::Coordinate` with it: the Coordinator's request is built on that snapshot.
+    Coordinate(Coordination),
     /// Ask the Coordinator for an automatic replan with this instruction (queued after the work
     /// waiting for it; a cycle in flight is dropped).
     Replan(String),

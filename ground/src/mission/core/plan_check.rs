@@ -16,7 +16,7 @@ use tacos_shared::messages::TargetObservation;
 use tacos_shared::scenario::Scenario;
 
 /// What a Coordinator reply is checked against.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 pub(crate) struct PlanCheck {
     pub(crate) scenario: Scenario,
     /// The targets seen when the call was asked.

@@ -3,6 +3,7 @@
 //! Coordinator's checked reply, a cycle's calls and reply, a send's result, the session's end)
 //! goes in, and the effects come back with the ones that only change the core already absorbed.
 
+use super::calls::Coordination;
 use super::cycle_reply::CycleAnswer;
 use super::effect::Effect;
 use super::membership::membership_changed;
@@ -54,6 +55,15 @@ pub(crate) enum Input {
     /// The send the core asked for last (`Effect::Send`) went, with its sequence number, or
     /// failed.
     Sent(Result<u64, MissionError>),
+    /// No model call is in flight: the next one starts if one is due (`Effect::Ask`).
+    CallDue,
+    /// The Coordinator's request for this work, on this step's snapshot.
+    Coordinate(Coordination),
+    /// The model call in flight of `layer` ended without a reply (its task failed).
+    CallLost {
+        layer: &'static str,
+        reason: String,
+    },
     /// The pilot closed the session.
     Closed,
 }
@@ -104,6 +114,7 @@ impl Core {
                 grounded,
                 answer,
             } => {
+                self.calls.answered();
                 let effects = self.coordinator_answered(instruction, grounded, answer, snap, gate);
                 // A new plan: its first cycle at once.
                 self.calls.set_cycle_due(self.busy());
@@ -114,8 +125,14 @@ impl Core {
                 checked,
                 after,
             } => self.early_call(call, &checked, after, snap, gate),
-            Input::CycleReply(answer) => self.cycle_answered(answer, snap, gate),
+            Input::CycleReply(answer) => {
+                self.calls.answered();
+                self.cycle_answered(answer, snap, gate)
+            }
             Input::Sent(result) => self.sent(result, snap, gate),
+            Input::CallDue => self.call_due(snap, gate),
+            Input::Coordinate(work) => self.coordinate(&work, snap, gate),
+            Input::CallLost { layer, reason } => self.call_lost(layer, &reason),
             Input::Closed => {
                 let mut effects = self.calls.drop_call(Overtaken::SessionClosed);
                 effects.push(Effect::Note(Record::MissionEnd {

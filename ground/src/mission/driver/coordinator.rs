@@ -2,10 +2,8 @@
 
 use super::Mission;
 use super::in_flight::{Answered, InFlight};
-use crate::mission::core::{
-    Checked, Coordination, CoordinatorAsk, CoordinatorContext, Snapshot, coordinator_ask,
-};
-use crate::mission::report::{MissionError, MissionUpdate};
+use crate::mission::core::{Checked, Coordination, CoordinatorAsk, Input, Snapshot};
+use crate::mission::report::MissionUpdate;
 use tacos_prompts::CoordinatorReply;
 use tacos_prompts::schema::Output;
 
@@ -29,23 +27,16 @@ impl Mission {
         }
     }
 
-    /// Starts the Coordinator's call for `instruction` beside the engine
-    /// (the core takes its reply in, `Input::CoordinatorReply`); its plan will replace the current one
-    /// (the pending plan is in its prompt).
-    pub(super) async fn coordinate(&mut self, work: &Coordination) -> Result<(), MissionError> {
-        // The prompt, the schema and the checks are made from this one snapshot.
+    /// Feeds the Coordinator's work to the core (`Input::Coordinate`) on a snapshot with a
+    /// drone heard, if one is within the grace.
+    pub(super) async fn coordinate(&mut self, work: Coordination) {
         let snap = self.snapshot_after_silence().await;
-        let context = CoordinatorContext {
-            snap: &snap,
-            scenario: self.gate.scenario(),
-            book: &self.core.book,
-            history: &self.core.history,
-            events: &self.core.events,
-            aids: self.core.aids,
-        };
-        let mut effects = Vec::new();
-        let ask = coordinator_ask(work, &context, &mut effects);
-        self.apply(effects);
+        self.step_on(Input::Coordinate(work), snap);
+    }
+
+    /// Starts the Coordinator's call for the request the core made (`Ask::Coordinator`) beside
+    /// the mission; the core takes its reply in (`Input::CoordinatorReply`).
+    pub(super) fn start_coordinator_call(&mut self, ask: CoordinatorAsk) {
         let CoordinatorAsk {
             instruction,
             messages,
@@ -53,7 +44,7 @@ impl Mission {
             token_budget,
             check,
             grounded,
-        } = ask?;
+        } = ask;
         let log = self.log.clone();
         self.tell(MissionUpdate::Thinking {
             layer: "coordinator",
@@ -94,7 +85,5 @@ impl Mission {
             }
         };
         self.in_flight = Some(InFlight::spawn("coordinator", call));
-        self.core.calls.started("coordinator");
-        Ok(())
     }
 }

@@ -15,18 +15,6 @@ use tacos_prompts::schema::{self, Output};
 use tacos_prompts::{Call, MonolithicReply, SupervisorReply};
 
 impl Mission {
-    /// Starts one Supervisor (or monolithic) cycle when the core has one to start
-    /// (`Core::start_cycle`: within the cycle limit, with a decision to make).
-    pub(super) fn cycle(&mut self) {
-        // One snapshot for the decision and the prompt: every line of it sees the same swarm.
-        let snap = self.snapshot();
-        let (start, effects) = self.core.start_cycle(&snap, &self.gate);
-        self.apply(effects);
-        if let Some(start) = start {
-            self.start_cycle_call(start);
-        }
-    }
-
     /// The common part of a Supervisor and a monolithic cycle: starts the model's call (with the
     /// repair loop) beside the engine, keeping the calls that are among `only` (when given) and
     /// pass `check_live` and the safety gate as the reply comes; the core takes the calls that

@@ -6,7 +6,7 @@
 
 use super::Mission;
 use super::early::{EarlyCall, EarlyCalls};
-use crate::mission::core::{CoordinatorAnswer, CycleAnswer, Input, NextCall};
+use crate::mission::core::{CoordinatorAnswer, CycleAnswer, Input};
 use crate::mission::report::{MissionUpdate, Overtaken};
 use crate::task_guard::AbortOnDrop;
 use std::future::Future;
@@ -74,20 +74,15 @@ impl Mission {
     }
 
     /// With no call in flight: the next work waiting for the Coordinator, or else a cycle when
-    /// one is due (`core::CallQueue::next`). Errors are told to the pilot.
+    /// one is due (`Input::CallDue`); work whose request could not be made (told to the
+    /// pilot) makes way for the next.
     pub(super) async fn start_next_call(&mut self) {
-        while let Some(next) = self.core.next_call(self.link.clock().instant()) {
-            let started = match next {
-                NextCall::Coordinate(work) => self.coordinate(&work).await,
-                NextCall::Cycle => {
-                    self.cycle();
-                    // A cycle that found nothing to ask waits for the next change.
-                    break;
-                }
-            };
-            if let Err(e) = started {
-                self.tell(MissionUpdate::Error(e.to_string()));
+        while self.in_flight.is_none() {
+            self.step(Input::CallDue);
+            if self.awaited.is_empty() {
+                break;
             }
+            self.carry_out_queued().await;
         }
     }
 
@@ -96,22 +91,22 @@ impl Mission {
         let Some(flight) = self.in_flight.take() else {
             return;
         };
-        self.core.calls.answered();
-        match joined {
-            Err(e) => self.tell(MissionUpdate::Error(format!(
-                "the {}'s call ended abnormally: {e}",
-                flight.layer
-            ))),
+        let input = match joined {
+            Err(e) => Input::CallLost {
+                layer: flight.layer,
+                reason: e.to_string(),
+            },
             Ok(Answered::Coordinator {
                 instruction,
                 grounded,
                 answer,
-            }) => self.step(Input::CoordinatorReply {
+            }) => Input::CoordinatorReply {
                 instruction,
                 grounded,
                 answer,
-            }),
-            Ok(Answered::Cycle(answer)) => self.step(Input::CycleReply(answer)),
-        }
+            },
+            Ok(Answered::Cycle(answer)) => Input::CycleReply(answer),
+        };
+        self.step(input);
     }
 }

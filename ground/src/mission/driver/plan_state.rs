@@ -3,7 +3,7 @@
 
 use super::{Awaited, Mission};
 use crate::link::GroundLink;
-use crate::mission::core::{Effect, Snapshot};
+use crate::mission::core::{Ask, Effect, Snapshot};
 use crate::mission::log::Record;
 use crate::mission::untrusted;
 use tacos_shared::messages::TargetObservation;
@@ -64,6 +64,9 @@ impl Mission {
                 Effect::Send { checked, task } => {
                     self.awaited.push_back(Awaited::Send { checked, task })
                 }
+                Effect::Ask(Ask::Coordinator(ask)) => self.start_coordinator_call(*ask),
+                Effect::Ask(Ask::Cycle(start)) => self.start_cycle_call(start),
+                Effect::Coordinate(work) => self.awaited.push_back(Awaited::Coordinate(work)),
                 Effect::CycleCounted => self.stats.update(|s| s.cycles_total += 1),
                 // Kept by the core in `absorb`: they never come out of it.
                 Effect::Remember(_) | Effect::WorkReplaced | Effect::Replan(_) => {}
