@@ -85,7 +85,8 @@ pub fn is_emergency(action: &Action) -> bool {
     matches!(action, Action::Land | Action::Hold)
 }
 
-/// An action that passed the gate. Only [`SafetyGate::check`] makes one, and only a checked
+/// An action that passed the gate. Only the gate makes one ([`SafetyGate::check`], or
+/// [`SafetyGate::recheck`] on a drone's state as recorded), and only a checked
 /// action can be sent (`GroundLink::send`), so nothing reaches a drone around the gate.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CheckedAction {
@@ -158,7 +159,13 @@ impl SafetyGate {
     /// The gate run again, away from the swarm, on what it saw of a drone: the audit of a
     /// mission log. The same rules as [`check`](Self::check); the drone must be one of the
     /// scenario's.
-    pub fn recheck(&self, drone: &str, seen: DroneSeen, action: &Action) -> Result<(), Rejection> {
+    /// A replayed mission trace (`mission::core::trace`) gets its checked actions back this way.
+    pub fn recheck(
+        &self,
+        drone: &str,
+        seen: DroneSeen,
+        action: &Action,
+    ) -> Result<CheckedAction, Rejection> {
         let known = || {
             self.scenario
                 .drones
@@ -173,7 +180,12 @@ impl SafetyGate {
                 drone: drone.to_owned(),
                 known: known(),
             })?;
-        self.judge(&id, seen, action)
+        self.judge(&id, seen, action)?;
+        Ok(CheckedAction {
+            drone: id,
+            action: action.clone(),
+            seen,
+        })
     }
 
     /// The rules, on the drone's state as seen.

@@ -62,7 +62,7 @@ impl DroneEntry {
 }
 
 /// What changed, for whoever watches the view.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub enum SwarmChange {
     Joined(DroneId),
     Left(DroneId),
@@ -130,6 +130,13 @@ impl SwarmView {
         } else {
             entry.gone_at = Some(now);
             Some(SwarmChange::Left(id.clone()))
+        }
+    }
+
+    /// A view of these entries (a replayed mission trace's snapshot: `mission::core::trace`).
+    pub fn from_entries(entries: impl IntoIterator<Item = DroneEntry>) -> SwarmView {
+        SwarmView {
+            drones: entries.into_iter().map(|e| (e.id.clone(), e)).collect(),
         }
     }
 

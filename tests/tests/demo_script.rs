@@ -193,10 +193,22 @@ async fn a_script_takes_off_flies_one_goto_and_lands_all_in_order() -> anyhow::R
          expect no breaches\n",
     )?;
     let log_path = temp("script", "jsonl");
-    let (ok, stdout, stderr) = demo(&script, &server, &log_path).await?;
+    let (ok, stdout, stderr) = demo_with(&script, &server, &log_path, &["--trace-steps"]).await?;
     assert!(
         ok,
         "the script failed\nstdout:\n{stdout}\nstderr:\n{stderr}"
+    );
+    // The traced mission fed to a fresh core sends the same, in order.
+    let ground = tacos_ground::launch::bin_dir().join("tacos-ground");
+    let replay = std::process::Command::new(ground)
+        .args(["replay", "--check"])
+        .arg(&log_path)
+        .output()?;
+    let said = String::from_utf8_lossy(&replay.stdout);
+    assert!(
+        replay.status.success() && said.contains("sends, the same as the log's"),
+        "{said}\n{}",
+        String::from_utf8_lossy(&replay.stderr)
     );
     // The loading server's 503 was retried, then every request was answered.
     assert_eq!(server.count(503), 1, "stdout:\n{stdout}");

@@ -62,6 +62,7 @@ async fn broken_replies_are_repaired_and_the_plan_runs_over_several_cycles() -> 
         assert!(lines.iter().any(|l| matches!(&l.record, Record::LlmRequest { layer, attempt: 3, .. } if layer == "coordinator")));
         // The default preset of the small-model aids is recorded in the start record.
         assert!(lines.iter().any(|l| matches!(&l.record, Record::MissionStart { aids, .. } if *aids == tacos_ground::mission::ModelAids::small())));
+        replays_the_same(&run.log_path, &run.sim.scenario)?;
         anyhow::Ok(())
     })
     .await
@@ -91,6 +92,7 @@ async fn a_drone_killed_mid_plan_has_its_subtask_reassigned() -> anyhow::Result<
         let reassigned = t5.iter().find(|(_, d)| d != "bravo").ok_or_else(|| anyhow::anyhow!("T5 never given to another drone: {t5:?}"))?;
         let done = lines.iter().any(|l| matches!(&l.record, Record::ActionOutcome { drone, task: Some(t), outcome, .. } if *drone == reassigned.1 && t == "T5" && outcome == "done"));
         assert!(done, "{} did not finish bravo's T5", reassigned.1);
+        replays_the_same(&run.log_path, &run.sim.scenario)?;
         anyhow::Ok(())
     })
     .await
@@ -104,7 +106,7 @@ async fn the_monolithic_model_is_held_to_its_actions_not_its_claim() -> anyhow::
         let backend = Arc::new(PolicyBackend::new(monolithic_policy(Arc::new(AtomicBool::new(true)))));
         let (tx, mut updates) = mpsc::unbounded_channel();
         // No repairs: the reply with the rejected goto is the one that counts.
-        let cfg = MissionConfig { mode: Mode::Mnl, max_repairs: 0, cycle_timeout: Duration::from_secs(3), ..MissionConfig::default() };
+        let cfg = MissionConfig { mode: Mode::Mnl, max_repairs: 0, cycle_timeout: Duration::from_secs(3), trace_steps: true, ..MissionConfig::default() };
         let mission = Mission::new(cfg, backend.clone(), SafetyGate::new(run.sim.scenario.clone()), link, Arc::new(MissionLog::create(&log_path)?), tx).await?;
         let (lines, rx) = mpsc::channel(4);
         tokio::spawn(mission.run(rx));
@@ -134,6 +136,7 @@ async fn the_monolithic_model_is_held_to_its_actions_not_its_claim() -> anyhow::
         let complete = lines.iter().position(|l| matches!(l.record, Record::PlanComplete { .. }));
         let alfa_up = lines.iter().position(|l| matches!(&l.record, Record::ActionOutcome { drone, outcome, .. } if drone == "alfa" && outcome == "done"));
         assert!(alfa_up.is_some() && complete > alfa_up, "complete at {complete:?}, alfa up at {alfa_up:?}");
+        replays_the_same(&log_path, &run.sim.scenario)?;
         anyhow::Ok(())
     })
     .await

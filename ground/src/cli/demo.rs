@@ -70,6 +70,11 @@ pub struct DemoArgs {
     /// has no plan to hold.
     #[arg(long, conflicts_with = "no_llm")]
     pub confirm: bool,
+    /// Write every step of the mission's core to the log, with what it was fed and the
+    /// swarm it saw (a few kB per step), so `tacos-ground replay --check LOG` can feed the
+    /// mission to a fresh core and compare what it sends with what was sent.
+    #[arg(long)]
+    pub trace_steps: bool,
     /// The mission log (JSON lines); default: missions-out/<time>-<mode>.jsonl
     #[arg(long)]
     pub log: Option<PathBuf>,
@@ -136,6 +141,7 @@ impl DemoArgs {
             mode: self.mode,
             aids: self.aids,
             confirm: self.confirm,
+            trace_steps: self.trace_steps,
             ..MissionConfig::default()
         };
         let plan = match script {

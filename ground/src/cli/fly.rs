@@ -47,6 +47,11 @@ pub struct FlyArgs {
     /// Hold every Coordinator plan for the pilot's approval (see `demo --help`).
     #[arg(long)]
     pub confirm: bool,
+    /// Write every step of the mission's core to the log, with what it was fed and the
+    /// swarm it saw (a few kB per step), so `tacos-ground replay --check LOG` can feed the
+    /// mission to a fresh core and compare what it sends with what was sent.
+    #[arg(long)]
+    pub trace_steps: bool,
     /// No interactive pilot input: carry out the --say lines (and a resumed plan) and exit.
     #[arg(long)]
     pub no_terminal: bool,
@@ -109,6 +114,7 @@ impl FlyArgs {
             mode,
             aids: self.aids,
             confirm: self.confirm,
+            trace_steps: self.trace_steps,
             resume: resumed.map(|(path, r)| ResumeFrom {
                 path,
                 memory: r.memory,

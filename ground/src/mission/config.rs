@@ -6,7 +6,10 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 /// The ablation modes of the paper.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "snake_case")]
 pub enum Mode {
     /// Coordinator + Supervisor, the Supervisor sees the Coordinator's reasoning.
     Tacos,
@@ -61,6 +64,9 @@ pub struct MissionConfig {
     pub confirm: bool,
     /// A mission to go on with, read from its log after the ground station restarted.
     pub resume: Option<ResumeFrom>,
+    /// Every step of the core is written to the mission log with its input and snapshot
+    /// (`core::trace`), so `tacos-ground replay --check` can feed the mission to a fresh core.
+    pub trace_steps: bool,
 }
 
 /// Where a resumed mission comes from and what it remembered (`mission::resume`).
@@ -85,6 +91,7 @@ impl Default for MissionConfig {
             seed: Some(7),
             confirm: false,
             resume: None,
+            trace_steps: false,
         }
     }
 }

@@ -43,6 +43,7 @@ mod snapshot;
 mod start;
 mod state;
 mod step;
+mod trace;
 mod world;
 
 #[cfg(test)]
@@ -72,6 +73,8 @@ mod step_tests;
 #[cfg(test)]
 mod tests;
 #[cfg(test)]
+mod trace_tests;
+#[cfg(test)]
 mod world_tests;
 
 pub(crate) use adopt::adopt;
@@ -91,6 +94,8 @@ pub(crate) use repair::{Checked, Next, Repair};
 pub(crate) use snapshot::Snapshot;
 pub(crate) use state::Core;
 pub(crate) use step::{CoordinatorAnswer, Input};
+pub use trace::{TraceError, TracedCore, TracedStep};
+pub(crate) use trace::{TracedInput, trace_step};
 
 // What the core's tests reach through `super::*`.
 #[cfg(test)]

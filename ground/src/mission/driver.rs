@@ -19,7 +19,7 @@ pub use super::core::supervisor_messages;
 use super::aids::{Aid, ModelAids};
 use super::commands::DirectCommands;
 use super::config::{MissionConfig, Mode};
-use super::core::{Coordination, Core, Input, Snapshot};
+use super::core::{Coordination, Core, Input, Snapshot, trace_step};
 use super::directives::Directive;
 use super::input::MissionInputs;
 use super::log::{MissionLog, Record};
@@ -60,6 +60,8 @@ pub struct Mission {
     /// What the core asked for that is awaited (`Effect::Direct`, `Effect::Send`), carried out
     /// in order before the next `select!`.
     awaited: VecDeque<Awaited>,
+    /// When the trace of the core's steps began, if they are traced (`--trace-steps`).
+    trace_began: Option<std::time::Instant>,
 }
 
 /// An effect the driver awaits.
@@ -183,6 +185,7 @@ impl Mission {
             overrides,
             commands,
             awaited: VecDeque::new(),
+            trace_began: None,
         };
         if let Some(resume) = resume {
             mission.resume(&resume.path, resume.memory);
@@ -224,6 +227,12 @@ impl Mission {
         self.commands = commands;
         let mut wake_open = true;
         let mut membership = self.link.membership();
+        if self.cfg.trace_steps {
+            self.log.note(Record::TraceBegun {
+                core: self.core.traced(),
+            });
+            self.trace_began = Some(self.link.clock().instant());
+        }
         self.step(Input::Started);
         let mut events = match self.link.watch_events().await {
             Ok(rx) => rx,
@@ -316,6 +325,10 @@ impl Mission {
 
     /// Feeds `input` to the core with `snap`, and carries out its effects.
     fn step_on(&mut self, input: Input, snap: Snapshot) {
+        if let Some(began) = self.trace_began {
+            self.log
+                .note(Record::Step(trace_step(&input, &snap, began)));
+        }
         let effects = self.core.step(input, &snap, &self.gate);
         self.apply(effects);
     }

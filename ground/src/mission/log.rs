@@ -10,6 +10,7 @@ mod summary;
 pub use summary::{Tally, timeline};
 
 use super::aids::{Aid, ModelAids};
+use super::core::{TracedCore, TracedStep};
 use super::resume::{MissionMemory, PlanTask};
 use crate::jsonl;
 use crate::safety::{CheckedAction, DroneSeen};
@@ -24,6 +25,12 @@ use tacos_shared::action::Action;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum Record {
+    /// The core's steps are traced from here on (`--trace-steps`): what the core was made from.
+    TraceBegun {
+        core: TracedCore,
+    },
+    /// One step of the core: its input and snapshot (`core::trace`), before the step's effects.
+    Step(TracedStep),
     MissionStart {
         mode: String,
         backend: String,

@@ -23,6 +23,7 @@ pub mod grounding;
 pub mod handle;
 pub mod input;
 pub mod log;
+pub mod replay;
 pub mod report;
 pub mod resolve;
 pub mod resume;

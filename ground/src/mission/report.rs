@@ -41,6 +41,10 @@ pub enum MissionError {
         action: String,
         reason: String,
     },
+    /// An error as a mission trace recorded it, in its words (`core::trace`): a replay tells
+    /// the pilot the same.
+    #[error("{0}")]
+    Recorded(String),
 }
 
 /// What an engine event is about: whoever shows it sorts it by this, never by its text.

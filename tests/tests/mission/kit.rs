@@ -176,8 +176,10 @@ pub(super) async fn launch_mission(
         misbehave,
     )))));
     let (tx, updates) = mpsc::unbounded_channel();
+    // Traced, so each test can feed its mission to a fresh core (`replays_the_same`).
     let cfg = MissionConfig {
         cycle_timeout: Duration::from_secs(3),
+        trace_steps: true,
         ..MissionConfig::default()
     };
     let mission = Mission::new(
@@ -194,6 +196,25 @@ pub(super) async fn launch_mission(
     run.updates = updates;
     run.lines = lines;
     run.log_path = log_path;
+    Ok(())
+}
+
+/// The mission's traced steps fed to a fresh core (`mission::replay`) send what it sent: the
+/// same drones, actions, tasks and sequence numbers, in order.
+pub(super) fn replays_the_same(
+    log_path: &std::path::Path,
+    scenario: &tacos_shared::scenario::Scenario,
+) -> anyhow::Result<()> {
+    let lines = log::read(log_path)?;
+    let gate = SafetyGate::new(scenario.clone());
+    let replayed = tacos_ground::mission::replay::replay(log::last_mission(&lines), &gate)?;
+    if let Some(difference) = replayed.first_difference() {
+        anyhow::bail!("replayed {} steps: {difference}", replayed.steps);
+    }
+    anyhow::ensure!(
+        !replayed.replayed.is_empty(),
+        "the mission sent nothing to compare"
+    );
     Ok(())
 }
 

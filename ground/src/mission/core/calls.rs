@@ -11,8 +11,9 @@ use crate::mission::report::{EventTopic, Overtaken};
 use std::collections::VecDeque;
 
 /// Work waiting for the Coordinator, in the order it came.
-#[derive(Debug, Clone, PartialEq)]
-pub(crate) enum Coordination {
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Coordination {
     /// The pilot's instruction (in the history already).
     Pilot(String),
     /// An automatic replan after a membership change, as its instruction.
@@ -63,6 +64,12 @@ impl CallQueue {
     /// A cycle is due, or not, whatever was due before (a new plan: its first cycle at once).
     pub(crate) fn set_cycle_due(&mut self, due: bool) {
         self.cycle_due = due;
+    }
+
+    /// The layer whose call is in flight, if one is (the tests' driver asks).
+    #[cfg(test)]
+    pub(crate) fn in_flight(&self) -> Option<&'static str> {
+        self.in_flight
     }
 
     /// The call of `layer` was started.

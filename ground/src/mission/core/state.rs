@@ -19,8 +19,8 @@ use tacos_prompts::render::{HistoryEntry, TaskStatus};
 use tacos_shared::DroneId;
 
 /// The engine's bounds the core decides by (from `MissionConfig`).
-#[derive(Debug, Clone, PartialEq)]
-pub(crate) struct Bounds {
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Bounds {
     /// A cycle is due at the latest this long after the last one while the models have work.
     pub(crate) cycle_timeout: Duration,
     pub(crate) max_cycles_per_plan: u32,

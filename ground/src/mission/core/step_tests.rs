@@ -27,7 +27,7 @@ pub(super) fn core(mode: Mode) -> Core {
 }
 
 /// alfa, bravo and charlie on the ground, heard at `now`.
-fn grounded(now: Instant) -> Snapshot {
+pub(super) fn grounded(now: Instant) -> Snapshot {
     super::cycle_reply_tests::grounded(now, None)
 }
 
@@ -291,7 +291,7 @@ fn the_session_s_end_drops_the_call_in_flight_and_ends_the_log() {
 
 /// A mission's worth of inputs, each with its step's snapshot: an instruction, its plan, a
 /// cycle whose call is sent, a detection, a lost drone, `land all`, the end.
-fn a_mission(t0: Instant, gate: &SafetyGate) -> Vec<(Input, Snapshot)> {
+pub(super) fn a_mission(t0: Instant, gate: &SafetyGate) -> Vec<(Input, Snapshot)> {
     let at = |s: u64| grounded(t0 + Duration::from_secs(s));
     let alfa_up = || {
         let snap = at(3);
@@ -339,22 +339,50 @@ fn a_mission(t0: Instant, gate: &SafetyGate) -> Vec<(Input, Snapshot)> {
     ]
 }
 
-/// Runs `a_mission` on a fresh core, starting each cycle the core asks for; the effects of
-/// every step, and the core's book and history at the end.
+/// Feeds `input` to `core` as the driver does (`driver::run_with`): the input, then — unless
+/// it asked for something awaited (a send or a direct command, whose result or override is
+/// the caller's next input) — `Input::CallDue` while no call is in flight, with the
+/// Coordinator's work fed back (`Input::Coordinate`), all on `snap`. Each step as its trace
+/// (from `t0`) and its effects.
+pub(super) fn drive(
+    core: &mut Core,
+    input: Input,
+    snap: &Snapshot,
+    gate: &SafetyGate,
+    t0: Instant,
+) -> Vec<(TracedStep, Vec<Effect>)> {
+    let one = |core: &mut Core, input: Input| {
+        let traced = trace_step(&input, snap, t0);
+        (traced, core.step(input, snap, gate))
+    };
+    let first = one(core, input);
+    let awaited =
+        (first.1.iter()).any(|e| matches!(e, Effect::Send { .. } | Effect::Direct { .. }));
+    let mut steps = vec![first];
+    while !awaited && core.calls.in_flight().is_none() {
+        let due = one(core, Input::CallDue);
+        let work = due.1.iter().find_map(|e| match e {
+            Effect::Coordinate(work) => Some(work.clone()),
+            _ => None,
+        });
+        steps.push(due);
+        match work {
+            Some(work) => steps.push(one(core, Input::Coordinate(work))),
+            None => break,
+        }
+    }
+    steps
+}
+
+/// Runs `a_mission` on a fresh core as the driver would (`drive`); the effects of every step,
+/// and the core's book and history at the end.
 fn run(t0: Instant) -> (Vec<Vec<Effect>>, PlanBook, Vec<HistoryEntry>) {
     let gate = gate();
     let mut core = core(Mode::Tacos);
     let mut effects = Vec::new();
     for (input, snap) in a_mission(t0, &gate) {
-        let reply = matches!(input, Input::CycleReply(_));
-        if reply {
-            core.calls.answered();
-        }
-        effects.push(core.step(input, &snap, &gate));
-        if let Some(NextCall::Cycle) = core.next_call(snap.now) {
-            core.calls.started("supervisor");
-            core.cycle_started(CycleKind::Supervisor);
-        }
+        let steps = drive(&mut core, input, &snap, &gate, t0);
+        effects.extend(steps.into_iter().map(|(_, effects)| effects));
     }
     (effects, core.book, core.history)
 }
