@@ -11,7 +11,7 @@ use candle_core::quantized::{QMatMul, QTensor, gguf_file};
 use candle_core::{DType, Device, IndexOp, Module, Result, Tensor};
 use candle_nn::Embedding;
 use candle_transformers::quantized_nn::RmsNorm;
-use candle_transformers::utils::{build_additive_causal_mask, repeat_kv};
+use candle_transformers::utils::build_additive_causal_mask;
 
 use crate::catalogue::Architecture;
 
@@ -239,7 +239,7 @@ impl Decoder {
         cos: &Tensor,
         sin: &Tensor,
     ) -> Result<Tensor> {
-        let (b, seq, hidden) = x.dims3()?;
+        let (b, seq, _) = x.dims3()?;
         let project = |w: &QMatMul, bias: &Option<Tensor>, heads: usize| -> Result<Tensor> {
             let mut t = w.forward(x)?;
             if let Some(bias) = bias {
@@ -257,15 +257,7 @@ impl Decoder {
             None => (k, v),
         };
         *kv = Some((k.clone(), v.clone()));
-        let n_rep = self.n_head / self.n_kv_head;
-        let k = repeat_kv(k, n_rep)?;
-        let v = repeat_kv(v, n_rep)?.contiguous()?;
-        let mut att = (q.matmul(&k.t()?)? / (self.head_dim as f64).sqrt())?;
-        if let Some(mask) = mask {
-            att = att.broadcast_add(mask)?;
-        }
-        let att = candle_nn::ops::softmax_last_dim(&att)?;
-        let y = att.matmul(&v)?.transpose(1, 2)?.reshape((b, seq, hidden))?;
+        let y = grouped_attention(&q, &k, &v, mask, self.n_kv_head)?;
         l.wo.forward(&y)
     }
 
@@ -276,6 +268,39 @@ impl Decoder {
             candle_nn::rotary_emb::rope_i(x, cos, sin)
         }
     }
+}
+
+/// Attention of `q` (batch, query heads, seq, head size) over `k` and `v` (batch, key/value
+/// heads, positions, head size), `mask` added to the scores when given; (batch, seq, width).
+///
+/// Grouped-query attention without copying each key/value head once per query head (candle's
+/// `repeat_kv`, which at 2,000 positions copied about 700 MB per generated token): query head h
+/// reads key/value head h / n_rep, and the n_rep query heads of one key/value head are adjacent,
+/// so they are viewed as n_rep × seq rows of it.
+fn grouped_attention(
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    mask: Option<&Tensor>,
+    n_kv_head: usize,
+) -> Result<Tensor> {
+    let (b, n_head, seq, head_dim) = q.dims4()?;
+    let n_rep = n_head / n_kv_head;
+    let q = q.reshape((b, n_kv_head, n_rep * seq, head_dim))?;
+    let mut att = (q.matmul(&k.t()?)? / (head_dim as f64).sqrt())?;
+    if let Some(mask) = mask {
+        // The same mask for each query head of the group: broadcast over a group axis.
+        let total = att.dim(3)?;
+        att = att
+            .reshape((b, n_kv_head, n_rep, seq, total))?
+            .broadcast_add(&mask.unsqueeze(2)?)?
+            .reshape((b, n_kv_head, n_rep * seq, total))?;
+    }
+    let att = candle_nn::ops::softmax_last_dim(&att)?;
+    att.matmul(v)?
+        .reshape((b, n_head, seq, head_dim))?
+        .transpose(1, 2)?
+        .reshape((b, seq, n_head * head_dim))
 }
 
 /// The rotary embedding's cosines and sines for positions `0..len`: `(len, head_dim / 2)`.
@@ -296,4 +321,63 @@ fn rotary_tables(
         .reshape((len, 1))?;
     let angles = positions.matmul(&inv_freq)?;
     Ok((angles.cos()?, angles.sin()?))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_transformers::utils::repeat_kv;
+
+    /// Attention as candle's own models compute it: each key/value head copied per query head.
+    fn repeated_attention(q: &Tensor, k: &Tensor, v: &Tensor, mask: Option<&Tensor>) -> Tensor {
+        let (b, n_head, seq, head_dim) = q.dims4().expect("4 dims");
+        let n_rep = n_head / k.dim(1).expect("4 dims");
+        let k = repeat_kv(k.clone(), n_rep).expect("repeat");
+        let v = repeat_kv(v.clone(), n_rep)
+            .expect("repeat")
+            .contiguous()
+            .expect("copy");
+        let mut att =
+            (q.matmul(&k.t().expect("t")).expect("q k") / (head_dim as f64).sqrt()).expect("scale");
+        if let Some(mask) = mask {
+            att = att.broadcast_add(mask).expect("mask");
+        }
+        let att = candle_nn::ops::softmax_last_dim(&att).expect("softmax");
+        att.matmul(&v)
+            .expect("att v")
+            .transpose(1, 2)
+            .expect("t")
+            .reshape((b, seq, n_head * head_dim))
+            .expect("reshape")
+    }
+
+    #[test]
+    fn grouped_attention_is_the_attention_of_repeated_heads() {
+        let device = Device::Cpu;
+        // Qwen2.5-Coder-1.5B's shape (12 query heads over 2 key/value heads, 128 wide): a
+        // prompt of 5 after 7 cached positions, with the causal mask, then one generated token.
+        for (seq, past) in [(5, 7), (1, 12)] {
+            let total = seq + past;
+            let q = Tensor::randn(0f32, 1.0, (1, 12, seq, 128), &device).expect("q");
+            let k = Tensor::randn(0f32, 1.0, (1, 2, total, 128), &device).expect("k");
+            let v = Tensor::randn(0f32, 1.0, (1, 2, total, 128), &device).expect("v");
+            let mask = (seq > 1).then(|| {
+                build_additive_causal_mask(seq, past, None, &device, DType::F32).expect("mask")
+            });
+            let grouped = grouped_attention(&q, &k, &v, mask.as_ref(), 2).expect("attention");
+            let repeated = repeated_attention(&q, &k, &v, mask.as_ref());
+            assert_eq!(grouped.dims(), [1, seq, 12 * 128]);
+            let diff = (grouped - repeated)
+                .expect("diff")
+                .abs()
+                .expect("abs")
+                .flatten_all()
+                .expect("flat")
+                .max(0)
+                .expect("max")
+                .to_scalar::<f32>()
+                .expect("scalar");
+            assert!(diff < 1e-5, "seq {seq}: differs by {diff}");
+        }
+    }
 }
