@@ -129,6 +129,8 @@ pub struct TracedDrone {
 /// Why a trace could not be fed back.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum TraceError {
+    #[error("the trace holds a time {0} ns from its step that this clock cannot reach")]
+    TimeOutOfReach(i64),
     #[error("the trace names a model layer {0:?} this ground station does not have")]
     UnknownLayer(String),
     #[error("the gate refuses {action} for {drone} on the state recorded: {reason}")]
@@ -256,10 +258,15 @@ fn signed_ns(later: Instant, earlier: Instant) -> i64 {
     }
 }
 
-/// `at` moved back by `ns` (forward when negative).
-fn before(at: Instant, ns: i64) -> Instant {
+/// `at` moved back by `ns` (forward when negative), if the clock reaches that far.
+fn before(at: Instant, ns: i64) -> Result<Instant, TraceError> {
     let d = Duration::from_nanos(ns.unsigned_abs());
-    if ns >= 0 { at - d } else { at + d }
+    let moved = if ns >= 0 {
+        at.checked_sub(d)
+    } else {
+        at.checked_add(d)
+    };
+    moved.ok_or(TraceError::TimeOutOfReach(ns))
 }
 
 fn trace_snapshot(snap: &Snapshot, began: Instant) -> TracedSnapshot {
@@ -354,14 +361,20 @@ impl TracedStep {
             },
             TracedInput::Closed => Input::Closed,
         };
-        let now = base + Duration::from_nanos(self.snapshot.at_ns);
-        let swarm = SwarmView::from_entries(self.snapshot.drones.iter().map(|d| DroneEntry {
-            id: d.id.clone(),
-            alive: d.alive,
-            status: d.status.clone(),
-            last_status_at: d.status_age_ns.map(|ns| before(now, ns)),
-            gone_at: d.gone_age_ns.map(|ns| before(now, ns)),
-        }));
+        let at_ns = i64::try_from(self.snapshot.at_ns).unwrap_or(i64::MAX);
+        let now = before(base, -at_ns)?;
+        let drones = (self.snapshot.drones.iter())
+            .map(|d| {
+                Ok(DroneEntry {
+                    id: d.id.clone(),
+                    alive: d.alive,
+                    status: d.status.clone(),
+                    last_status_at: d.status_age_ns.map(|ns| before(now, ns)).transpose()?,
+                    gone_at: d.gone_age_ns.map(|ns| before(now, ns)).transpose()?,
+                })
+            })
+            .collect::<Result<Vec<_>, TraceError>>()?;
+        let swarm = SwarmView::from_entries(drones);
         let snap = Snapshot {
             swarm,
             targets: self.snapshot.targets.clone(),

@@ -158,6 +158,17 @@ fn an_action_the_gate_refuses_on_the_recorded_state_is_not_replayed() {
         matches!(&refused, TraceError::Refused { drone, .. } if drone == "alfa"),
         "{refused}"
     );
+    // Times at the ends of their range (a file written by hand, or broken): a time or an
+    // error, never a panic.
+    for (at_ns, age_ns) in [(u64::MAX, i64::MAX), (0, i64::MAX), (u64::MAX, i64::MIN)] {
+        let mut far = trace_step(&Input::Tick, &snap, t0);
+        far.snapshot.at_ns = at_ns;
+        far.snapshot.drones[0].status_age_ns = Some(age_ns);
+        assert!(matches!(
+            far.replayed(&gate, t0).map(|_| ()),
+            Ok(()) | Err(TraceError::TimeOutOfReach(_))
+        ));
+    }
 }
 
 /// `a_mission`'s log as `--trace-steps` writes it, with the one send it made as `sent` says.
