@@ -58,10 +58,20 @@ fn planned(snap: &Snapshot, gate: &SafetyGate) -> Core {
         snap,
         gate,
     );
-    assert_eq!(core.next_call(snap.now), Some(NextCall::Cycle));
-    core.calls.started("supervisor");
-    core.cycle_started(CycleKind::Supervisor);
+    start_due_cycle(&mut core, snap, gate);
     core
+}
+
+/// Starts the cycle that is due as the driver does (`Input::CallDue`): its call is in flight.
+pub(super) fn start_due_cycle(core: &mut Core, snap: &Snapshot, gate: &SafetyGate) -> CycleStart {
+    let effects = core.step(Input::CallDue, snap, gate);
+    effects
+        .into_iter()
+        .find_map(|e| match e {
+            Effect::Ask(Ask::Cycle(start)) => Some(start),
+            _ => None,
+        })
+        .expect("a cycle is due, with a decision to make")
 }
 
 fn checked(gate: &SafetyGate, snap: &Snapshot, drone: &str) -> CheckedAction {
@@ -90,7 +100,6 @@ fn answer(
     (judged, snap): (&Snapshot, &Snapshot),
     calls: &[Call],
 ) -> Vec<Effect> {
-    core.calls.answered();
     core.step(
         Input::CycleReply(Ok(choice(gate, judged, calls))),
         snap,
@@ -251,9 +260,7 @@ fn a_failed_send_ends_the_cycle_there_and_a_reply_for_ended_work_sends_nothing()
     assert_eq!(core.book.plan.as_ref().map(|p| p.cycles), Some(0));
     // The next cycle's call is overtaken by a direct command before its reply comes.
     core.calls.set_cycle_due(true);
-    assert_eq!(core.next_call(snap.now), Some(NextCall::Cycle));
-    core.calls.started("supervisor");
-    core.cycle_started(CycleKind::Supervisor);
+    start_due_cycle(&mut core, &snap, &gate);
     core.step(Input::Overridden, &snap, &gate);
     let effects = answer(&mut core, &gate, (&snap, &snap), &calls);
     assert!(sends(&effects).is_empty());
@@ -271,10 +278,7 @@ fn the_monolithic_claim_stands_only_when_every_call_was_sent() {
     let mut core = core(Mode::Mnl);
     core.step(Input::Pilot("all drones take off".into()), &snap, &gate);
     for refused in [true, false] {
-        assert_eq!(core.next_call(snap.now), Some(NextCall::Cycle));
-        core.calls.started("monolithic");
-        core.cycle_started(CycleKind::Monolithic { offered: 2 });
-        core.calls.answered();
+        start_due_cycle(&mut core, &snap, &gate);
         let calls = [take_off("T1", "alfa"), take_off("T2", "bravo")];
         let mut reply = choice(&gate, &snap, &calls);
         reply.claim = true;
@@ -342,9 +346,7 @@ fn an_early_call_the_gate_refuses_when_it_is_to_go_keeps_the_monolithic_claim_fr
         &snap,
         &gate,
     );
-    assert_eq!(core.next_call(t0), Some(NextCall::Cycle));
-    core.calls.started("monolithic");
-    core.cycle_started(CycleKind::Monolithic { offered: 2 });
+    start_due_cycle(&mut core, &snap, &gate);
     // alfa's call passed as the reply was written, but alfa is not heard by the step that
     // would send it.
     let mut stale = grounded(t0 + Duration::from_secs(5), Some("alfa"));
@@ -361,7 +363,6 @@ fn an_early_call_the_gate_refuses_when_it_is_to_go_keeps_the_monolithic_claim_fr
         &gate,
     );
     assert!(sends(&effects).is_empty());
-    core.calls.answered();
     let mut reply = choice(&gate, &snap, &[take_off("T2", "bravo")]);
     reply.claim = true;
     let effects = core.step(Input::CycleReply(Ok(reply)), &snap, &gate);

@@ -2,7 +2,7 @@
 //! while models think, an instruction naming a drone the swarm lacks, a plan held for the
 //! pilot and answered, the cycle timeout, the cycle limit. No process, no clock, no model.
 
-use super::cycle_reply_tests::gate;
+use super::cycle_reply_tests::{gate, start_due_cycle};
 use super::replan_tests::chase;
 use super::*;
 use crate::mission::config::{MissionConfig, Mode};
@@ -84,6 +84,7 @@ fn a_lost_drone_then_a_direct_command_while_models_think() {
     core.book = book;
     core.step(Input::Started, &snap, &gate);
     core.calls.cycle_due(true);
+    // A Supervisor call in flight (the chase has no decision to make: started by hand).
     assert_eq!(core.next_call(snap.now), Some(NextCall::Cycle));
     core.calls.started("supervisor");
     // bravo, chasing the van, is lost while the Supervisor thinks: its call is dropped, the
@@ -276,8 +277,7 @@ fn the_session_s_end_drops_the_call_in_flight_and_ends_the_log() {
     let gate = gate();
     let mut core = core(Mode::Mnl);
     core.step(Input::Pilot("alfa, take off".into()), &snap, &gate);
-    assert_eq!(core.next_call(snap.now), Some(NextCall::Cycle));
-    core.calls.started("monolithic");
+    start_due_cycle(&mut core, &snap, &gate);
     let effects = core.step(Input::Closed, &snap, &gate);
     assert_eq!(
         dropped(&effects),
