@@ -148,18 +148,13 @@ impl SafetyGate {
             fresh: entry.effective_mode(now) != DroneMode::Unavailable,
             autopilot_link: entry.status.as_ref().is_some_and(|s| s.autopilot_link),
         };
-        self.judge(&id, seen, action)?;
-        Ok(CheckedAction {
-            drone: id,
-            action: action.clone(),
-            seen,
-        })
+        self.checked(id, seen, action)
     }
 
     /// The gate run again, away from the swarm, on what it saw of a drone: the audit of a
-    /// mission log. The same rules as [`check`](Self::check); the drone must be one of the
-    /// scenario's.
-    /// A replayed mission trace (`mission::core::trace`) gets its checked actions back this way.
+    /// mission log, and a replayed mission trace (`mission::core::trace`), which gets its
+    /// checked actions back this way. The same rules as [`check`](Self::check); the drone must
+    /// be one of the scenario's.
     pub fn recheck(
         &self,
         drone: &str,
@@ -180,6 +175,16 @@ impl SafetyGate {
                 drone: drone.to_owned(),
                 known: known(),
             })?;
+        self.checked(id, seen, action)
+    }
+
+    /// `action` for `id` as checked, if the rules let it through on the drone's state as seen.
+    fn checked(
+        &self,
+        id: DroneId,
+        seen: DroneSeen,
+        action: &Action,
+    ) -> Result<CheckedAction, Rejection> {
         self.judge(&id, seen, action)?;
         Ok(CheckedAction {
             drone: id,

@@ -158,10 +158,6 @@ impl Core {
             mode: traced.mode,
             aids: traced.aids,
             confirm: traced.confirm,
-            max_repairs: traced.bounds.max_repairs,
-            cycle_timeout: traced.bounds.cycle_timeout,
-            max_cycles_per_plan: traced.bounds.max_cycles_per_plan,
-            max_task_failures: traced.bounds.max_task_failures,
             ..Default::default()
         });
         core.bounds = traced.bounds.clone();
@@ -175,10 +171,6 @@ pub(crate) fn trace_step(input: &Input, snap: &Snapshot, began: Instant) -> Trac
         input: trace_input(input),
         snapshot: trace_snapshot(snap, began),
     }
-}
-
-fn error_text(e: &MissionError) -> String {
-    e.to_string()
 }
 
 fn trace_action(checked: &CheckedAction) -> TracedAction {
@@ -211,7 +203,7 @@ fn trace_input(input: &Input) -> TracedInput {
             grounded: grounded.clone(),
             answer: match answer {
                 Ok(reply) => Ok(reply.clone()),
-                Err(e) => Err(error_text(e)),
+                Err(e) => Err(e.to_string()),
             },
         },
         Input::EarlyCall {
@@ -234,11 +226,11 @@ fn trace_input(input: &Input) -> TracedInput {
                         .collect(),
                     later: choice.later.clone(),
                 }),
-                Err(e) => Err(error_text(e)),
+                Err(e) => Err(e.to_string()),
             },
         },
         Input::Sent(result) => TracedInput::Sent {
-            result: result.as_ref().copied().map_err(error_text),
+            result: result.as_ref().copied().map_err(ToString::to_string),
         },
         Input::CallDue => TracedInput::CallDue,
         Input::Coordinate(work) => TracedInput::Coordinate { work: work.clone() },
