@@ -128,19 +128,21 @@ impl CallQueue {
         effects
     }
 
+    /// Whether a call would start now (`next` hands one out).
+    pub(crate) fn has_next(&self, busy: bool) -> bool {
+        self.in_flight.is_none() && (!self.queued.is_empty() || (self.cycle_due && busy))
+    }
+
     /// The call to start now, if any: with none in flight, the Coordinator's next work, or else
     /// a cycle when one is due and the models have work (`busy`).
     pub(crate) fn next(&mut self, busy: bool) -> Option<NextCall> {
-        if self.in_flight.is_some() {
+        if !self.has_next(busy) {
             return None;
         }
         if let Some(work) = self.queued.pop_front() {
             return Some(NextCall::Coordinate(work));
         }
-        if self.cycle_due && busy {
-            self.cycle_due = false;
-            return Some(NextCall::Cycle);
-        }
-        None
+        self.cycle_due = false;
+        Some(NextCall::Cycle)
     }
 }

@@ -110,6 +110,12 @@ impl Core {
         out
     }
 
+    /// Whether a model call would start now: the driver feeds `Input::CallDue` only then, so
+    /// an idle loop turn costs no snapshot and no traced step.
+    pub(crate) fn has_call_due(&self) -> bool {
+        self.calls.has_next(self.busy())
+    }
+
     /// The model call to start now, if any (`CallQueue::next`); a cycle's start is its time.
     pub(crate) fn next_call(&mut self, now: Instant) -> Option<NextCall> {
         let next = self.calls.next(self.busy());

@@ -341,7 +341,7 @@ pub(super) fn a_mission(t0: Instant, gate: &SafetyGate) -> Vec<(Input, Snapshot)
 
 /// Feeds `input` to `core` as the driver does (`driver::run_with`): the input, then — unless
 /// it asked for something awaited (a send or a direct command, whose result or override is
-/// the caller's next input) — `Input::CallDue` while no call is in flight, with the
+/// the caller's next input) — `Input::CallDue` while no call is in flight and one is due, with the
 /// Coordinator's work fed back (`Input::Coordinate`), all on `snap`. Each step as its trace
 /// (from `t0`) and its effects.
 pub(super) fn drive(
@@ -359,7 +359,7 @@ pub(super) fn drive(
     let awaited =
         (first.1.iter()).any(|e| matches!(e, Effect::Send { .. } | Effect::Direct { .. }));
     let mut steps = vec![first];
-    while !awaited && core.calls.in_flight().is_none() {
+    while !awaited && core.calls.in_flight().is_none() && core.has_call_due() {
         let due = one(core, Input::CallDue);
         let work = due.1.iter().find_map(|e| match e {
             Effect::Coordinate(work) => Some(work.clone()),

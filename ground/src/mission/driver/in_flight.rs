@@ -77,7 +77,7 @@ impl Mission {
     /// one is due (`Input::CallDue`); work whose request could not be made (told to the
     /// pilot) makes way for the next.
     pub(super) async fn start_next_call(&mut self) {
-        while self.in_flight.is_none() {
+        while self.in_flight.is_none() && self.core.has_call_due() {
             self.step(Input::CallDue);
             if self.awaited.is_empty() {
                 break;
