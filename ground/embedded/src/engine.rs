@@ -9,8 +9,8 @@ use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use candle_core::Device;
 use candle_core::quantized::{GgmlDType, QTensor, gguf_file};
+use candle_core::{Device, Tensor};
 use llguidance::api::TopLevelGrammar;
 use llguidance::{Matcher, ParserFactory};
 use tacos_llm::{ChatRequest, LlmError};
@@ -233,8 +233,8 @@ impl Engine {
     /// The kept cache sharing the longest beginning with `prompt`, cut back to that beginning
     /// (never the whole prompt: the last prompt token is fed again for its logits). A fresh one
     /// when none shares anything. A cache the prompt extends is taken out (the new one supersedes
-    /// it); one it shares only part of is copied (the copy shares the tensors), so that the
-    /// Supervisor's prompt, which shares a few tokens with the Coordinator's, does not cut the
+    /// it); from one it shares only part of, that part is copied and the kept one stays, so that
+    /// the Supervisor's prompt, which shares a few tokens with the Coordinator's, does not cut the
     /// Coordinator's cache down to them.
     fn take_cache(&self, prompt: &[u32]) -> KvCache {
         let mut kept = self.caches.lock().unwrap_or_else(|p| p.into_inner());
@@ -253,15 +253,10 @@ impl Engine {
         if n == 0 {
             return KvCache::default();
         }
-        let mut cache = if n == kept[best].tokens().len() {
-            kept.remove(best)
-        } else {
-            kept[best].clone()
-        };
-        if cache.truncate(n).is_err() {
-            return KvCache::default();
+        if n == kept[best].tokens().len() {
+            return kept.remove(best);
         }
-        cache
+        kept[best].prefix_copy(n).unwrap_or_default()
     }
 
     /// Keeps `cache` as the most recent, dropping the oldest beyond [`KEPT_CACHES`].
@@ -340,13 +335,17 @@ impl Engine {
 
         let t0 = Instant::now();
         let reused = cache.tokens().len();
-        let mut logits = Vec::new();
+        let mut hidden = None;
         for chunk in prompt[reused..].chunks(PREFILL_CHUNK) {
             if cancel.load(Ordering::Relaxed) {
                 return Err(LlmError::Generation("cancelled".to_string()));
             }
-            logits = self.forward(chunk, cache)?;
+            hidden = Some(self.forward(chunk, cache)?);
         }
+        // `take_cache` always leaves at least the prompt's last token to feed.
+        let Some(mut hidden) = hidden else {
+            return Err(LlmError::Generation("an empty prompt".to_string()));
+        };
         let prefill = t0.elapsed();
 
         let t1 = Instant::now();
@@ -377,6 +376,14 @@ impl Engine {
                     // names, choosing the same one again ("arm_takeoff" for every drone) is
                     // right, not a loop.
                     let free_text = mask.num_set() >= FREE_TEXT_TOKENS;
+                    let mut logits = if free_text {
+                        self.logits(&hidden, None)?
+                    } else {
+                        // Only the rows the grammar allows are needed (`OutputProjection`).
+                        let mut allowed = Vec::with_capacity(mask.num_set());
+                        mask.iter_set_entries(|i| allowed.push(i));
+                        self.logits(&hidden, Some(&allowed))?
+                    };
                     if free_text {
                         penalise_repeats(&mut logits, recent, self.repeat_penalty);
                     }
@@ -387,6 +394,7 @@ impl Engine {
                     next
                 }
                 None => {
+                    let mut logits = self.logits(&hidden, None)?;
                     penalise_repeats(&mut logits, recent, self.repeat_penalty);
                     let next = sample(&logits, real_vocab, None, temperature, &mut rng);
                     chosen.extend(next);
@@ -427,7 +435,7 @@ impl Engine {
             if cache.tokens().len() + feed.len() >= window {
                 break false;
             }
-            logits = self.forward(&feed, cache)?;
+            hidden = self.forward(&feed, cache)?;
         };
         let decode = t1.elapsed();
         if let Some(m) = &matcher
@@ -475,10 +483,16 @@ impl Engine {
         Ok(m)
     }
 
-    fn forward(&self, tokens: &[u32], cache: &mut KvCache) -> Result<Vec<f32>, LlmError> {
+    fn forward(&self, tokens: &[u32], cache: &mut KvCache) -> Result<Tensor, LlmError> {
         self.decoder
             .forward(tokens, cache)
             .map_err(gen_err("forward"))
+    }
+
+    fn logits(&self, hidden: &Tensor, only: Option<&[usize]>) -> Result<Vec<f32>, LlmError> {
+        self.decoder
+            .logits(hidden, only)
+            .map_err(gen_err("output projection"))
     }
 }
 

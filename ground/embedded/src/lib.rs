@@ -31,6 +31,7 @@ pub mod catalogue;
 mod decoder;
 mod engine;
 pub mod fetch;
+mod output;
 mod sampling;
 pub mod template;
 mod tokenizer;
