@@ -16,6 +16,9 @@ use std::collections::HashMap;
 use tacos_shared::messages::{PathMessage, TargetsMessage};
 use tacos_shared::{DroneId, Vec3};
 
+mod tracking_error;
+pub use tracking_error::TrackingError;
+
 #[derive(Debug, Clone, PartialEq)]
 pub struct MotionConfig {
     /// Seconds between solves (the planner's rate is its inverse: 20 Hz or more).
@@ -32,6 +35,8 @@ pub struct MotionConfig {
     /// within this distance of it, and from the vehicle's measured state otherwise (see
     /// [`Motion::solve_job`]).
     pub replan_from_plan_within: f64,
+    /// The measured tracking error (see [`TrackingError`]) halves every this many seconds.
+    pub tracking_error_half_life: f64,
 }
 
 impl Default for MotionConfig {
@@ -42,6 +47,7 @@ impl Default for MotionConfig {
             tracker: TrackerConfig::default(),
             tracking_radius: 6.0,
             replan_from_plan_within: 0.25,
+            tracking_error_half_life: 5.0,
         }
     }
 }
@@ -87,6 +93,9 @@ pub struct SolveStats {
     /// stands at the plan's last point, and a vehicle that reaches it at speed overshoots
     /// where no neighbour expects it.
     pub overran_s: f64,
+    /// Widest separation margin a solve used (metres): the configured one, or the measured
+    /// tracking error when larger (see [`TrackingError`]).
+    pub widest_margin_m: f64,
 }
 
 /// One tick's result: the setpoint to stream and, at the planner's rate, the path to publish.
@@ -167,6 +176,8 @@ pub struct Motion {
     /// span excused: resetting the excuse on any newer path made such a path, 1 s into a 5 s
     /// stall, count the 4 s after it as silence, and the drone held.
     deaf: Vec<(f64, f64)>,
+    /// How far the vehicle has strayed from the plans it flew, lately.
+    tracking_error: TrackingError,
 }
 
 impl Motion {
@@ -179,7 +190,6 @@ impl Motion {
             me,
             planner: Some(Planner::new(planner.clone())?),
             planner_cfg: planner,
-            cfg,
             paths: HashMap::new(),
             tracks: HashMap::new(),
             plan: None,
@@ -189,6 +199,8 @@ impl Motion {
             stats: SolveStats::default(),
             deaf: Vec::new(),
             airborne: false,
+            tracking_error: TrackingError::new(cfg.tracking_error_half_life),
+            cfg,
         })
     }
 
@@ -351,16 +363,22 @@ impl Motion {
                 acceleration: Vec3::zeros(),
             },
             Steering::Toward(_) => {
-                if let Some(plan) = &self.plan {
-                    let overran = now - plan.end_time();
-                    self.stats.overran_s = self.stats.overran_s.max(overran);
-                }
-                return MotionOutput {
+                let reference = match &self.plan {
+                    Some(plan) => {
+                        let overran = now - plan.end_time();
+                        self.stats.overran_s = self.stats.overran_s.max(overran);
+                        let planned = plan.sample(now);
+                        // In the separation's own metric (vertical distances count less).
+                        let metric = Downwash::new(self.planner_cfg.downwash_factor);
+                        let error = metric.distance(&planned.position, &position);
+                        self.tracking_error.observe(now, error);
+                        planned
+                    }
                     // Until the first solve lands (a few milliseconds), stay where it is.
-                    reference: match &self.plan {
-                        Some(plan) => plan.sample(now),
-                        None => ReferenceState::still(position),
-                    },
+                    None => ReferenceState::still(position),
+                };
+                return MotionOutput {
+                    reference,
                     path: None,
                 };
             }
@@ -400,8 +418,18 @@ impl Motion {
     ) -> Option<SolveJob> {
         let range = self.planner_cfg.neighbour_range;
         let neighbours = neighbours_in_range(position, self.neighbours(now), range);
-        let planner = self.planner.take()?;
+        let mut planner = self.planner.take()?;
         self.last_solve = Some(now);
+        // The margin for straying covers what this vehicle has been seen to stray, up to half
+        // the safety distance (beyond that the drone is not flying what it is told).
+        let cfg = &self.planner_cfg;
+        let margin = self
+            .tracking_error
+            .value(now)
+            .min(cfg.safety_distance / 2.0)
+            .max(cfg.separation_margin);
+        planner.set_separation_margin(margin);
+        self.stats.widest_margin_m = self.stats.widest_margin_m.max(margin);
         // Replanning from the measured state every 50 ms feeds the autopilot's lag and its
         // estimate's noise back into the plan: each new plan starts where the vehicle lags, at
         // the speed it has reached, and a climb at the lab's 1 m/s² stalled 0.3 m up on PX4 SIH

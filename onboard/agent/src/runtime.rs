@@ -363,7 +363,7 @@ async fn run_inner(
                 if t - stats_logged_at >= 10.0 {
                     stats_logged_at = t;
                     let s = motion.stats();
-                    info!(solves = s.solves, relaxed = s.relaxed, braking = s.braking, rejected = s.rejected, slowest_ms = s.slowest_s * 1e3, overran_ms = s.overran_s * 1e3, "planner");
+                    info!(solves = s.solves, relaxed = s.relaxed, braking = s.braking, rejected = s.rejected, slowest_ms = s.slowest_s * 1e3, overran_ms = s.overran_s * 1e3, widest_margin_m = s.widest_margin_m, "planner");
                 }
                 if let Err(e) = step {
                     ipc_errors += 1;

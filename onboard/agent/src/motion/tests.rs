@@ -423,3 +423,37 @@ fn a_finished_plan_that_runs_into_a_path_published_meanwhile_is_not_flown() {
     assert!(closest >= m_safety() / 2.0, "{closest}");
     assert_eq!(m.stats().rejected, 1);
 }
+
+/// A vehicle seen straying from its plan widens the separation margin of the next solves, up to
+/// half the safety distance, and the widening fades as it follows again.
+#[test]
+fn straying_from_the_plan_widens_the_margin_of_the_next_solves() {
+    let mut m = motion("alfa");
+    let cfg = m.planner_config().clone();
+    let p = Vec3::new(-50.0, -132.5, 10.0);
+    let goal = Goal::fixed(p + Vec3::new(5.0, 0.0, 0.0));
+    m.step(100.0, p, Vec3::zeros(), Steering::Toward(goal), None);
+    assert_eq!(m.stats().widest_margin_m, cfg.separation_margin);
+    // 0.9 m beside the plan (the configured margin is 0.5 m in the city), then 5 m: the
+    // margin follows, then stops at half the safety distance.
+    for (off, widest) in [(0.9, 0.9), (5.0, cfg.safety_distance / 2.0)] {
+        let planned = m
+            .tick(100.1, p, Vec3::zeros(), Steering::Toward(goal))
+            .reference;
+        let beside = planned.position + Vec3::new(0.0, off, 0.0);
+        m.tick(100.1, beside, Vec3::zeros(), Steering::Toward(goal));
+        let job = m
+            .solve_job(100.1, beside, Vec3::zeros(), goal, None)
+            .expect("a solve");
+        m.solve_done(job.run(), 100.1);
+        assert!(
+            (m.stats().widest_margin_m - widest).abs() < 1e-6,
+            "{off} m off: {:?}",
+            m.stats()
+        );
+    }
+    // Twenty seconds (four half-lives) of following later, the 5 m peak is a sixteenth of it,
+    // below the configured margin again.
+    assert!((m.tracking_error.value(120.1) - 5.0 / 16.0).abs() < 1e-9);
+    assert!(5.0 / 16.0 < cfg.separation_margin);
+}

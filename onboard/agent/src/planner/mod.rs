@@ -194,6 +194,9 @@ pub struct Planner {
     detour_sides: Vec<i8>,
     reference: Vec<Vec3>,
     qp: QpWorkspace,
+    /// This drone's margin for straying from its plan: the configured one unless
+    /// [`Planner::set_separation_margin`] widened it.
+    separation_margin: f64,
 }
 
 impl Planner {
@@ -216,6 +219,7 @@ impl Planner {
             in_qp: Vec::new(),
             reference: Vec::new(),
             qp: QpWorkspace::default(),
+            separation_margin: cfg.separation_margin,
             cfg,
         })
     }
@@ -234,6 +238,16 @@ impl Planner {
     /// read.
     pub fn restore_previous(&mut self, plan: Option<Plan>) {
         self.previous = plan;
+    }
+
+    /// The margin kept for straying from the plan in the next solves: `margin`, never less than
+    /// the configured one (a non-finite value keeps the configured one).
+    pub fn set_separation_margin(&mut self, margin: f64) {
+        self.separation_margin = if margin.is_finite() {
+            margin.max(self.cfg.separation_margin)
+        } else {
+            self.cfg.separation_margin
+        };
     }
 
     /// Forgets the previous plan (the next solve linearises around the current position).
@@ -364,7 +378,7 @@ impl Planner {
                 1.0
             };
             let stale = (cfg.stale_margin_rate * n.age_s.max(0.0)).min(cfg.max_stale_margin);
-            let keep = cfg.safety_distance * share + cfg.separation_margin + stale;
+            let keep = cfg.safety_distance * share + self.separation_margin + stale;
             let fallback = n.position_at(0.0).unwrap_or(position) - position;
             for seg in 0..k {
                 let t = (seg as f64 + 0.5) * dt;

@@ -196,3 +196,47 @@ fn a_long_silent_neighbour_is_kept_with_a_bounded_margin_and_without_giving_way(
         cfg.max_stale_margin
     );
 }
+
+#[test]
+fn a_wider_margin_keeps_the_plan_further_from_a_neighbour() {
+    // A drone heading for a point beside a neighbour that stands (cannot give way): the plan
+    // stops where the half-spaces allow, the margin further away when it is wider. A margin
+    // below the configured one, or not finite, is the configured one.
+    let cfg = city_config();
+    let here = Vec3::new(60.0, 60.0, 10.0);
+    let neighbour = NeighbourPath {
+        id: id("n"),
+        positions: vec![here + Vec3::new(6.0, 0.0, 0.0); 21],
+        dt: 0.1,
+        age_s: 0.0,
+        avoids: false,
+    };
+    let closest = |margin: f64| {
+        let mut p = planner(&cfg);
+        p.set_separation_margin(margin);
+        let goal = Goal::fixed(neighbour.positions[0]);
+        let (mut pos, mut vel, mut now) = (here, Vec3::zeros(), 0.0);
+        for _ in 0..100 {
+            let r = solve(
+                &mut p,
+                now,
+                pos,
+                vel,
+                &goal,
+                std::slice::from_ref(&neighbour),
+            );
+            now += 0.05;
+            let s = r.plan.sample(now);
+            (pos, vel) = (s.position, s.velocity);
+        }
+        (pos - neighbour.positions[0]).norm()
+    };
+    let configured = closest(cfg.separation_margin);
+    let wider = closest(cfg.separation_margin + 0.5);
+    assert!(
+        (wider - configured - 0.5).abs() < 0.1,
+        "stopped {configured:.2} m away, {wider:.2} m with a margin 0.5 m wider"
+    );
+    assert!((closest(0.0) - configured).abs() < 1e-9);
+    assert!((closest(f64::NAN) - configured).abs() < 1e-9);
+}
