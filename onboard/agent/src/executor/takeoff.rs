@@ -68,8 +68,28 @@ impl Executor {
         Vec3::new(pad.x, pad.y, pad.z + self.cfg.limits.takeoff_altitude)
     }
 
+    /// Still at the pad until armed; then straight up to the take-off point while the autopilot
+    /// reports the vehicle on the ground or it is below half the take-off altitude, and the
+    /// planner's climb from there.
+    ///
+    /// Why not the planner from the start: on PX4 SIH the vehicle stands on its pad for a few
+    /// seconds after arming while its estimate already climbs (0.4 m with the vehicle on the
+    /// ground, PX4's flight logs), and the planner's sideways corrections of that time wound up
+    /// PX4's position control: the lab's drones lurched 0.3–0.5 m sideways as they lifted off,
+    /// where their separation breaches were. A fixed point above the pad gives nothing to wind
+    /// up; PX4's own take-off ramp lifts the vehicle towards it. PX4's land detector is not
+    /// enough to hand over: it reported the vehicle airborne 1.5 s after arming, when only the
+    /// estimate had risen (0.2 m), and the planner's 0.4 m setpoints then left it on the ground
+    /// for 12 s more.
     pub(super) fn takeoff_steering(&self, step: TakeoffStep, pad: Vec3) -> Steering {
         match step {
+            TakeoffStep::Climbing { .. }
+                if self.vehicle.is_none_or(|v| {
+                    v.landed || v.position.z - pad.z < self.cfg.limits.takeoff_altitude / 2.0
+                }) =>
+            {
+                Steering::Still(self.climb_goal(pad))
+            }
             TakeoffStep::Climbing { .. } => Steering::Toward(Goal::fixed(self.climb_goal(pad))),
             _ => Steering::Still(pad),
         }

@@ -44,7 +44,7 @@ pub(super) fn state_of(ex: &Executor) -> ActionState {
 }
 
 #[test]
-fn takeoff_switches_to_offboard_on_the_pad_arms_there_and_the_planner_climbs() {
+fn takeoff_switches_to_offboard_on_the_pad_arms_there_lifts_off_and_the_planner_climbs() {
     let mut ex = lab();
     let home = Vec3::new(-50.0, -132.5, 0.0);
     ex.on_vehicle(&state(home, false, Px4Mode::Hold));
@@ -66,15 +66,20 @@ fn takeoff_switches_to_offboard_on_the_pad_arms_there_and_the_planner_climbs() {
     assert!(out.commands.is_empty(), "{:?}", out.commands);
     assert_eq!(
         out.steering,
-        Some(Steering::Toward(Goal::fixed(climb_to))),
-        "the planner flies the climb"
+        Some(Steering::Still(climb_to)),
+        "straight up while the autopilot says it is on the ground"
     );
     ex.on_vehicle(&state(
         home + Vec3::new(0.0, 0.0, 5.0),
         true,
         Px4Mode::Offboard,
     ));
-    ex.tick(3.0);
+    let out = ex.tick(3.0);
+    assert_eq!(
+        out.steering,
+        Some(Steering::Toward(Goal::fixed(climb_to))),
+        "off the ground, the planner flies the climb"
+    );
     assert!(matches!(state_of(&ex), ActionState::Running { .. }));
     ex.on_vehicle(&state(
         home + Vec3::new(0.1, 0.0, 9.95),

@@ -425,7 +425,7 @@ fn a_finished_plan_that_runs_into_a_path_published_meanwhile_is_not_flown() {
 }
 
 /// A vehicle seen straying from its plan widens the separation margin of the next solves, up to
-/// half the safety distance, and the widening fades as it follows again.
+/// a third of the safety distance, and the widening fades as it follows again.
 #[test]
 fn straying_from_the_plan_widens_the_margin_of_the_next_solves() {
     let mut m = motion("alfa");
@@ -435,8 +435,8 @@ fn straying_from_the_plan_widens_the_margin_of_the_next_solves() {
     m.step(100.0, p, Vec3::zeros(), Steering::Toward(goal), None);
     assert_eq!(m.stats().widest_margin_m, cfg.separation_margin);
     // 0.9 m beside the plan (the configured margin is 0.5 m in the city), then 5 m: the
-    // margin follows, then stops at half the safety distance.
-    for (off, widest) in [(0.9, 0.9), (5.0, cfg.safety_distance / 2.0)] {
+    // margin follows, then stops at a third of the safety distance (1 m).
+    for (off, widest) in [(0.9, 0.9), (5.0, cfg.safety_distance / 3.0)] {
         let planned = m
             .tick(100.1, p, Vec3::zeros(), Steering::Toward(goal))
             .reference;
