@@ -376,17 +376,16 @@ impl Engine {
                     // names, choosing the same one again ("arm_takeoff" for every drone) is
                     // right, not a loop.
                     let free_text = mask.num_set() >= FREE_TEXT_TOKENS;
-                    let mut logits = if free_text {
-                        self.logits(&hidden, None)?
+                    let logits = if free_text {
+                        let mut logits = self.logits(&hidden, None)?;
+                        penalise_repeats(&mut logits, recent, self.repeat_penalty);
+                        logits
                     } else {
                         // Only the rows the grammar allows are needed (`OutputProjection`).
                         let mut allowed = Vec::with_capacity(mask.num_set());
                         mask.iter_set_entries(|i| allowed.push(i));
                         self.logits(&hidden, Some(&allowed))?
                     };
-                    if free_text {
-                        penalise_repeats(&mut logits, recent, self.repeat_penalty);
-                    }
                     let next = sample(&logits, real_vocab, Some(&mask), temperature, &mut rng);
                     if free_text {
                         chosen.extend(next);

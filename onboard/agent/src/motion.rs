@@ -425,13 +425,8 @@ impl Motion {
         // between them, which the lab's pads (1 m apart, 0.6 m safety distance) still give;
         // half of it asked for 1.2 m there, and the drones squeezed between their neighbours
         // were pushed into PX4's geofence or away from their goals.
-        let cfg = &self.planner_cfg;
-        let margin = self
-            .tracking_error
-            .value(now)
-            .min(cfg.safety_distance / 3.0)
-            .max(cfg.separation_margin);
-        planner.set_separation_margin(margin);
+        let strayed = (self.tracking_error.value(now)).min(self.planner_cfg.safety_distance / 3.0);
+        let margin = planner.set_separation_margin(strayed);
         self.stats.widest_margin_m = self.stats.widest_margin_m.max(margin);
         // Replanning from the measured state every 50 ms feeds the autopilot's lag and its
         // estimate's noise back into the plan: each new plan starts where the vehicle lags, at

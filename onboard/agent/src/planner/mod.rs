@@ -241,13 +241,14 @@ impl Planner {
     }
 
     /// The margin kept for straying from the plan in the next solves: `margin`, never less than
-    /// the configured one (a non-finite value keeps the configured one).
-    pub fn set_separation_margin(&mut self, margin: f64) {
+    /// the configured one (a non-finite value keeps the configured one). Returns the one kept.
+    pub fn set_separation_margin(&mut self, margin: f64) -> f64 {
         self.separation_margin = if margin.is_finite() {
             margin.max(self.cfg.separation_margin)
         } else {
             self.cfg.separation_margin
         };
+        self.separation_margin
     }
 
     /// Forgets the previous plan (the next solve linearises around the current position).
