@@ -78,7 +78,27 @@ pub fn swarm(drones: &[DroneLine]) -> String {
     out
 }
 
-pub fn world(world: &World, targets: &[TargetObservation], events: &[String]) -> String {
+/// The world as a request shows it, in two parts.
+#[derive(Debug, Clone, PartialEq)]
+pub struct WorldText {
+    /// The flight area, obstacles and landmarks: fixed for a mission, so every request puts it
+    /// first after the fixed messages, where a backend that keeps the key/value cache of a
+    /// prompt's beginning (the embedded model, llama.cpp's server) computes it once per mission
+    /// instead of at every call. After the plan or the swarm, which change between calls, it
+    /// was computed again each time (950 of a Supervisor cycle's 1,716 tokens in the city).
+    pub map: String,
+    /// What changes: the moving targets as last seen, and the mission's events; `(none)`.
+    pub live: String,
+}
+
+pub fn world(world: &World, targets: &[TargetObservation], events: &[String]) -> WorldText {
+    WorldText {
+        map: map(world),
+        live: live(targets, events),
+    }
+}
+
+fn map(world: &World) -> String {
     let b = &world.bounds;
     let mut out = format!(
         "Flight area: x {:.0}..{:.0}, y {:.0}..{:.0}, z {:.0}..{:.0} m (+y is north, z is up).\n",
@@ -111,6 +131,11 @@ pub fn world(world: &World, targets: &[TargetObservation], events: &[String]) ->
         // "of kind": the 1.5B model, shown "- park: small_park (…)", took "park" for a name.
         let _ = writeln!(out, "- of kind {kind}: {}", names.join(", "));
     }
+    out
+}
+
+fn live(targets: &[TargetObservation], events: &[String]) -> String {
+    let mut out = String::new();
     if !targets.is_empty() {
         out.push_str("Moving targets:");
         for t in targets {
@@ -127,6 +152,9 @@ pub fn world(world: &World, targets: &[TargetObservation], events: &[String]) ->
     }
     for e in events {
         let _ = writeln!(out, "Event: {e}");
+    }
+    if out.is_empty() {
+        out.push_str("(none)\n");
     }
     out
 }
@@ -170,14 +198,17 @@ pub fn history(entries: &[HistoryEntry]) -> String {
 /// The Coordinator's user message.
 pub fn coordinator_request(
     swarm_text: &str,
-    world_text: &str,
+    world: &WorldText,
     pending: &str,
     history_text: &str,
     instruction: &str,
     named: &[String],
 ) -> String {
+    // Fixed first, then what grows by appending, then what changes (see `WorldText::map`).
     format!(
-        "## Swarm state\n{swarm_text}\n## World\n{world_text}\n## Pending plan\n{pending}\n## History\n{history_text}\n## Instruction\n{instruction}\n{}\n",
+        "## World\n{}\n## History\n{history_text}\n## Swarm state\n{swarm_text}\n## Targets and events\n{}\n## Pending plan\n{pending}\n## Instruction\n{instruction}\n{}\n",
+        world.map,
+        world.live,
         named_section(named)
     )
 }
@@ -216,16 +247,18 @@ pub fn supervisor_request(
     reasoning: Option<&str>,
     plan_text: &str,
     swarm_text: &str,
-    world_text: &str,
+    world: &WorldText,
     memory: &[String],
 ) -> String {
-    let mut out = String::new();
+    // Fixed first (the map, then the plan's reasoning), then what changes.
+    let mut out = format!("## World\n{}\n", world.map);
     if let Some(r) = reasoning {
         let _ = write!(out, "## Coordinator's reasoning\n{r}\n\n");
     }
     let _ = write!(
         out,
-        "## Plan\n{plan_text}\n## Swarm state\n{swarm_text}\n## World\n{world_text}\n## Your memory for this plan\n"
+        "## Plan\n{plan_text}\n## Swarm state\n{swarm_text}\n## Targets and events\n{}\n## Your memory for this plan\n",
+        world.live
     );
     if memory.is_empty() {
         out.push_str("(nothing issued yet)\n");
@@ -240,23 +273,26 @@ pub fn supervisor_request(
 pub fn monolithic_request(
     instructions: &[String],
     swarm_text: &str,
-    world_text: &str,
+    world: &WorldText,
     executed: &[String],
 ) -> String {
-    let mut out = String::from("## Pilot's instructions\n");
+    // Fixed first, then what grows by appending, then what changes (see `WorldText::map`).
+    let mut out = format!("## World\n{}\n## Pilot's instructions\n", world.map);
     for i in instructions {
         let _ = writeln!(out, "- {i}");
     }
-    let _ = write!(
-        out,
-        "\n## Swarm state\n{swarm_text}\n## World\n{world_text}\n## Executed actions\n"
-    );
+    out.push_str("\n## Executed actions\n");
     if executed.is_empty() {
         out.push_str("(none)\n");
     }
     for e in executed {
         let _ = writeln!(out, "- {e}");
     }
+    let _ = write!(
+        out,
+        "\n## Swarm state\n{swarm_text}\n## Targets and events\n{}",
+        world.live
+    );
     out
 }
 
@@ -271,14 +307,51 @@ mod tests {
         let text = world(&city.world, &[], &["suspect seen at car_7 by alfa".into()]);
         for l in &city.world.landmarks {
             assert_eq!(
-                text.matches(&format!("{} (", l.name)).count(),
+                text.map.matches(&format!("{} (", l.name)).count(),
                 1,
                 "{}",
                 l.name
             );
         }
-        assert!(text.contains("Event: suspect seen at car_7"));
-        assert!(text.contains("skyscraper_1 at (-18, -18) radius 8 m"));
+        assert!(text.live.contains("Event: suspect seen at car_7"));
+        assert!(text.map.contains("skyscraper_1 at (-18, -18) radius 8 m"));
+        assert_eq!(world(&city.world, &[], &[]).live, "(none)\n");
+    }
+
+    /// The map comes before anything that changes between calls, so that consecutive requests
+    /// of a mission share their beginning through it (a prefix cache then skips it).
+    #[test]
+    fn requests_share_their_beginning_through_the_map() {
+        let city = Scenario::builtin("city").expect("city");
+        let common =
+            |a: &str, b: &str| a.bytes().zip(b.bytes()).take_while(|(x, y)| x == y).count();
+        let before = world(&city.world, &[], &[]);
+        let after = world(&city.world, &[], &["alfa lost".into()]);
+        let line = |mode| DroneLine {
+            id: "alfa".into(),
+            mode,
+            position: Vec3::new(1.0, 2.0, 0.0),
+            speed: 0.0,
+            action: None,
+            state: None,
+        };
+        let (idle, flying) = (
+            swarm(&[line(DroneMode::Idle)]),
+            swarm(&[line(DroneMode::Flying)]),
+        );
+        let shared = "## World\n".len() + before.map.len();
+
+        let a = supervisor_request(Some("r"), "- T1: not started\n", &idle, &before, &[]);
+        let b = supervisor_request(Some("r"), "- T1: running\n", &flying, &after, &[]);
+        assert!(common(&a, &b) > shared, "{a}\n---\n{b}");
+
+        let a = coordinator_request(&idle, &before, "(none)\n", "h\n", "take off", &[]);
+        let b = coordinator_request(&flying, &after, "(none)\n", "h\nmore\n", "land", &[]);
+        assert!(common(&a, &b) > shared, "{a}\n---\n{b}");
+
+        let a = monolithic_request(&["i".into()], &idle, &before, &[]);
+        let b = monolithic_request(&["i".into()], &flying, &after, &["x".into()]);
+        assert!(common(&a, &b) > shared, "{a}\n---\n{b}");
     }
 
     #[test]
@@ -291,7 +364,11 @@ mod tests {
             ["alfa", "car_12", "small_park"]
         );
         assert!(named_in("all drones take off", &names).is_empty());
-        let text = coordinator_request("s", "w", "p", "h", "i", &[]);
+        let w = WorldText {
+            map: "m".into(),
+            live: "l".into(),
+        };
+        let text = coordinator_request("s", &w, "p", "h", "i", &[]);
         assert!(text.ends_with("## Named in the instruction\n(none)\n"));
     }
 

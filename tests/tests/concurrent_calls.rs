@@ -225,11 +225,7 @@ async fn while_thinking(sim: &mut SimSwarm) -> anyhow::Result<()> {
         .get(1)
         .cloned()
         .unwrap_or_default();
-    let pending = second
-        .split("## Pending plan")
-        .nth(1)
-        .and_then(|rest| rest.split("## History").next())
-        .unwrap_or_default();
+    let pending = tacos_tests::prompt_text::section(&second, "Pending plan");
     anyhow::ensure!(
         pending.contains("alfa") && pending.contains("car_11"),
         "the second call's pending plan lacks the first plan's goto: {pending:?}"
@@ -238,7 +234,7 @@ async fn while_thinking(sim: &mut SimSwarm) -> anyhow::Result<()> {
         second.contains("bravo, inspect car_12"),
         "the second call is not for the second instruction: {second}"
     );
-    let swarm = second.split("## World").next().unwrap_or_default();
+    let swarm = tacos_tests::prompt_text::section(&second, "Swarm state");
     let charlie_line = swarm
         .lines()
         .find(|l| l.contains("charlie"))

@@ -91,7 +91,7 @@ impl Snapshot {
     }
 
     /// The world as the prompts show it: the map, the targets seen, the world's `events`.
-    pub(crate) fn world_text(&self, scenario: &Scenario, events: &[String]) -> String {
+    pub(crate) fn world_text(&self, scenario: &Scenario, events: &[String]) -> render::WorldText {
         render::world(&scenario.world, &self.targets, events)
     }
 
