@@ -116,12 +116,11 @@ fn udp_block_free(base: u16, n: usize) -> bool {
     })
 }
 
-/// Two blocks of `n` consecutive UDP ports free on loopback: PX4's usual 14540/14580 when free,
-/// else blocks picked from the high range.
+/// Two blocks of `n` consecutive UDP ports free on loopback, picked at random from the high
+/// range. Not PX4's usual 14540/14580, as this once preferred: real PX4 SITL instances bind
+/// those, and two stacks started at once both found them free (each probes, then releases
+/// them for its processes), so the second swarm's vehicles never answered.
 pub fn free_udp_blocks(n: usize) -> Result<(u16, u16), LaunchError> {
-    if udp_block_free(14540, n) && udp_block_free(14580, n) && n <= 40 {
-        return Ok((14540, 14580));
-    }
     let seed = std::process::id() as u64
         ^ std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
