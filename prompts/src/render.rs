@@ -204,9 +204,10 @@ pub fn coordinator_request(
     instruction: &str,
     named: &[String],
 ) -> String {
-    // Fixed first, then what grows by appending, then what changes (see `WorldText::map`).
+    // The map first (see `WorldText::map`); the rest in the order the model was tuned with,
+    // the history next to the instruction.
     format!(
-        "## World\n{}\n## History\n{history_text}\n## Swarm state\n{swarm_text}\n## Targets and events\n{}\n## Pending plan\n{pending}\n## Instruction\n{instruction}\n{}\n",
+        "## World\n{}\n## Swarm state\n{swarm_text}\n## Targets and events\n{}\n## Pending plan\n{pending}\n## History\n{history_text}\n## Instruction\n{instruction}\n{}\n",
         world.map,
         world.live,
         named_section(named)
@@ -250,7 +251,7 @@ pub fn supervisor_request(
     world: &WorldText,
     memory: &[String],
 ) -> String {
-    // Fixed first (the map, then the plan's reasoning), then what changes.
+    // The map first (see `WorldText::map`), then the rest in the order it had.
     let mut out = format!("## World\n{}\n", world.map);
     if let Some(r) = reasoning {
         let _ = write!(out, "## Coordinator's reasoning\n{r}\n\n");
@@ -276,23 +277,22 @@ pub fn monolithic_request(
     world: &WorldText,
     executed: &[String],
 ) -> String {
-    // Fixed first, then what grows by appending, then what changes (see `WorldText::map`).
+    // The map first (see `WorldText::map`), the rest in the order it had.
     let mut out = format!("## World\n{}\n## Pilot's instructions\n", world.map);
     for i in instructions {
         let _ = writeln!(out, "- {i}");
     }
-    out.push_str("\n## Executed actions\n");
+    let _ = write!(
+        out,
+        "\n## Swarm state\n{swarm_text}\n## Targets and events\n{}\n## Executed actions\n",
+        world.live
+    );
     if executed.is_empty() {
         out.push_str("(none)\n");
     }
     for e in executed {
         let _ = writeln!(out, "- {e}");
     }
-    let _ = write!(
-        out,
-        "\n## Swarm state\n{swarm_text}\n## Targets and events\n{}",
-        world.live
-    );
     out
 }
 
