@@ -18,7 +18,7 @@
 //! followed by `drones`/`is`/`are`; `<state>` = `flying` (in the air, tracking included),
 //! `landed`, `tracking [<target>]`, `unavailable`, `near <landmark or target>` (horizontally
 //! within twice the map's detection radius). Also `detected <target>` (the simulator's
-//! perception reported it), `plan complete` (a plan completed since the last `say`),
+//! perception reported it), `plan complete` (a plan made after the last `say` completed),
 //! `replanned` (the Coordinator made a new plan since the last `fail`) and `no breaches` (the
 //! simulator's truth shows no separation or obstacle breach).
 

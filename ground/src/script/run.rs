@@ -60,6 +60,12 @@ pub enum ScriptError {
 #[derive(Debug, Default)]
 struct Seen {
     detected: BTreeSet<String>,
+    /// Plans made since the last `say`: only their completion counts for `plan complete`.
+    plans_since_say: u32,
+    /// Completions of plans made since the last `say`. The plan in force when the pilot spoke
+    /// may still complete after it (its Supervisor goes on until the Coordinator answers): the
+    /// find-the-dog script's "keep monitoring" once passed on the search plan's completion,
+    /// before its own plan was made.
     plans_complete_since_say: u32,
     plans_since_fail: u32,
     /// Drones a `fail` step killed: `all` no longer counts them.
@@ -67,6 +73,30 @@ struct Seen {
     /// What the mission last gave up on since the last `say` (a plan given up, an instruction
     /// no reply could carry out, a model that failed): a `wait until` ends with it at once.
     gave_up_since_say: Option<String>,
+}
+
+impl Seen {
+    /// What `update` tells the conditions.
+    fn take(&mut self, update: &MissionUpdate) {
+        match update {
+            MissionUpdate::PlanComplete { .. } if self.plans_since_say > 0 => {
+                self.plans_complete_since_say += 1
+            }
+            MissionUpdate::Plan { .. } => {
+                self.plans_since_fail += 1;
+                self.plans_since_say += 1;
+            }
+            MissionUpdate::Error(why) => self.gave_up_since_say = Some(why.clone()),
+            _ => {}
+        }
+    }
+
+    /// The pilot spoke: what counted since the last `say` starts again.
+    fn said(&mut self) {
+        self.plans_complete_since_say = 0;
+        self.plans_since_say = 0;
+        self.gave_up_since_say = None;
+    }
 }
 
 /// Everything a condition is judged on, at one instant.
@@ -235,12 +265,7 @@ impl Runner {
         if let Some(text) = describe(update) {
             self.say(&text);
         }
-        match update {
-            MissionUpdate::PlanComplete { .. } => self.seen.plans_complete_since_say += 1,
-            MissionUpdate::Plan { .. } => self.seen.plans_since_fail += 1,
-            MissionUpdate::Error(why) => self.seen.gave_up_since_say = Some(why.clone()),
-            _ => {}
-        }
+        self.seen.take(update);
     }
 
     fn event(&mut self, event: &WorldEvent) {
@@ -306,8 +331,7 @@ impl Runner {
     async fn step(&mut self, kind: &StepKind) -> Result<(), String> {
         match kind {
             StepKind::Say(text) => {
-                self.seen.plans_complete_since_say = 0;
-                self.seen.gave_up_since_say = None;
+                self.seen.said();
                 self.input.submit(text).await.map_err(|e| e.to_string())?;
                 Ok(())
             }
@@ -468,4 +492,30 @@ pub async fn run_script(
         log_path: log.path().to_owned(),
         steps: script.steps.len(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn plan_complete_counts_only_a_plan_made_after_the_last_say() {
+        let plan = MissionUpdate::Plan {
+            reasoning: String::new(),
+            calls: Vec::new(),
+        };
+        let complete = MissionUpdate::PlanComplete { cycles: 2 };
+        let mut seen = Seen::default();
+        seen.take(&plan);
+        seen.said();
+        // The plan in force when the pilot spoke completes before the new one is made.
+        seen.take(&complete);
+        assert_eq!(seen.plans_complete_since_say, 0);
+        seen.take(&plan);
+        seen.take(&complete);
+        assert_eq!(seen.plans_complete_since_say, 1);
+        assert_eq!(seen.plans_since_fail, 2);
+        seen.said();
+        assert_eq!(seen.plans_complete_since_say, 0);
+    }
 }
