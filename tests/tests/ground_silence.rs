@@ -126,11 +126,15 @@ async fn silence_steps(sim: &SimSwarm) -> anyhow::Result<()> {
     // Still silent (the monitor does not count): a take-off from a ground that sends without
     // beating is refused by the drone, and why. (From the monitor's own link it would be
     // refused too, as an older sequence number: one ground at a time is issue 17's.)
-    monitor
-        .wait_for_drones(&ids, Duration::from_secs(10), |s| {
+    // Both links must have heard the drones idle: the take-off goes through the silent
+    // ground's own gate, whose view may lag the monitor's (with another test beside this one,
+    // it still showed alfa flying and the gate refused the take-off as airborne).
+    for link in [&monitor, sim.link.as_ref()] {
+        link.wait_for_drones(&ids, Duration::from_secs(10), |s| {
             s.mode == tacos_shared::DroneMode::Idle
         })
         .await?;
+    }
     match run_actions(
         &sim.link,
         &gate,
