@@ -347,3 +347,29 @@ pub fn px4_sitl_or_skip(test: &str) -> Option<std::path::PathBuf> {
         }
     }
 }
+
+/// Prints where a failed test's logs are and the last `lines` lines of each of them, so that a
+/// failure on a CI machine (whose temporary files are gone afterwards) still shows what the
+/// processes said.
+pub fn print_log_tails(dir: &std::path::Path, lines: usize) {
+    eprintln!("logs: {}", dir.display());
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    let mut logs: Vec<_> = entries
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "log"))
+        .collect();
+    logs.sort();
+    for log in logs {
+        let Ok(text) = std::fs::read_to_string(&log) else {
+            continue;
+        };
+        let all: Vec<&str> = text.lines().collect();
+        let tail = &all[all.len().saturating_sub(lines)..];
+        eprintln!("── {} (last {} lines)", log.display(), tail.len());
+        for line in tail {
+            eprintln!("{line}");
+        }
+    }
+}

@@ -26,7 +26,7 @@ async fn a_dead_ground_makes_every_drone_hold_then_land_and_a_monitor_does_not_c
     .await?;
     let result = silence_steps(&sim).await;
     if result.is_err() {
-        eprintln!("logs: {}", sim.stack.config.log_dir.display());
+        tacos_tests::print_log_tails(&sim.stack.config.log_dir, 40);
     }
     sim.stop().await;
     result

@@ -47,7 +47,7 @@ async fn conformance(autopilot: AutopilotKind, tag: &str) -> anyhow::Result<Vec<
     let mut sim = SimSwarm::start_with(tag, "city", 1, |c| c.autopilot = autopilot).await?;
     let result = conformance_steps(&mut sim).await;
     if result.is_err() {
-        eprintln!("logs: {}", sim.stack.config.log_dir.display());
+        tacos_tests::print_log_tails(&sim.stack.config.log_dir, 40);
     }
     sim.stop().await;
     result
@@ -291,7 +291,7 @@ async fn faults_on_real_px4() -> anyhow::Result<()> {
     .await?;
     let result = fault_steps(&mut sim).await;
     if result.is_err() {
-        eprintln!("logs: {}", sim.stack.config.log_dir.display());
+        tacos_tests::print_log_tails(&sim.stack.config.log_dir, 40);
     }
     sim.stop().await;
     result
@@ -302,10 +302,15 @@ async fn fault_steps(sim: &mut SimSwarm) -> anyhow::Result<()> {
     let gate = SafetyGate::new(sim.scenario.clone());
     let mut truth = sim.link.watch_truth().await?;
     all_ready(sim, std::slice::from_ref(&alfa)).await?;
-    anyhow::ensure!(
-        act(sim, &gate, &alfa, Action::ArmTakeoff).await == "done",
-        "take-off"
-    );
+    run_actions(
+        &sim.link,
+        &gate,
+        &[(alfa.clone(), Action::ArmTakeoff)],
+        None,
+        STEP,
+    )
+    .await
+    .map_err(|e| anyhow::anyhow!("take-off: {e:?}"))?;
     let position = |truth: &Truth| {
         truth
             .borrow()

@@ -46,7 +46,7 @@ async fn a_second_ground_is_refused_while_the_first_beats_and_takes_over_when_it
     let sim = SimSwarm::start("grounds", "city", 1).await?;
     let result = steps(&sim).await;
     if result.is_err() {
-        eprintln!("logs: {}", sim.stack.config.log_dir.display());
+        tacos_tests::print_log_tails(&sim.stack.config.log_dir, 40);
     }
     sim.stop().await;
     result
@@ -131,7 +131,7 @@ async fn an_action_held_on_the_way_is_refused_and_its_ground_told_why() -> anyho
     let sim = SimSwarm::start("late", "city", 1).await?;
     let result = held_steps(&sim).await;
     if result.is_err() {
-        eprintln!("logs: {}", sim.stack.config.log_dir.display());
+        tacos_tests::print_log_tails(&sim.stack.config.log_dir, 40);
     }
     sim.stop().await;
     result

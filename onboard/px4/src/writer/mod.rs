@@ -220,7 +220,8 @@ struct Stream<'a> {
     keeper: ReferenceKeeper,
     orphan: OrphanLanding,
     procedures: Procedures,
-    setup: AutopilotSetup,
+    /// None until the autopilot's link first comes up (nothing to set up, or to report, before).
+    setup: Option<AutopilotSetup>,
     setup_reported: SetupState,
     summary: RunSummary,
     last_source: Option<Source>,
@@ -246,15 +247,21 @@ impl Stream<'_> {
         }
     }
 
+    fn setup_state(&self) -> SetupState {
+        self.setup
+            .as_ref()
+            .map_or(SetupState::Pending, AutopilotSetup::state)
+    }
+
     /// Logs each change of the setup's state (the parameters' values once done).
     fn report_setup(&mut self) {
-        let state = self.setup.state();
+        let state = self.setup_state();
         if state == self.setup_reported {
             return;
         }
         match &state {
             SetupState::Done => {
-                for (name, before, after) in self.setup.report() {
+                for (name, before, after) in self.setup.iter().flat_map(AutopilotSetup::report) {
                     info!(name, before = ?before.map(|v| v.to_string()), after = ?after.map(|v| v.to_string()), "autopilot parameter");
                 }
                 info!(geofence = ?self.ctx.config.geofence, "autopilot set up: failsafe parameters and geofence confirmed");
@@ -372,8 +379,7 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
         keeper: ReferenceKeeper::new(ctx.config.onboard_timeout),
         orphan: OrphanLanding::new(ctx.config.onboard_land_after),
         procedures: Procedures::new(),
-        setup: AutopilotSetup::skipped(),
-        // Reported once the link is up: a skipped setup is warned about too.
+        setup: None,
         setup_reported: SetupState::Pending,
         summary: RunSummary::default(),
         last_source: None,
@@ -406,7 +412,7 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
                 s.procedures.request_stream(message, interval_us);
             }
             // A new link (first contact, or an autopilot that rebooted): set it up anew.
-            s.setup = if ctx.config.autopilot_setup {
+            s.setup = Some(if ctx.config.autopilot_setup {
                 AutopilotSetup::new(
                     ctx.config.params.clone(),
                     ctx.config.geofence,
@@ -414,13 +420,15 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
                 )
             } else {
                 AutopilotSetup::skipped()
-            };
+            });
         }
         let mut setup_out: Vec<SetupRequest> = Vec::new();
-        for message in setup_messages {
-            setup_out.extend(s.setup.on_message(message, now));
+        if let Some(setup) = s.setup.as_mut() {
+            for message in setup_messages {
+                setup_out.extend(setup.on_message(message, now));
+            }
+            setup_out.extend(setup.poll(now, geo_fix));
         }
-        setup_out.extend(s.setup.poll(now, geo_fix));
         for text in texts {
             s.procedures.on_status_text(&text, now);
         }
@@ -432,7 +440,7 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
             }
         }
         s.report_setup();
-        s.procedures.on_setup(s.setup.state());
+        s.procedures.on_setup(s.setup_state());
         let mut events = Vec::new();
         for (command, result) in acks {
             let Ok(command) = u16::try_from(command) else {
@@ -499,7 +507,7 @@ fn stream_loop(ctx: &Ctx<'_>) -> Result<RunSummary, Px4Error> {
         if let Some(d) = s.procedures.next_deadline() {
             deadline = deadline.min(d);
         }
-        if let Some(d) = s.setup.next_deadline() {
+        if let Some(d) = s.setup.as_ref().and_then(AutopilotSetup::next_deadline) {
             deadline = deadline.min(d);
         }
         let timeout = deadline.saturating_duration_since(Instant::now());
