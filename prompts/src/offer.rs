@@ -74,9 +74,12 @@ pub fn callable_schema(
 /// The Supervisor's output schema for this cycle: its calls can only name tasks, drones,
 /// actions and targets of the calls that could start now, so a constrained model cannot pick
 /// anything else (it still chooses which, and may choose none).
-/// With `must_act` (nothing of the plan is running) the reply must start at least one call: an
-/// empty choice would only wait for a change that cannot come, one model call at a time.
-pub fn startable_schema(startable: &[Call], must_act: bool) -> serde_json::Value {
+/// The reply must start at least one call: a startable call waits for nothing (its drone is
+/// free, the tasks before it are done), so an empty choice is a lost cycle. With nothing
+/// running it would wait for a change that cannot come; with tasks running, for their outcome
+/// (the 1.5B model answered "All drones are already flying" with three of six flying and three
+/// take-offs startable, and those three waited a whole take-off).
+pub fn startable_schema(startable: &[Call]) -> serde_json::Value {
     let mut drones: Vec<String> = startable.iter().map(|c| c.drone.clone()).collect();
     drones.sort();
     drones.dedup();
@@ -110,7 +113,7 @@ pub fn startable_schema(startable: &[Call], must_act: bool) -> serde_json::Value
     }
     if let Some(actions) = schema.pointer_mut("/properties/actions") {
         actions["maxItems"] = serde_json::Value::from(drones.len().max(1));
-        if must_act && !startable.is_empty() {
+        if !startable.is_empty() {
             actions["minItems"] = serde_json::Value::from(1);
         }
     }
@@ -206,7 +209,7 @@ mod tests {
     }
 
     #[test]
-    fn an_idle_plan_must_start_something() {
+    fn a_cycle_with_a_startable_call_must_start_something() {
         let startable = vec![Call {
             task: "T1".into(),
             drone: "alfa".into(),
@@ -214,24 +217,18 @@ mod tests {
             target: "none".into(),
             xyz: None,
         }];
-        let waiting_allowed = startable_schema(&startable, false);
-        assert!(
-            waiting_allowed
-                .pointer("/properties/actions/minItems")
-                .is_none()
-        );
-        let must_act = startable_schema(&startable, true);
+        let schema = startable_schema(&startable);
         assert_eq!(
-            must_act.pointer("/properties/actions/minItems"),
+            schema.pointer("/properties/actions/minItems"),
             Some(&serde_json::json!(1))
         );
         assert_eq!(
-            must_act.pointer("/properties/actions/maxItems"),
+            schema.pointer("/properties/actions/maxItems"),
             Some(&serde_json::json!(1))
         );
         // Nothing startable: no call can be required.
         assert!(
-            startable_schema(&[], true)
+            startable_schema(&[])
                 .pointer("/properties/actions/minItems")
                 .is_none()
         );

@@ -195,7 +195,7 @@ pub fn mission_probes() -> anyhow::Result<Vec<Probe>> {
             request: request(
                 supervisor_messages(first),
                 Output::Supervisor,
-                startable_schema(&plan, true),
+                startable_schema(&plan),
             ),
         },
         Probe {
@@ -203,7 +203,7 @@ pub fn mission_probes() -> anyhow::Result<Vec<Probe>> {
             request: request(
                 supervisor_messages(later),
                 Output::Supervisor,
-                startable_schema(&plan[running..], false),
+                startable_schema(&plan[running..]),
             ),
         },
         // Decoding alone: a short prompt, no schema, a reply that ends by itself (a cut-off

@@ -46,8 +46,6 @@ pub(crate) fn supervisor_ask(
     if startable.is_empty() {
         return None;
     }
-    // With nothing of the plan running, waiting cannot be right: nothing would change.
-    let idle = !plan.tasks.iter().any(|t| t.status == TaskStatus::Running);
     let reasoning = (mode == Mode::Tacos).then_some(plan.reasoning.as_str());
     let tasks = plan_lines(book);
     let user = render::supervisor_request(
@@ -59,7 +57,7 @@ pub(crate) fn supervisor_ask(
     );
     Some(CycleRequest {
         messages: supervisor_messages(user),
-        schema: startable_schema(&startable, idle),
+        schema: startable_schema(&startable),
         only: Some(startable),
         tasks,
         drones: snap.swarm_ids(scenario).len(),
