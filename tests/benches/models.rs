@@ -532,7 +532,11 @@ fn bench_model(args: &Args, python: &std::path::Path, model: EmbeddedModel) -> a
             format!("{} / {}", e.prompt_tokens, l.prompt_tokens),
             format!("{} / {}", e.cached_tokens, l.cached_tokens),
             format!("{} / {}", e.completion_tokens, l.completion_tokens),
-            if e.content == l.content { "yes" } else { "NO" }
+            match (e.content == l.content, same_json(&e.content, &l.content)) {
+                (true, _) => "yes",
+                (false, true) => "yes (spacing differs)",
+                (false, false) => "NO",
+            }
         );
     }
 
@@ -623,4 +627,15 @@ fn run() -> anyhow::Result<()> {
         bench_model(&args, &python, *model)?;
     }
     Ok(())
+}
+
+/// The same JSON value (llama.cpp's free whitespace aside); false when either is not JSON.
+fn same_json(a: &str, b: &str) -> bool {
+    match (
+        serde_json::from_str::<serde_json::Value>(a),
+        serde_json::from_str::<serde_json::Value>(b),
+    ) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => false,
+    }
 }
