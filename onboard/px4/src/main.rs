@@ -50,10 +50,15 @@ struct Args {
     /// (an onboard that crashed and did not come back).
     #[arg(long, default_value_t = tacos_px4::config::DEFAULT_ONBOARD_LAND_AFTER.as_secs_f64())]
     onboard_land_after_s: f64,
-    /// The world box to upload as PX4's geofence, MINX,MINY,MINZ,MAXX,MAXY,MAXZ (world ENU
-    /// metres; the launcher passes the scenario's bounds). Breach action: hold.
+    /// The map's box, MINX,MINY,MINZ,MAXX,MAXY,MAXZ (world ENU metres; the launcher passes the
+    /// scenario's bounds), uploaded as PX4's geofence grown by --fence-margin-m. Breach: hold.
     #[arg(long, value_parser = parse_geofence, allow_hyphen_values = true)]
     geofence: Option<Geofence>,
+    /// How far outside the map's box the geofence sits (sides and ceiling), metres: the fence
+    /// is the backstop for when TACOS fails to keep a drone inside the box, and must not trip
+    /// on a drone it holds inside it while the position estimate wanders.
+    #[arg(long, default_value_t = tacos_px4::setup::DEFAULT_FENCE_MARGIN_M)]
+    fence_margin_m: f64,
     /// A PX4 parameter to set at connect, NAME=VALUE (repeatable; on top of the failsafe
     /// defaults: COM_OBL_RC_ACT=5, COM_OF_LOSS_T=1, NAV_DLL_ACT=0, COM_RCL_EXCEPT=4).
     #[arg(long = "px4-param", value_parser = parse_param)]
@@ -99,7 +104,12 @@ fn main() -> anyhow::Result<()> {
         args.onboard_land_after_s
     );
     config.onboard_land_after = std::time::Duration::from_secs_f64(args.onboard_land_after_s);
-    config.geofence = args.geofence;
+    anyhow::ensure!(
+        args.fence_margin_m.is_finite() && args.fence_margin_m >= 0.0,
+        "--fence-margin-m must be zero or more (got {})",
+        args.fence_margin_m
+    );
+    config.geofence = args.geofence.map(|g| g.grown(args.fence_margin_m));
     config.autopilot_setup = !args.no_autopilot_setup;
     for want in args.px4_params {
         config.params.retain(|p| p.name != want.name);

@@ -19,6 +19,25 @@ pub struct Geofence {
     pub max: Vec3,
 }
 
+/// How far outside the map's bounds PX4's geofence sits by default, metres. The safety gate
+/// and the planner keep the drones inside the bounds; the fence is the backstop for when they
+/// fail, so it must not trip on a drone TACOS holds inside them. On the lab map, whose pads
+/// are 0.5 m from its south wall, a fence at the bounds tripped (PX4: "Geofence: approaching
+/// or outside geofence", then its hold) on a drone hovering above its pad while PX4 SIH's
+/// position estimate wandered about 1 m.
+pub const DEFAULT_FENCE_MARGIN_M: f64 = 1.0;
+
+impl Geofence {
+    /// The box grown by `margin` on every side but the floor (the ceiling included).
+    pub fn grown(self, margin: f64) -> Geofence {
+        let m = Vec3::new(margin, margin, margin);
+        Geofence {
+            min: Vec3::new(self.min.x - margin, self.min.y - margin, self.min.z),
+            max: self.max + m,
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq)]
 pub enum SetupState {
     Pending,
@@ -198,6 +217,18 @@ impl AutopilotSetup {
 mod tests {
     use super::*;
     use std::time::Duration;
+
+    #[test]
+    fn the_fence_grows_on_the_sides_and_the_ceiling_but_not_into_the_floor() {
+        let lab = Geofence {
+            min: Vec3::new(-4.0, -4.0, 0.0),
+            max: Vec3::new(4.0, 4.0, 2.5),
+        };
+        let fence = lab.grown(1.0);
+        assert_eq!(fence.min, Vec3::new(-5.0, -5.0, 0.0));
+        assert_eq!(fence.max, Vec3::new(5.0, 5.0, 3.5));
+        assert_eq!(lab.grown(0.0), lab);
+    }
 
     #[test]
     fn parameters_then_the_fence_then_done() {
