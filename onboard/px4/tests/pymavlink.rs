@@ -164,13 +164,14 @@ fn pymavlink_autopilot_accepts_everything_the_writer_sends() {
     assert_eq!(summary["pymavlink_receive_errors"], serde_json::json!(0));
     // Our system id is the autopilot's by default.
     assert_eq!(summary["writer_ids"], serde_json::json!([[1, 191]]));
-    // The failsafe parameters and the fence's limit and action, as PX4 holds them (integers as
-    // integers: they travelled byte for byte).
+    // The failsafe parameters and the fence's limit (the box's 60 m above home, plus the default
+    // 1 m margin) and action, as PX4 holds them (integers as integers: they travelled byte for
+    // byte).
     assert_eq!(
         summary["params"],
         serde_json::json!({
             "COM_OBL_RC_ACT": 5, "COM_OF_LOSS_T": 1.0, "NAV_DLL_ACT": 0, "COM_RCL_EXCEPT": 4,
-            "NAV_RCL_ACT": 2, "COM_RC_IN_MODE": 1, "GF_ACTION": 2, "GF_MAX_VER_DIST": 60.0,
+            "NAV_RCL_ACT": 2, "COM_RC_IN_MODE": 1, "GF_ACTION": 2, "GF_MAX_VER_DIST": 61.0,
         })
     );
     assert_eq!(

@@ -21,7 +21,7 @@ const FENCE: MavMissionType = MavMissionType::MAV_MISSION_TYPE_FENCE;
 #[test]
 fn the_autopilot_is_set_up_before_it_may_arm() {
     // The box around home (100, -50, 2): 200 m west and east, 50 m south, 150 m north, up to
-    // 62 m (60 m above home).
+    // 62 m (60 m above home); the fence is that box grown by the default 1 m margin.
     // Left in OFFBOARD (as PX4 is after an offboard flight): the arm switches to Hold first.
     let rig = Rig::start_with("setup", &["--geofence=-100,-100,0,300,100,62"], |ap| {
         ap.position_ned = Some([0.0, 0.0, 0.0]);
@@ -51,7 +51,7 @@ fn the_autopilot_is_set_up_before_it_may_arm() {
         ("NAV_RCL_ACT", Int(2)),
         ("COM_RC_IN_MODE", Int(1)),
         ("GF_ACTION", Int(2)),
-        ("GF_MAX_VER_DIST", Real(60.0)),
+        ("GF_MAX_VER_DIST", Real(61.0)),
     ] {
         assert_eq!(ap.param(name), Some(want), "{name}");
     }
@@ -106,11 +106,11 @@ fn the_autopilot_is_set_up_before_it_may_arm() {
     let (min_lat, max_lat) = (v.iter().map(|p| p.0).min(), v.iter().map(|p| p.0).max());
     let (min_lon, max_lon) = (v.iter().map(|p| p.1).min(), v.iter().map(|p| p.1).max());
     assert!(
-        near(min_lat.unwrap_or(0), lat_of(-50.0)) && near(max_lat.unwrap_or(0), lat_of(150.0)),
+        near(min_lat.unwrap_or(0), lat_of(-51.0)) && near(max_lat.unwrap_or(0), lat_of(151.0)),
         "latitudes {v:?}"
     );
     assert!(
-        near(min_lon.unwrap_or(0), lon_of(-200.0)) && near(max_lon.unwrap_or(0), lon_of(200.0)),
+        near(min_lon.unwrap_or(0), lon_of(-201.0)) && near(max_lon.unwrap_or(0), lon_of(201.0)),
         "longitudes {v:?}"
     );
 
