@@ -73,11 +73,7 @@ impl PlanCheck {
         // place the pilot named that the map has: the 1.5B model declined "charlie, search
         // the business_district" on the lab map, which has it.
         match reply.refusal_text() {
-            None if reply.plan.is_empty() => rejections.push(
-                "the plan is empty: list the calls the instruction needs, or, if it cannot be \
-                 carried out, say why in \"refusal\""
-                    .into(),
-            ),
+            None if reply.plan.is_empty() => rejections.push(self.empty_plan_text()),
             Some(refusal) if reply.plan.is_empty() => {
                 for place in render::named_in(refusal, &self.named_places) {
                     rejections.push(format!(
@@ -190,6 +186,26 @@ impl PlanCheck {
             narrowed,
             aids_fired,
         }
+    }
+
+    /// What an empty plan without a refusal is told. A refusal is mentioned only where the
+    /// schema offers one (not under `plan-only`: the 1.5B default, told to "say why in
+    /// \"refusal\"" with no such field, sent the same empty plan back twice), and an instruction
+    /// for the whole swarm names its drones with their modes: that reply's reason was "All
+    /// drones are already flying" with all six on the ground.
+    fn empty_plan_text(&self) -> String {
+        let mut text = String::from("the plan is empty: list the calls the instruction needs");
+        if let Some(available) = &self.whole_swarm {
+            let drones: Vec<String> = available
+                .iter()
+                .map(|(drone, mode)| format!("{drone} ({mode})"))
+                .collect();
+            text.push_str(&format!(", for every drone: {}", drones.join(", ")));
+        }
+        if self.schema.pointer("/properties/refusal").is_some() {
+            text.push_str(", or, if it cannot be carried out, say why in \"refusal\"");
+        }
+        text
     }
 
     /// One call: within the places allowed, for an available drone, naming real things.

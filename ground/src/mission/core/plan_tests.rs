@@ -86,6 +86,30 @@ fn an_empty_plan_needs_a_refusal_and_a_refusal_may_not_deny_a_place_the_pilot_na
 }
 
 #[test]
+fn an_empty_plan_under_plan_only_is_not_told_of_a_refusal_and_a_whole_swarm_one_hears_the_modes() {
+    let mut c = check(ModelAids::small());
+    c.schema = schema::without_refusal(&c.schema);
+    c.whole_swarm = Some(vec![
+        ("alfa".into(), DroneMode::Idle),
+        ("bravo".into(), DroneMode::Flying),
+    ]);
+    let j = c.judge(&reply(Vec::new()));
+    assert_eq!(
+        j.rejections,
+        [
+            "the plan is empty: list the calls the instruction needs, for every drone: alfa (idle), \
+          bravo (flying)"
+        ]
+    );
+    c.whole_swarm = None;
+    let j = c.judge(&reply(Vec::new()));
+    assert_eq!(
+        j.rejections,
+        ["the plan is empty: list the calls the instruction needs"]
+    );
+}
+
+#[test]
 fn a_place_off_the_instruction_is_sent_back_only_with_a_scope() {
     let mut c = check(ModelAids::small());
     let plan = vec![
