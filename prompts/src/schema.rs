@@ -1,10 +1,12 @@
 //! JSON schemas of the model outputs, built from the files in `prompts/schemas/` with the enums
 //! of this mission filled in (the drones and places that exist), so a server with
 //! `response_format: json_schema` or a grammar-constrained model cannot name anything else.
-//! A call is one of three shapes (`call.schema.json`): an action without argument, whose target
-//! is "none" and xyz null; a goto (a place or a point); a start_tracking (a target). Before that
-//! split the embedded model filled a take-off's unused target with a landmark, and went on to
-//! plan gotos to it that nobody asked for.
+//! A call is one of four shapes (`call.schema.json`): an action without argument, whose target
+//! is "none" and xyz null; a goto to a place (xyz null); a goto to a point (target "none"); a
+//! start_tracking (a target). Before that split the embedded model filled a take-off's unused
+//! target with a landmark, and went on to plan gotos to it that nobody asked for; and while a
+//! goto's place and point were one shape, the 1.5B default wrote fifteen gotos to "none" with
+//! no point (Task 1), which only the checks after the reply could refuse.
 
 use serde_json::Value;
 
@@ -46,11 +48,8 @@ fn fill(value: &mut Value, names: &Names, call: &Value) {
         Value::Array(items) if items.len() == 1 && items[0] == "$DRONES" => {
             *items = drones.iter().map(|d| Value::String(d.clone())).collect();
         }
-        Value::Array(items) if items.len() == 1 && items[0] == "$TARGETS" => {
-            *items = std::iter::once(NO_TARGET.to_owned())
-                .chain(targets.iter().cloned())
-                .map(Value::String)
-                .collect();
+        Value::Array(items) if items.len() == 1 && items[0] == "$PLACES" => {
+            *items = targets.iter().cloned().map(Value::String).collect();
         }
         Value::Array(items) if items.len() == 1 && items[0] == "$TRACKABLE" => {
             *items = names.trackable.iter().cloned().map(Value::String).collect();
@@ -270,7 +269,7 @@ mod tests {
         let variants = s["properties"]["plan"]["items"]["anyOf"]
             .as_array()
             .expect("a call is one of its variants");
-        assert_eq!(variants.len(), 3);
+        assert_eq!(variants.len(), 4);
         for call in variants {
             assert_eq!(
                 call["properties"]["drone"]["enum"],
@@ -288,10 +287,26 @@ mod tests {
                 .unwrap_or_else(|| panic!("no variant for {action}"))
         };
         // Only goto and start_tracking take a target, only a trackable one for tracking; only
-        // goto a point.
+        // goto a point, and then with no place.
+        let gotos: Vec<&Value> = variants
+            .iter()
+            .filter(|v| v["properties"]["action"]["enum"] == serde_json::json!(["goto"]))
+            .collect();
         assert_eq!(
-            variant("goto")["properties"]["target"]["enum"],
-            serde_json::json!(["none", "car_1", "van"])
+            gotos
+                .iter()
+                .map(|v| (
+                    &v["properties"]["target"]["enum"],
+                    &v["properties"]["xyz"]["type"]
+                ))
+                .collect::<Vec<_>>(),
+            [
+                (
+                    &serde_json::json!(["car_1", "van"]),
+                    &serde_json::json!("null")
+                ),
+                (&serde_json::json!(["none"]), &serde_json::json!("array")),
+            ]
         );
         assert_eq!(
             variant("start_tracking")["properties"]["target"]["enum"],
@@ -308,8 +323,7 @@ mod tests {
             variant("start_tracking")["properties"]["xyz"]["type"],
             "null"
         );
-        assert!(variant("goto")["properties"]["xyz"]["anyOf"].is_array());
-        for placeholder in ["$DRONES", "$TARGETS", "$TRACKABLE", "$CALL"] {
+        for placeholder in ["$DRONES", "$PLACES", "$TRACKABLE", "$CALL"] {
             assert!(
                 !s.to_string().contains(placeholder),
                 "{placeholder} was left: {s}"
@@ -334,8 +348,19 @@ mod tests {
         let variants = s["properties"]["plan"]["items"]["anyOf"]
             .as_array()
             .expect("a call is one of its variants");
-        assert_eq!(variants.len(), 2);
+        assert_eq!(variants.len(), 3);
         assert!(!s.to_string().contains("start_tracking"));
+        // No place to go to: a goto is a point.
+        let s = build(Output::Coordinator, &["alfa".into()], &[], &[]);
+        let variants = s["properties"]["plan"]["items"]["anyOf"]
+            .as_array()
+            .expect("a call is one of its variants");
+        assert_eq!(variants.len(), 2);
+        assert_eq!(
+            variants[1]["properties"]["target"]["enum"],
+            serde_json::json!(["none"])
+        );
+        assert_eq!(variants[1]["properties"]["xyz"]["type"], "array");
         let s = build(Output::Supervisor, &["alfa".into()], &[], &[]);
         assert_eq!(s["properties"]["actions"]["maxItems"], 1);
         assert_eq!(
