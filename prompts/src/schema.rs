@@ -38,18 +38,19 @@ impl Output {
 /// The names that fill a schema's placeholders.
 struct Names<'a> {
     drones: &'a [String],
-    targets: &'a [String],
+    /// What a goto may name (`$PLACES`): landmarks and targets.
+    places: &'a [String],
     trackable: &'a [String],
 }
 
 fn fill(value: &mut Value, names: &Names, call: &Value) {
-    let (drones, targets) = (names.drones, names.targets);
+    let (drones, places) = (names.drones, names.places);
     match value {
         Value::Array(items) if items.len() == 1 && items[0] == "$DRONES" => {
             *items = drones.iter().map(|d| Value::String(d.clone())).collect();
         }
         Value::Array(items) if items.len() == 1 && items[0] == "$PLACES" => {
-            *items = targets.iter().cloned().map(Value::String).collect();
+            *items = places.iter().cloned().map(Value::String).collect();
         }
         Value::Array(items) if items.len() == 1 && items[0] == "$TRACKABLE" => {
             *items = names.trackable.iter().cloned().map(Value::String).collect();
@@ -61,15 +62,15 @@ fn fill(value: &mut Value, names: &Names, call: &Value) {
     }
 }
 
-/// The schema of `output` for a mission with these drone ids, target/landmark names (what a
-/// goto may name) and trackable targets (what a start_tracking may name: tracking a landmark is
+/// The schema of `output` for a mission with these drone ids, places (landmark and target
+/// names: what a goto may name) and trackable targets (what a start_tracking may name: tracking a landmark is
 /// refused anyway, and the 135M model, made to track the van, went on to "track" car_1 17
 /// times). With nothing trackable, a call cannot be a start_tracking.
-pub fn build(output: Output, drones: &[String], targets: &[String], trackable: &[String]) -> Value {
+pub fn build(output: Output, drones: &[String], places: &[String], trackable: &[String]) -> Value {
     let parse = |text: &str| serde_json::from_str::<Value>(text).unwrap_or(Value::Null);
     let names = Names {
         drones,
-        targets,
+        places,
         trackable,
     };
     let mut call = parse(CALL);

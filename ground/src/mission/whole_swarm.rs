@@ -73,15 +73,20 @@ pub fn needing(action: ActionName, available: &[(String, DroneMode)]) -> Vec<Str
         .collect()
 }
 
-/// What a plan that leaves `left` out is told.
-pub fn left_out_text(left: &[(String, DroneMode)]) -> String {
-    let named: Vec<String> = left
+/// Drones with their modes, as a repair round names them: "alfa (idle), bravo (flying)".
+pub fn with_modes(drones: &[(String, DroneMode)]) -> String {
+    let named: Vec<String> = drones
         .iter()
         .map(|(drone, mode)| format!("{drone} ({mode})"))
         .collect();
+    named.join(", ")
+}
+
+/// What a plan that leaves `left` out is told.
+pub fn left_out_text(left: &[(String, DroneMode)]) -> String {
     format!(
         "the instruction is for every drone, but the plan gives {} no task: add {} part",
-        named.join(", "),
+        with_modes(left),
         if left.len() == 1 { "its" } else { "each one's" }
     )
 }

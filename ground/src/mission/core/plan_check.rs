@@ -196,11 +196,10 @@ impl PlanCheck {
     fn empty_plan_text(&self) -> String {
         let mut text = String::from("the plan is empty: list the calls the instruction needs");
         if let Some(available) = &self.whole_swarm {
-            let drones: Vec<String> = available
-                .iter()
-                .map(|(drone, mode)| format!("{drone} ({mode})"))
-                .collect();
-            text.push_str(&format!(", for every drone: {}", drones.join(", ")));
+            text.push_str(&format!(
+                ", for every drone: {}",
+                whole_swarm::with_modes(available)
+            ));
         }
         if self.schema.pointer("/properties/refusal").is_some() {
             text.push_str(", or, if it cannot be carried out, say why in \"refusal\"");
