@@ -114,14 +114,13 @@ pub(crate) fn coordinator_ask(
     }
     // The pilot's instruction for the whole swarm: the available drones and their modes, for
     // the reply check (`whole_swarm`; a replan's own words are not the pilot's).
+    let modes: Vec<(String, DroneMode)> = (available.iter())
+        .filter_map(|d| Some((d.clone(), snap.mode_of(d)?)))
+        .collect();
     let whole_swarm: Option<Vec<(String, DroneMode)>> = (from_pilot
         && aids.is_on(Aid::WholeSwarm)
         && whole_swarm::addresses_whole_swarm(instruction))
-    .then(|| {
-        (available.iter())
-            .filter_map(|d| Some((d.clone(), snap.mode_of(d)?)))
-            .collect()
-    });
+    .then(|| modes.clone());
     let grounded = snap.grounded_ids();
     let user = render::coordinator_request(
         &render::swarm(&snap.drone_lines(scenario)),
@@ -163,6 +162,7 @@ pub(crate) fn coordinator_ask(
         plan_cap,
         schema: schema.clone(),
         on_the_ground: grounded.clone(),
+        modes,
         follow,
         followed: snap.followed_targets(),
         whole_swarm,

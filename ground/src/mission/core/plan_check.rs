@@ -5,6 +5,7 @@
 //! judged against the same facts.
 
 use super::checks::check_static;
+use super::outcomes::effect_holds;
 use crate::mission::aids::{Aid, ModelAids};
 use crate::mission::grounding::{self, FollowAsked};
 use crate::mission::whole_swarm;
@@ -33,8 +34,9 @@ pub(crate) struct PlanCheck {
     /// is narrowed from it).
     pub(crate) plan_cap: usize,
     pub(crate) schema: serde_json::Value,
-    /// The drones on the ground when the call was asked.
+    /// The drones on the ground when the call was asked, and the available drones' modes.
     pub(crate) on_the_ground: Vec<String>,
+    pub(crate) modes: Vec<(String, DroneMode)>,
     /// What the instruction asks to be followed (`follow-words`), and what is followed already.
     pub(crate) follow: Vec<FollowAsked>,
     pub(crate) followed: Vec<String>,
@@ -56,6 +58,8 @@ pub(crate) struct PlanJudgement {
     pub(crate) narrowed: Option<serde_json::Value>,
     /// The aids that changed what happens, with what they did (`Record::AidFired`).
     pub(crate) aids_fired: Vec<(Aid, String)>,
+    /// Why the reply earns a second look though nothing in it is refused (`Checked::doubts`).
+    pub(crate) doubts: Vec<String>,
 }
 
 impl PlanCheck {
@@ -178,6 +182,7 @@ impl PlanCheck {
             (None, true) => None,
         };
         rejections.extend(missing.iter().map(FollowAsked::missing_text));
+        let doubts = self.changes_nothing(&reply.plan).into_iter().collect();
         PlanJudgement {
             reasoning: reply.reasoning.clone(),
             plan,
@@ -185,7 +190,29 @@ impl PlanCheck {
             rejections,
             narrowed,
             aids_fired,
+            doubts,
         }
+    }
+
+    /// A plan none of whose calls would change its drone's state, said with why: a take-off of
+    /// a drone in the air, a landing or hold of a drone on the ground, a stop_tracking of a
+    /// drone not tracking. Adopted, it completes at once and the instruction is not carried out
+    /// (the 1.5B default answered "find the suspect" with six take-offs of flying drones).
+    fn changes_nothing(&self, plan: &[Call]) -> Option<String> {
+        let mut said = Vec::new();
+        for call in plan {
+            let (_, mode) = self.modes.iter().find(|(d, _)| *d == call.drone)?;
+            if !effect_holds(call.action, *mode) {
+                return None;
+            }
+            said.push(format!("{call}: {} is {mode} already", call.drone));
+        }
+        (!said.is_empty()).then(|| {
+            format!(
+                "no call of the plan changes anything ({}): plan what the instruction asks for",
+                said.join("; ")
+            )
+        })
     }
 
     /// What an empty plan without a refusal is told. A refusal is mentioned only where the

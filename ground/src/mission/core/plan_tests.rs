@@ -30,6 +30,10 @@ fn check(aids: ModelAids) -> PlanCheck {
         named_places: Vec::new(),
         aids,
         on_the_ground: strings(&["alfa", "bravo"]),
+        modes: vec![
+            ("alfa".into(), DroneMode::Idle),
+            ("bravo".into(), DroneMode::Idle),
+        ],
         follow: Vec::new(),
         followed: Vec::new(),
         whole_swarm: None,
@@ -249,4 +253,28 @@ fn a_plan_that_fills_its_cap_is_noted_as_the_cap_firing() {
     assert_eq!(j.aids_fired[0].0, Aid::PlanLengthCap);
     let off = check(ModelAids::small().with(Aid::PlanLengthCap, false));
     assert!(off.judge(&reply(full)).aids_fired.is_empty());
+}
+
+#[test]
+fn a_plan_that_changes_nothing_is_in_doubt_with_why() {
+    let mut c = check(ModelAids::small());
+    c.modes[0].1 = DroneMode::Flying;
+    let land = |task, drone| Call::named(task, drone, ActionName::Land, "none");
+    // alfa flies already, bravo rests on the ground already.
+    let j = c.judge(&reply(vec![take_off("T1", "alfa"), land("T2", "bravo")]));
+    assert!(j.rejections.is_empty(), "{:?}", j.rejections);
+    assert_eq!(
+        j.doubts,
+        [
+            "no call of the plan changes anything (T1 alfa arm_takeoff(): alfa is flying already; \
+          T2 bravo land(): bravo is idle already): plan what the instruction asks for"
+        ]
+    );
+    // One call that changes something clears the doubt, as does an empty plan (refused).
+    let j = c.judge(&reply(vec![
+        take_off("T1", "alfa"),
+        take_off("T2", "bravo"),
+    ]));
+    assert!(j.doubts.is_empty(), "{:?}", j.doubts);
+    assert!(c.judge(&reply(Vec::new())).doubts.is_empty());
 }

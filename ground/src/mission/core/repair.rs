@@ -8,7 +8,7 @@
 use super::effect::Effect;
 use crate::mission::aids::{Aid, ModelAids};
 use crate::mission::log::RefusedBy;
-use crate::mission::report::MissionError;
+use crate::mission::report::{EventTopic, MissionError};
 use tacos_llm::{ChatMessage, LlmError};
 use tacos_prompts::ReplyError;
 
@@ -24,6 +24,12 @@ pub(crate) struct Checked<U> {
     /// The schema for the repair round, when the reply missed something the grammar can hold
     /// the next one to; `None`: the same schema again.
     pub(crate) narrowed: Option<serde_json::Value>,
+    /// What makes a reply doubtful without making it wrong: a reply with nothing refused but
+    /// doubts is sent back once, on the first attempt, and what comes back is judged as usual
+    /// (the same reply again passes). A plan whose every call changes nothing is one: the
+    /// pilot's "find the suspect" answered with six take-offs of drones in the air, but also
+    /// "alfa, land" with alfa on the ground, which is right.
+    pub(crate) doubts: Vec<String>,
 }
 
 /// What the engine does next.
@@ -52,6 +58,8 @@ pub(crate) struct Repair<U> {
     /// the repair prompt has outgrown the embedded model's window) leaves it in force when
     /// `keep-partial-plan` is on.
     passed_before: Option<U>,
+    /// The first reply, sent back for its doubts only: it stands if no later reply passes.
+    doubted: Option<U>,
     last_problem: String,
 }
 
@@ -73,6 +81,7 @@ impl<U> Repair<U> {
             whole,
             aids,
             passed_before: None,
+            doubted: None,
             last_problem: String::new(),
         }
     }
@@ -116,16 +125,27 @@ impl<U> Repair<U> {
                 }
                 checked.rejections.append(&mut checked.gate_refusals);
                 if checked.rejections.is_empty() {
-                    return Next::Done(Ok(checked.accepted));
+                    if checked.doubts.is_empty() || self.attempt > 1 || self.attempts == 1 {
+                        return Next::Done(Ok(checked.accepted));
+                    }
+                    let text = format!(
+                        "{}: reply sent back once: {}",
+                        self.layer,
+                        checked.doubts.join("; ")
+                    );
+                    effects.extend(Effect::told(EventTopic::Note, text));
+                    self.doubted = Some(checked.accepted);
+                    checked.doubts
+                } else {
+                    if self.attempt == self.attempts {
+                        return Next::Done(self.last_reply_refused(checked, effects));
+                    }
+                    if let Some(narrowed) = checked.narrowed {
+                        self.schema = narrowed;
+                    }
+                    self.passed_before = (!checked.nothing_passed).then_some(checked.accepted);
+                    checked.rejections
                 }
-                if self.attempt == self.attempts {
-                    return Next::Done(self.last_reply_refused(checked, effects));
-                }
-                if let Some(narrowed) = checked.narrowed {
-                    self.schema = narrowed;
-                }
-                self.passed_before = (!checked.nothing_passed).then_some(checked.accepted);
-                checked.rejections
             }
         };
         let problems = distinct_problems(problems);
@@ -144,10 +164,20 @@ impl<U> Repair<U> {
             content.to_owned()
         };
         self.messages.push(ChatMessage::assistant(echo));
-        self.messages.push(ChatMessage::user(format!(
-            "Your reply was rejected:\n- {}\nAnswer again with the corrected JSON object only.",
-            problems.join("\n- ")
-        )));
+        let repair_round = if self.doubted.is_some() && self.attempt == 1 {
+            format!(
+                "Check your reply:\n- {}\nAnswer again with the JSON object only: a changed \
+                 one, or the same one if it is what the instruction needs.",
+                problems.join("\n- ")
+            )
+        } else {
+            format!(
+                "Your reply was rejected:\n- {}\nAnswer again with the corrected JSON object \
+                 only.",
+                problems.join("\n- ")
+            )
+        };
+        self.messages.push(ChatMessage::user(repair_round));
         self.next_attempt(effects)
     }
 
@@ -179,6 +209,9 @@ impl<U> Repair<U> {
     ) -> Result<U, MissionError> {
         if !self.whole {
             return Ok(checked.accepted);
+        }
+        if let Some(first) = self.first_reply_stands(effects) {
+            return Ok(first);
         }
         let refused = distinct_problems(checked.rejections).join("; ");
         if self.aids.is_on(Aid::KeepPartialPlan) && !checked.nothing_passed {
@@ -220,6 +253,9 @@ impl<U> Repair<U> {
         why: &dyn std::fmt::Display,
         effects: &mut Vec<Effect>,
     ) -> Option<U> {
+        if let Some(first) = self.first_reply_stands(effects) {
+            return Some(first);
+        }
         if !self.aids.is_on(Aid::KeepPartialPlan) {
             return None;
         }
@@ -230,6 +266,16 @@ impl<U> Repair<U> {
         );
         effects.push(Effect::aid_fired(Aid::KeepPartialPlan, detail));
         Some(passed)
+    }
+}
+
+impl<U> Repair<U> {
+    /// The first reply, if it was sent back for doubts only: no later reply did better.
+    fn first_reply_stands(&mut self, effects: &mut Vec<Effect>) -> Option<U> {
+        let first = self.doubted.take()?;
+        let text = format!("{}: no better reply came: the first one stands", self.layer);
+        effects.extend(Effect::told(EventTopic::Note, text));
+        Some(first)
     }
 }
 

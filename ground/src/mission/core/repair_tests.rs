@@ -6,7 +6,7 @@ use super::effect::Effect;
 use super::repair::{Checked, Next, Repair, distinct_problems, without_repeated_items};
 use crate::mission::aids::{Aid, ModelAids};
 use crate::mission::log::{Record, RefusedBy};
-use crate::mission::report::MissionError;
+use crate::mission::report::{MissionError, MissionUpdate};
 use tacos_llm::{ChatMessage, LlmError, Role};
 use tacos_prompts::CoordinatorReply;
 
@@ -25,8 +25,8 @@ fn plan(calls: &[(&str, &str)]) -> String {
     format!(r#"{{"reasoning": "r", "plan": [{}]}}"#, calls.join(", "))
 }
 
-/// Lets calls to alfa and bravo through; charlie's are refused by the checks, delta's by the
-/// safety gate.
+/// Lets calls to alfa, bravo and echo through; charlie's are refused by the checks, delta's by
+/// the safety gate; a plan of echo's calls only is in doubt (echo flies already).
 fn check(reply: &CoordinatorReply) -> Checked<Tasks> {
     let mut accepted = Vec::new();
     let mut rejections = Vec::new();
@@ -38,13 +38,29 @@ fn check(reply: &CoordinatorReply) -> Checked<Tasks> {
             _ => accepted.push(call.task.clone()),
         }
     }
+    let doubts = if reply.plan.iter().all(|c| c.drone == "echo") {
+        vec!["no call of the plan changes anything (echo is flying already)".to_owned()]
+    } else {
+        Vec::new()
+    };
     Checked {
         nothing_passed: accepted.is_empty(),
         accepted,
         rejections,
         gate_refusals,
         narrowed: None,
+        doubts,
     }
+}
+
+fn told(effects: &[Effect]) -> Vec<String> {
+    effects
+        .iter()
+        .filter_map(|e| match e {
+            Effect::Tell(MissionUpdate::Event { text, .. }) => Some(text.clone()),
+            _ => None,
+        })
+        .collect()
 }
 
 fn repair(max_repairs: u32, whole: bool, aids: ModelAids) -> Repair<Tasks> {
@@ -215,6 +231,81 @@ fn a_repair_round_failing_at_the_backend_ends_the_call_or_keeps_what_passed_with
     assert!(
         matches!(answer, Err(MissionError::Llm { .. })),
         "{answer:?}"
+    );
+}
+
+#[test]
+fn a_doubtful_reply_is_sent_back_once_and_passes_when_it_comes_back() {
+    let doubtful = plan(&[("T1", "echo")]);
+    let mut r = repair(2, true, ModelAids::none());
+    let mut effects = Vec::new();
+    assert!(matches!(reply(&mut r, &doubtful, &mut effects), Next::Ask));
+    assert!(
+        last(&r)
+            .content
+            .starts_with("Check your reply:\n- no call of the plan changes"),
+        "{}",
+        last(&r).content
+    );
+    assert!(
+        last(&r)
+            .content
+            .contains("or the same one if it is what the instruction needs")
+    );
+    assert_eq!(
+        told(&effects),
+        [
+            "coordinator: reply sent back once: no call of the plan changes anything (echo is \
+          flying already)"
+        ]
+    );
+    // The same reply again is the answer: "alfa, land" with alfa on the ground is right.
+    assert_eq!(
+        done(reply(&mut r, &doubtful, &mut effects)),
+        Ok(vec!["T1".into()])
+    );
+    // A better one is taken instead.
+    let mut r = repair(2, true, ModelAids::none());
+    assert!(matches!(
+        reply(&mut r, &doubtful, &mut Vec::new()),
+        Next::Ask
+    ));
+    let better = plan(&[("T1", "alfa")]);
+    assert_eq!(
+        done(reply(&mut r, &better, &mut Vec::new())),
+        Ok(vec!["T1".into()])
+    );
+    // Without repairs (max_repairs 0) there is no second look.
+    let mut r = repair(0, true, ModelAids::none());
+    assert_eq!(
+        done(reply(&mut r, &doubtful, &mut Vec::new())),
+        Ok(vec!["T1".into()])
+    );
+}
+
+#[test]
+fn a_doubted_reply_stands_when_nothing_after_it_passes() {
+    let doubtful = plan(&[("T1", "echo")]);
+    // The second look fails at the backend: the first reply stands, with or without aids.
+    let mut r = repair(2, true, ModelAids::none());
+    let mut effects = Vec::new();
+    assert!(matches!(reply(&mut r, &doubtful, &mut effects), Next::Ask));
+    let window = LlmError::Generation("the prompt has 4200 tokens; the window is 4096".into());
+    assert_eq!(done(r.failed(window, &mut effects)), Ok(vec!["T1".into()]));
+    assert!(
+        told(&effects).contains(&"coordinator: no better reply came: the first one stands".into()),
+        "{effects:?}"
+    );
+    // The replies after it are refused to the last attempt: the first reply stands.
+    let mut r = repair(1, true, ModelAids::none());
+    assert!(matches!(
+        reply(&mut r, &doubtful, &mut Vec::new()),
+        Next::Ask
+    ));
+    let refused = plan(&[("T1", "charlie")]);
+    assert_eq!(
+        done(reply(&mut r, &refused, &mut Vec::new())),
+        Ok(vec!["T1".into()])
     );
 }
 

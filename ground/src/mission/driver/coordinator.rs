@@ -74,6 +74,7 @@ impl Mission {
                             // A plan's calls are not actions yet: the gate judges them when sent.
                             gate_refusals: Vec::new(),
                             narrowed: judged.narrowed,
+                            doubts: judged.doubts,
                         }
                     },
                 )

@@ -111,6 +111,7 @@ impl Mission {
                             rejections,
                             gate_refusals,
                             narrowed: None,
+                            doubts: Vec::new(),
                         }
                     },
                 )
