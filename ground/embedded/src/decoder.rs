@@ -10,8 +10,6 @@
 use candle_core::quantized::{QMatMul, QTensor, gguf_file};
 use candle_core::{DType, Device, IndexOp, Module, Result, Tensor};
 use candle_nn::Embedding;
-use candle_transformers::quantized_nn::RmsNorm;
-use candle_transformers::utils::build_additive_causal_mask;
 
 use crate::catalogue::Architecture;
 use crate::output::{BLOCK_ROWS, OutputProjection};
@@ -252,13 +250,7 @@ impl Decoder {
         }
         let input = Tensor::new(tokens, device)?.unsqueeze(0)?;
         let mask = if seq > 1 {
-            Some(build_additive_causal_mask(
-                seq,
-                pos,
-                None,
-                device,
-                DType::F32,
-            )?)
+            Some(causal_mask(seq, pos, device)?)
         } else {
             None
         };
@@ -376,20 +368,63 @@ fn rotary_tables(
     Ok((angles.cos()?, angles.sin()?))
 }
 
+/// RMS normalisation by a weight vector (dequantized from the GGUF: one value per channel).
+struct RmsNorm {
+    weight: Tensor,
+    eps: f32,
+}
+
+impl RmsNorm {
+    fn from_qtensor(weight: QTensor, eps: f64) -> Result<RmsNorm> {
+        Ok(RmsNorm {
+            weight: weight.dequantize(&weight.device())?,
+            eps: eps as f32,
+        })
+    }
+
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        candle_nn::ops::rms_norm(x, &self.weight, self.eps)
+    }
+}
+
+/// The additive causal mask of `seq` new positions after `past` cached ones (1 × 1 × seq ×
+/// (past + seq)): 0 where new position i may look (every cached one, and new ones up to
+/// itself), minus infinity where it would see a later token.
+fn causal_mask(seq: usize, past: usize, device: &Device) -> Result<Tensor> {
+    let total = past + seq;
+    let mask: Vec<f32> = (0..seq)
+        .flat_map(|i| {
+            (0..total).map(move |j| {
+                if j <= past + i {
+                    0.0
+                } else {
+                    f32::NEG_INFINITY
+                }
+            })
+        })
+        .collect();
+    Tensor::from_slice(&mask, (1, 1, seq, total), device)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use candle_transformers::utils::repeat_kv;
+
+    /// Each key/value head copied for the query heads that share it (head h reads head
+    /// h / n_rep), as candle's own models do before attention.
+    fn repeat_heads(kv: &Tensor, n_head: usize) -> Tensor {
+        let n_rep = n_head / kv.dim(1).expect("4 dims");
+        let heads: Vec<Tensor> = (0..n_head)
+            .map(|h| kv.i((.., h / n_rep..h / n_rep + 1)).expect("head"))
+            .collect();
+        Tensor::cat(&heads, 1).expect("cat")
+    }
 
     /// Attention as candle's own models compute it: each key/value head copied per query head.
     fn repeated_attention(q: &Tensor, k: &Tensor, v: &Tensor, mask: Option<&Tensor>) -> Tensor {
         let (b, n_head, seq, head_dim) = q.dims4().expect("4 dims");
-        let n_rep = n_head / k.dim(1).expect("4 dims");
-        let k = repeat_kv(k.clone(), n_rep).expect("repeat");
-        let v = repeat_kv(v.clone(), n_rep)
-            .expect("repeat")
-            .contiguous()
-            .expect("copy");
+        let k = repeat_heads(k, n_head);
+        let v = repeat_heads(v, n_head).contiguous().expect("copy");
         let mut att =
             (q.matmul(&k.t().expect("t")).expect("q k") / (head_dim as f64).sqrt()).expect("scale");
         if let Some(mask) = mask {
@@ -405,6 +440,19 @@ mod tests {
     }
 
     #[test]
+    fn the_causal_mask_hides_later_tokens_only() {
+        let mask = causal_mask(2, 1, &Device::Cpu).expect("mask");
+        let rows: Vec<Vec<f32>> = mask
+            .squeeze(0)
+            .and_then(|m| m.squeeze(0))
+            .expect("2 dims")
+            .to_vec2()
+            .expect("rows");
+        let inf = f32::NEG_INFINITY;
+        assert_eq!(rows, [[0.0, 0.0, inf], [0.0, 0.0, 0.0]]);
+    }
+
+    #[test]
     fn grouped_attention_is_the_attention_of_repeated_heads() {
         let device = Device::Cpu;
         // Qwen2.5-Coder-1.5B's shape (12 query heads over 2 key/value heads, 128 wide): a
@@ -414,9 +462,7 @@ mod tests {
             let q = Tensor::randn(0f32, 1.0, (1, 12, seq, 128), &device).expect("q");
             let k = Tensor::randn(0f32, 1.0, (1, 2, total, 128), &device).expect("k");
             let v = Tensor::randn(0f32, 1.0, (1, 2, total, 128), &device).expect("v");
-            let mask = (seq > 1).then(|| {
-                build_additive_causal_mask(seq, past, None, &device, DType::F32).expect("mask")
-            });
+            let mask = (seq > 1).then(|| causal_mask(seq, past, &device).expect("mask"));
             let grouped = grouped_attention(&q, &k, &v, mask.as_ref(), 2).expect("attention");
             let repeated = repeated_attention(&q, &k, &v, mask.as_ref());
             assert_eq!(grouped.dims(), [1, seq, 12 * 128]);
