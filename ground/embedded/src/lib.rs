@@ -27,6 +27,7 @@
 //! # Ok(()) }
 //! ```
 
+mod byte_view;
 pub mod catalogue;
 mod decoder;
 mod engine;

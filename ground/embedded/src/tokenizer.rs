@@ -15,14 +15,12 @@ use candle_core::quantized::gguf_file::{Content, Value};
 use llguidance::toktrie::TokEnv;
 use serde_json::{Map, json};
 use tokenizers::Tokenizer;
-use toktrie_hf_tokenizers::ByteTokenizer;
 
+use crate::byte_view::{self, TOKEN_TYPE_CONTROL, TOKEN_TYPE_USER_DEFINED};
 use crate::catalogue::EmbeddedModel;
 use crate::template::Segment;
 
-/// GGUF token types (llama.cpp `llama_token_type`).
-const TOKEN_TYPE_CONTROL: i32 = 3;
-const TOKEN_TYPE_USER_DEFINED: i32 = 4;
+/// GGUF token type (llama.cpp `llama_token_type`) of unused entries.
 const TOKEN_TYPE_UNUSED: i32 = 5;
 
 /// Qwen2's pre-tokenizer split (its `tokenizer.json`; llama.cpp's `LLAMA_VOCAB_PRE_TYPE_QWEN2`).
@@ -179,13 +177,12 @@ impl ModelTokenizer {
         let mut text = hf.clone();
         text.set_encode_special_tokens(true);
 
-        let mut bt = ByteTokenizer::from_tokenizer(hf).map_err(|e| format!("toktrie: {e}"))?;
-        bt.hf_model = model.display_name().to_string();
+        let tokens = md_strings(ct, "tokenizer.ggml.tokens")?;
+        let types = md_i32s(ct, "tokenizer.ggml.token_type")?;
+        let bytes = byte_view::token_bytes(&tokens, &types, n_vocab);
         // The chat turn ends with <|im_end|>; <|endoftext|> also ends a generation.
-        bt.set_eos_tokens(&[im_end, end_of_text]);
-        let tok_env = bt
-            .into_tok_env(Some(n_vocab))
-            .map_err(|e| format!("toktrie: {e}"))?;
+        let tok_env = byte_view::tok_env(&bytes, end_of_text, im_end, hf)
+            .map_err(|e| format!("{}: {e}", model.display_name()))?;
         Ok(ModelTokenizer {
             text,
             im_start,
