@@ -26,7 +26,8 @@ pub const MODEL: &str = "sihsim_quadx";
 pub const HOW_TO_GET: &str = "a PX4 SITL build with SIH: bin/px4 and etc/ (PX4-Autopilot, `make px4_sitl_default`, or the bundle in ../shared/px4-sitl); pass --px4-sitl DIR or set TACOS_PX4_SITL";
 
 /// Where a PX4 SITL build is: `flag`, else `$TACOS_PX4_SITL`, else `../shared/px4-sitl` beside
-/// the working directory or beside the repository the binaries were built in.
+/// the working directory, beside the repository the binaries were built in, or beside the one
+/// this crate was compiled from (a `CARGO_TARGET_DIR` outside the repository).
 pub fn find_px4_sitl(flag: Option<&Path>) -> Result<PathBuf, LaunchError> {
     let valid = |dir: &Path| dir.join("bin/px4").is_file() && dir.join("etc").is_dir();
     if let Some(dir) = flag {
@@ -55,6 +56,7 @@ pub fn find_px4_sitl(flag: Option<&Path>) -> Result<PathBuf, LaunchError> {
     if let Some(repo) = super::bin_dir().parent().and_then(Path::parent) {
         candidates.push(repo.join("../shared/px4-sitl"));
     }
+    candidates.push(Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/px4-sitl"));
     candidates
         .into_iter()
         .find(|d| valid(d))
