@@ -14,6 +14,7 @@ use tokenizers::Tokenizer;
 /// GGUF token types (llama.cpp `llama_token_type`).
 pub(crate) const TOKEN_TYPE_CONTROL: i32 = 3;
 pub(crate) const TOKEN_TYPE_USER_DEFINED: i32 = 4;
+pub(crate) const TOKEN_TYPE_UNUSED: i32 = 5;
 
 /// GPT-2's byte-level alphabet, read backwards: the byte each character of a token's spelling
 /// stands for. The printable bytes (`!`..=`~`, `¡`..=`¬`, `®`..=`ÿ`) stand for themselves; the

@@ -16,12 +16,9 @@ use llguidance::toktrie::TokEnv;
 use serde_json::{Map, json};
 use tokenizers::Tokenizer;
 
-use crate::byte_view::{self, TOKEN_TYPE_CONTROL, TOKEN_TYPE_USER_DEFINED};
+use crate::byte_view::{self, TOKEN_TYPE_CONTROL, TOKEN_TYPE_UNUSED, TOKEN_TYPE_USER_DEFINED};
 use crate::catalogue::EmbeddedModel;
 use crate::template::Segment;
-
-/// GGUF token type (llama.cpp `llama_token_type`) of unused entries.
-const TOKEN_TYPE_UNUSED: i32 = 5;
 
 /// Qwen2's pre-tokenizer split (its `tokenizer.json`; llama.cpp's `LLAMA_VOCAB_PRE_TYPE_QWEN2`).
 const QWEN2_SPLIT: &str = r"(?i:'s|'t|'re|'ve|'m|'ll|'d)|[^\r\n\p{L}\p{N}]?\p{L}+|\p{N}| ?[^\s\p{L}\p{N}]+[\r\n]*|\s*[\r\n]+|\s+(?!\S)|\s+";
@@ -59,8 +56,30 @@ fn md_i32s(ct: &Content, key: &str) -> Result<Vec<i32>, String> {
         .collect()
 }
 
-/// The `tokenizer.json` equivalent of the GGUF tokenizer metadata.
-pub fn tokenizer_json(ct: &Content) -> Result<serde_json::Value, String> {
+/// The GGUF's token list and each token's type, read once for the three views built from them
+/// (the tokenizer, llguidance's bytes, the real vocabulary's size).
+struct Vocabulary {
+    tokens: Vec<String>,
+    types: Vec<i32>,
+}
+
+impl Vocabulary {
+    fn read(ct: &Content) -> Result<Vocabulary, String> {
+        let tokens = md_strings(ct, "tokenizer.ggml.tokens")?;
+        let types = md_i32s(ct, "tokenizer.ggml.token_type")?;
+        if types.len() != tokens.len() {
+            return Err(format!(
+                "{} tokens but {} token types",
+                tokens.len(),
+                types.len()
+            ));
+        }
+        Ok(Vocabulary { tokens, types })
+    }
+}
+
+/// The `tokenizer.json` equivalent of the GGUF tokenizer metadata (`vocabulary` read from it).
+fn tokenizer_json(ct: &Content, vocabulary: &Vocabulary) -> Result<serde_json::Value, String> {
     let model = md(ct, "tokenizer.ggml.model")?
         .to_string()
         .map_err(|e| e.to_string())?;
@@ -99,19 +118,11 @@ pub fn tokenizer_json(ct: &Content) -> Result<serde_json::Value, String> {
         "gpt2" | "default" => (json!(null), byte_level),
         other => return Err(format!("unsupported pre-tokenizer `{other}`")),
     };
-    let tokens = md_strings(ct, "tokenizer.ggml.tokens")?;
-    let types = md_i32s(ct, "tokenizer.ggml.token_type")?;
+    let Vocabulary { tokens, types } = vocabulary;
     let merges = md_strings(ct, "tokenizer.ggml.merges")?;
-    if types.len() != tokens.len() {
-        return Err(format!(
-            "{} tokens but {} token types",
-            tokens.len(),
-            types.len()
-        ));
-    }
     let mut vocab = Map::with_capacity(tokens.len());
     let mut added = Vec::new();
-    for (id, (tok, ty)) in tokens.iter().zip(&types).enumerate() {
+    for (id, (tok, ty)) in tokens.iter().zip(types).enumerate() {
         vocab.insert(tok.clone(), json!(id));
         if *ty == TOKEN_TYPE_CONTROL || *ty == TOKEN_TYPE_USER_DEFINED {
             added.push(json!({
@@ -139,16 +150,14 @@ pub fn tokenizer_json(ct: &Content) -> Result<serde_json::Value, String> {
 
 /// How many tokens are real: the list without its trailing unused or `[PAD…]` entries (GGUF
 /// files may pad the vocabulary to the output matrix's size).
-fn real_vocab(ct: &Content) -> Result<usize, String> {
-    let tokens = md_strings(ct, "tokenizer.ggml.tokens")?;
-    let types = md_i32s(ct, "tokenizer.ggml.token_type")?;
+fn real_vocab(Vocabulary { tokens, types }: &Vocabulary) -> usize {
     let mut n = tokens.len();
     while n > 0
         && (types.get(n - 1) == Some(&TOKEN_TYPE_UNUSED) || tokens[n - 1].starts_with("[PAD"))
     {
         n -= 1;
     }
-    Ok(n)
+    n
 }
 
 impl ModelTokenizer {
@@ -158,8 +167,9 @@ impl ModelTokenizer {
         model: EmbeddedModel,
         n_vocab: usize,
     ) -> Result<ModelTokenizer, String> {
-        let spec = tokenizer_json(ct)?;
-        let real_vocab = real_vocab(ct)?;
+        let vocabulary = Vocabulary::read(ct)?;
+        let spec = tokenizer_json(ct, &vocabulary)?;
+        let real_vocab = real_vocab(&vocabulary);
         let hf = Tokenizer::from_str(&spec.to_string()).map_err(|e| format!("tokenizer: {e}"))?;
         let id = |t: &str| {
             hf.token_to_id(t)
@@ -177,9 +187,7 @@ impl ModelTokenizer {
         let mut text = hf.clone();
         text.set_encode_special_tokens(true);
 
-        let tokens = md_strings(ct, "tokenizer.ggml.tokens")?;
-        let types = md_i32s(ct, "tokenizer.ggml.token_type")?;
-        let bytes = byte_view::token_bytes(&tokens, &types, n_vocab);
+        let bytes = byte_view::token_bytes(&vocabulary.tokens, &vocabulary.types, n_vocab);
         // The chat turn ends with <|im_end|>; <|endoftext|> also ends a generation.
         let tok_env = byte_view::tok_env(&bytes, end_of_text, im_end, hf)
             .map_err(|e| format!("{}: {e}", model.display_name()))?;
