@@ -112,15 +112,14 @@ pub(crate) fn coordinator_ask(
         );
         effects.push(Effect::aid_fired(Aid::FollowWords, detail));
     }
-    // The pilot's instruction for the whole swarm: the available drones and their modes, for
-    // the reply check (`whole_swarm`; a replan's own words are not the pilot's).
+    // The available drones and their modes, for the reply check; the pilot's instruction may be
+    // for all of them (`whole_swarm`; a replan's own words are not the pilot's).
     let modes: Vec<(String, DroneMode)> = (available.iter())
         .filter_map(|d| Some((d.clone(), snap.mode_of(d)?)))
         .collect();
-    let whole_swarm: Option<Vec<(String, DroneMode)>> = (from_pilot
+    let whole_swarm = from_pilot
         && aids.is_on(Aid::WholeSwarm)
-        && whole_swarm::addresses_whole_swarm(instruction))
-    .then(|| modes.clone());
+        && whole_swarm::addresses_whole_swarm(instruction);
     let grounded = snap.grounded_ids();
     let user = render::coordinator_request(
         &render::swarm(&snap.drone_lines(scenario)),

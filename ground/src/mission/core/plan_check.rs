@@ -40,9 +40,8 @@ pub(crate) struct PlanCheck {
     /// What the instruction asks to be followed (`follow-words`), and what is followed already.
     pub(crate) follow: Vec<FollowAsked>,
     pub(crate) followed: Vec<String>,
-    /// The pilot's instruction is for every drone (`whole-swarm`): the available ones, with
-    /// their modes.
-    pub(crate) whole_swarm: Option<Vec<(String, DroneMode)>>,
+    /// The pilot's instruction is for every drone (`whole-swarm`): every one of `modes`.
+    pub(crate) whole_swarm: bool,
 }
 
 /// A Coordinator reply as judged.
@@ -103,7 +102,7 @@ impl PlanCheck {
         // The whole plan the repair round's grammar allows (`repair-grammar`), for a plan of
         // one action for the whole swarm that left drones out.
         let mut whole: Option<Vec<schema::RequiredCall>> = None;
-        if let Some(available) = self.whole_swarm.as_ref() {
+        if let Some(available) = self.whole_swarm.then_some(&self.modes) {
             let left = whole_swarm::left_out(&reply.plan, available);
             if !left.is_empty() {
                 let text = whole_swarm::left_out_text(&left);
@@ -222,7 +221,7 @@ impl PlanCheck {
     /// drones are already flying" with all six on the ground.
     fn empty_plan_text(&self) -> String {
         let mut text = String::from("the plan is empty: list the calls the instruction needs");
-        if let Some(available) = &self.whole_swarm {
+        if let Some(available) = self.whole_swarm.then_some(&self.modes) {
             text.push_str(&format!(
                 ", for every drone: {}",
                 whole_swarm::with_modes(available)

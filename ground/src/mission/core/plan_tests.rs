@@ -36,7 +36,7 @@ fn check(aids: ModelAids) -> PlanCheck {
         ],
         follow: Vec::new(),
         followed: Vec::new(),
-        whole_swarm: None,
+        whole_swarm: false,
     }
 }
 
@@ -93,10 +93,8 @@ fn an_empty_plan_needs_a_refusal_and_a_refusal_may_not_deny_a_place_the_pilot_na
 fn an_empty_plan_under_plan_only_is_not_told_of_a_refusal_and_a_whole_swarm_one_hears_the_modes() {
     let mut c = check(ModelAids::small());
     c.schema = schema::without_refusal(&c.schema);
-    c.whole_swarm = Some(vec![
-        ("alfa".into(), DroneMode::Idle),
-        ("bravo".into(), DroneMode::Flying),
-    ]);
+    c.modes[1].1 = DroneMode::Flying;
+    c.whole_swarm = true;
     let j = c.judge(&reply(Vec::new()));
     assert_eq!(
         j.rejections,
@@ -105,7 +103,7 @@ fn an_empty_plan_under_plan_only_is_not_told_of_a_refusal_and_a_whole_swarm_one_
           bravo (flying)"
         ]
     );
-    c.whole_swarm = None;
+    c.whole_swarm = false;
     let j = c.judge(&reply(Vec::new()));
     assert_eq!(
         j.rejections,
@@ -133,10 +131,8 @@ fn a_place_off_the_instruction_is_sent_back_only_with_a_scope() {
 #[test]
 fn with_the_whole_swarm_aid_a_plan_for_every_drone_must_leave_none_out() {
     let mut c = check(ModelAids::small());
-    c.whole_swarm = Some(vec![
-        ("alfa".into(), DroneMode::Idle),
-        ("bravo".into(), DroneMode::Idle),
-    ]);
+    // alfa and bravo idle (`check`).
+    c.whole_swarm = true;
     let j = c.judge(&reply(vec![take_off("T1", "alfa")]));
     let text = "the instruction is for every drone, but the plan gives bravo (idle) no task: add \
                 its part";
@@ -184,7 +180,7 @@ fn with_the_whole_swarm_aid_a_plan_for_every_drone_must_leave_none_out() {
     ]));
     assert!(j.rejections.is_empty() && j.aids_fired.is_empty(), "{j:?}");
     // Off (or not the pilot's words for every drone): the plan is taken as written.
-    c.whole_swarm = None;
+    c.whole_swarm = false;
     assert!(
         c.judge(&reply(vec![take_off("T1", "alfa")]))
             .rejections
