@@ -101,8 +101,9 @@ where
 ///   interactive-high priority), same callback;
 /// * `bare+fifo`: default put, received through zenoh's default FIFO handler by a tokio task
 ///   (what an async program's `recv_async` costs: a hand-over between threads);
-/// * `tacos`: `tacos_bus::put` (codec, QoS) and `tacos_bus::subscribe` (FIFO) with decode,
-///   the calls the ground and `tacos-onboard` make.
+/// * `tacos`: `tacos_bus::put` (codec, QoS) and `tacos_bus::subscribe_with` (decoded in zenoh's
+///   callback), the calls the ground and `tacos-onboard` make; the onboard's handler then
+///   takes its executor's lock and hands the action over (`runtime::shared_core`).
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum ZenohPath {
     Bare,
@@ -187,16 +188,14 @@ async fn receiver(
                 }
             })))
         }
-        ZenohPath::Tacos => {
-            let sub = tacos_bus::subscribe(onboard, key).await?;
-            Box::new(AbortOnDrop(tokio::spawn(async move {
-                while let Ok(sample) = sub.recv_async().await {
-                    if let Ok(cmd) = tacos_bus::decode::<ActionCommand>(&sample) {
-                        let _ = receipts.send((cmd.seq, Instant::now()));
-                    }
+        ZenohPath::Tacos => Box::new(
+            tacos_bus::subscribe_with(onboard, key, move |cmd: Result<ActionCommand, _>| {
+                if let Ok(cmd) = cmd {
+                    let _ = receipts.send((cmd.seq, Instant::now()));
                 }
-            })))
-        }
+            })
+            .await?,
+        ),
     })
 }
 

@@ -1,26 +1,29 @@
 //! The task shell around the executor and the planner: zenoh in and out (actions, heartbeats,
 //! neighbours' paths, targets; status, this drone's path), iceoryx2 to the writer, the clock.
+//! Actions and heartbeats are acted on in zenoh's callbacks (`shared_core`); the rest is read
+//! by the loop task.
 //!
 //! Every time here is read from one `tacos_bus::clock::Clock`: the wall clock on a drone, the simulator's with
 //! `--sim-clock`, so that rates, deadlines, the failsafe and path stamps keep their meaning when a
 //! simulation runs faster than real time.
 
 mod ground_side;
+mod shared_core;
 
 use crate::executor::{Executor, ExecutorConfig};
 use crate::failsafe::FailsafeTimer;
-use crate::ground_follow::{GroundFollower, Refusal};
+use crate::ground_follow::GroundFollower;
 use crate::motion::{Motion, MotionConfig, SolveDone, Steering};
 use crate::planner::{PlannerConfig, PlannerError};
 use crate::stall::StallWatch;
 use ground_side::GroundSide;
+use shared_core::{Core, CorePoisoned, SharedCore, take_ground_messages};
 use std::future::Future;
 use tacos_bus::{BusArgs, BusError};
 use tacos_ipc::{IpcError, IpcNode};
-use tacos_shared::ActionCommand;
 use tacos_shared::DroneId;
 use tacos_shared::ipc::SetpointSample;
-use tacos_shared::messages::{ActionRefused, DroneStatus, PathMessage, TargetsMessage};
+use tacos_shared::messages::{DroneStatus, PathMessage, TargetsMessage};
 use tacos_shared::scenario::Scenario;
 use tracing::{Instrument, info, info_span, warn};
 
@@ -82,6 +85,8 @@ pub enum OnboardError {
     Planner(#[from] PlannerError),
     #[error("the planner's solve did not return: {0}")]
     PlannerLost(String),
+    #[error(transparent)]
+    CorePoisoned(#[from] CorePoisoned),
 }
 
 /// Counts malformed payloads of one kind, warning on the 1st, 2nd, 4th, 8th… so a flood does not
@@ -129,6 +134,27 @@ fn start_solve(
     Some(tokio::task::spawn_blocking(move || job.run()))
 }
 
+/// The status `core` tells, numbered `counter`.
+fn status_of(core: &Core, drone: &DroneId, counter: u64) -> DroneStatus {
+    let Core { executor, ground } = core;
+    let vehicle = executor.vehicle().copied();
+    DroneStatus {
+        drone: drone.clone(),
+        counter,
+        mode: executor.mode(),
+        armed: vehicle.is_some_and(|v| v.armed),
+        position: vehicle.map(|v| v.position).unwrap_or_default(),
+        velocity: vehicle.map(|v| v.velocity).unwrap_or_default(),
+        autopilot_link: vehicle.is_some_and(|v| v.link_ok),
+        action: executor.progress().cloned(),
+        failsafe: executor.failsafe(),
+        peers_silent: executor.peers_silent(),
+        malformed_actions: ground.malformed_actions,
+        ground: ground.grounds.followed(),
+        refused: ground.refused.clone(),
+    }
+}
+
 /// Runs the drone until `shutdown` completes.
 pub async fn run(
     cfg: OnboardConfig,
@@ -151,8 +177,19 @@ async fn run_inner(
         .synced(std::time::Duration::from_secs(10))
         .await
         .map_err(BusError::from)?;
-    let actions = tacos_bus::subscribe(&session, &keys.action(&drone)).await?;
-    let heartbeats = tacos_bus::subscribe(&session, &keys.ground_heartbeat()).await?;
+    let now = || clock.now();
+    // A ground station silent for the hold time may be replaced by another.
+    let core = SharedCore::new(Core {
+        executor: Executor::new(ExecutorConfig::new(
+            cfg.scenario.limits,
+            cfg.scenario.world.clone(),
+        )),
+        ground: GroundSide::new(
+            GroundFollower::new(cfg.failsafe_hold_s, cfg.max_action_late_s),
+            FailsafeTimer::new(cfg.failsafe_hold_s, cfg.failsafe_land_s, now()),
+        ),
+    });
+    let _ground_subscribers = take_ground_messages(&session, &keys, &drone, &core, &clock).await?;
     // Enough room for a few rounds of every neighbour's path; older ones are superseded anyway.
     let paths = tacos_bus::subscribe_latest(&session, &keys.all_paths(), 256).await?;
     let targets = tacos_bus::subscribe_latest(&session, &keys.targets(), 8).await?;
@@ -162,11 +199,6 @@ async fn run_inner(
     let _alive = tacos_bus::declare_alive(&session, &keys.alive(&drone)).await?;
     info!(swarm = %cfg.bus.swarm, "onboard up");
 
-    let now = || clock.now();
-    let mut executor = Executor::new(ExecutorConfig::new(
-        cfg.scenario.limits,
-        cfg.scenario.world.clone(),
-    ));
     let mut motion = Motion::new(
         drone.clone(),
         PlannerConfig::from_scenario(&cfg.scenario.limits, &cfg.scenario.world),
@@ -188,11 +220,6 @@ async fn run_inner(
     // 10–14 solves a second where they should have 20.
     let mut solve_due = false;
     let mut last_steering: Option<Steering> = None;
-    // A ground station silent for the hold time may be replaced by another.
-    let mut ground = GroundSide::new(
-        GroundFollower::new(cfg.failsafe_hold_s, cfg.max_action_late_s),
-        FailsafeTimer::new(cfg.failsafe_hold_s, cfg.failsafe_land_s, now()),
-    );
     let mut control = clock.ticker(1.0 / cfg.control_rate_hz);
     let mut stalls = StallWatch::new(1.0 / cfg.control_rate_hz, cfg.stall_after_s);
     let status_every = (cfg.control_rate_hz / cfg.status_rate_hz).round().max(1.0) as u64;
@@ -200,7 +227,6 @@ async fn run_inner(
 
     let mut ticks: u64 = 0;
     let mut status_counter: u64 = 0;
-    let mut malformed_actions: u64 = 0;
     let mut setpoint_seq: u64 = 0;
     let mut last_state_at: Option<f64> = None;
     let mut ipc_errors: u64 = 0;
@@ -210,35 +236,7 @@ async fn run_inner(
     loop {
         tokio::select! {
             _ = &mut shutdown => break,
-            sample = actions.recv_async() => {
-                let sample = sample.map_err(|_| OnboardError::SubscriberClosed(keys.action(&drone)))?;
-                match tacos_bus::decode::<ActionCommand>(&sample) {
-                    Ok(command) => match ground.grounds.admit(&command, now()) {
-                        Ok(()) => {
-                            if executor.on_command(&command, now()) {
-                                info!(seq = command.seq, action = %command.action, "action received");
-                                publish_now = true;
-                            }
-                        }
-                        Err(refusal) => {
-                            warn!(seq = command.seq, action = %command.action, "action refused: {refusal}");
-                            if let Refusal::Late(why) = refusal {
-                                ground.refused = Some(ActionRefused { seq: command.seq, why });
-                                publish_now = true;
-                            }
-                        }
-                    },
-                    Err(e) => {
-                        malformed_actions += 1;
-                        warn!(error = %e, count = malformed_actions, "malformed action ignored");
-                        publish_now = true;
-                    }
-                }
-            }
-            sample = heartbeats.recv_async() => {
-                let sample = sample.map_err(|_| OnboardError::SubscriberClosed(keys.ground_heartbeat()))?;
-                publish_now |= ground.on_heartbeat(&sample, &mut executor, now());
-            }
+            () = core.status_due() => publish_now = true,
             sample = paths.recv_async() => {
                 let sample = sample.map_err(|_| OnboardError::SubscriberClosed(keys.all_paths()))?;
                 take_path(&mut motion, &sample, &mut malformed_paths);
@@ -262,14 +260,14 @@ async fn run_inner(
                     Err(e) => return Err(OnboardError::PlannerLost(e.to_string())),
                 }
                 if std::mem::take(&mut solve_due) && let Some(steering) = last_steering {
-                    solving = start_solve(&mut motion, &executor, steering, now());
+                    solving = start_solve(&mut motion, &core.lock()?.executor, steering, now());
                 }
             }
             _ = plan_timer.tick() => {
                 if solving.is_some() {
                     solve_due = true;
                 } else if let Some(steering) = last_steering {
-                    solving = start_solve(&mut motion, &executor, steering, now());
+                    solving = start_solve(&mut motion, &core.lock()?.executor, steering, now());
                 }
             }
             sample = targets.recv_async() => {
@@ -281,80 +279,84 @@ async fn run_inner(
             }
             _ = control.tick() => {
                 let t = now();
-                if let Some(deaf_s) = stalls.tick(t) {
-                    ground.failsafe.excuse(deaf_s, t);
-                    motion.excuse_peers(deaf_s, t);
-                    if deaf_s >= 1.0 {
-                        warn!(deaf_s, "this onboard stalled: the time is not counted as silence");
-                    }
-                }
-                // The silences are judged on everything heard: a tick picked before the
-                // queued heartbeats and paths (after a stall, say) takes them in first.
-                while let Ok(Some(sample)) = heartbeats.try_recv() {
-                    publish_now |= ground.on_heartbeat(&sample, &mut executor, t);
-                }
-                while let Ok(Some(sample)) = paths.try_recv() {
-                    take_path(&mut motion, &sample, &mut malformed_paths);
-                }
-                let mut path_out = None;
-                let step = (|| -> Result<(), IpcError> {
-                    for result in ports.results.drain()? {
-                        executor.on_result(&result, t);
-                    }
-                    if let Some(state) = ports.state.latest()? {
-                        executor.on_vehicle(&state);
-                        last_state_at = Some(t);
-                    }
-                    if last_state_at.is_some_and(|at| t - at > cfg.writer_timeout_s) {
-                        executor.on_writer_silent();
-                    }
-                    let before = executor.failsafe();
-                    executor.set_failsafe(ground.failsafe.stage(t), t);
-                    if executor.failsafe() != before {
-                        warn!(stage = ?executor.failsafe(), silence_s = ground.failsafe.silence(t), "failsafe changed");
-                    }
-                    let peers_silence = motion.peers_silence(t);
-                    let peers_were_silent = executor.peers_silent();
-                    executor.set_peers_silent(peers_silence.is_some_and(|s| s >= cfg.peers_silent_hold_s));
-                    if executor.peers_silent() != peers_were_silent {
-                        match peers_silence {
-                            Some(s) if executor.peers_silent() => warn!(silence_s = s, "no neighbour heard: an airborne drone holds"),
-                            _ => info!("a neighbour is heard again"),
+                // The core's lock is let go before the path goes out (never held across an `.await`).
+                let (step, path_out) = {
+                    let mut held = core.lock()?;
+                    let Core { executor, ground } = &mut *held;
+                    if let Some(deaf_s) = stalls.tick(t) {
+                        ground.failsafe.excuse(deaf_s, t);
+                        motion.excuse_peers(deaf_s, t);
+                        if deaf_s >= 1.0 {
+                            warn!(deaf_s, "this onboard stalled: the time is not counted as silence");
                         }
                     }
-                    if let Some((target, altitude)) = executor.following() {
-                        let station = motion.station(target, altitude, t);
-                        executor.on_station(station, t);
+                    // The peers' silence is judged on every path heard: a tick picked before the
+                    // queued ones (after a stall, say) takes them in first. (Heartbeats are taken
+                    // in by their callback as they arrive.)
+                    while let Ok(Some(sample)) = paths.try_recv() {
+                        take_path(&mut motion, &sample, &mut malformed_paths);
                     }
-                    let out = executor.tick(t);
-                    motion.set_airborne(executor.airborne());
-                    for command in out.commands {
-                        ports.send_command(command)?;
-                    }
-                    last_steering = out.steering;
-                    if let (Some(steering), Some(vehicle)) = (out.steering, executor.vehicle()) {
-                        // The first solve of a new goal starts at once; then the timer paces.
-                        if let Steering::Toward(_) = steering
-                            && solving.is_none()
-                            && !motion.has_plan()
-                        {
-                            solving = start_solve(&mut motion, &executor, steering, t);
+                    let mut path_out = None;
+                    let step = (|| -> Result<(), IpcError> {
+                        for result in ports.results.drain()? {
+                            executor.on_result(&result, t);
                         }
-                        let step = motion.tick(t, vehicle.position, vehicle.velocity, steering);
-                        path_out = step.path;
-                        let reference = step.reference;
-                        setpoint_seq += 1;
-                        ports.send_setpoint(SetpointSample {
-                            seq: setpoint_seq,
-                            stamp_ns: (t.max(0.0) * 1e9) as u64,
-                            position: reference.position.into(),
-                            velocity: reference.velocity.into(),
-                            acceleration: reference.acceleration.into(),
-                            yaw: f64::NAN,
-                        })?;
-                    }
-                    Ok(())
-                })();
+                        if let Some(state) = ports.state.latest()? {
+                            executor.on_vehicle(&state);
+                            last_state_at = Some(t);
+                        }
+                        if last_state_at.is_some_and(|at| t - at > cfg.writer_timeout_s) {
+                            executor.on_writer_silent();
+                        }
+                        let before = executor.failsafe();
+                        executor.set_failsafe(ground.failsafe.stage(t), t);
+                        if executor.failsafe() != before {
+                            warn!(stage = ?executor.failsafe(), silence_s = ground.failsafe.silence(t), "failsafe changed");
+                        }
+                        let peers_silence = motion.peers_silence(t);
+                        let peers_were_silent = executor.peers_silent();
+                        executor.set_peers_silent(peers_silence.is_some_and(|s| s >= cfg.peers_silent_hold_s));
+                        if executor.peers_silent() != peers_were_silent {
+                            match peers_silence {
+                                Some(s) if executor.peers_silent() => warn!(silence_s = s, "no neighbour heard: an airborne drone holds"),
+                                _ => info!("a neighbour is heard again"),
+                            }
+                        }
+                        if let Some((target, altitude)) = executor.following() {
+                            let station = motion.station(target, altitude, t);
+                            executor.on_station(station, t);
+                        }
+                        let out = executor.tick(t);
+                        motion.set_airborne(executor.airborne());
+                        for command in out.commands {
+                            ports.send_command(command)?;
+                        }
+                        last_steering = out.steering;
+                        if let (Some(steering), Some(vehicle)) = (out.steering, executor.vehicle()) {
+                            // The first solve of a new goal starts at once; then the timer paces.
+                            if let Steering::Toward(_) = steering
+                                && solving.is_none()
+                                && !motion.has_plan()
+                            {
+                                solving = start_solve(&mut motion, executor, steering, t);
+                            }
+                            let step = motion.tick(t, vehicle.position, vehicle.velocity, steering);
+                            path_out = step.path;
+                            let reference = step.reference;
+                            setpoint_seq += 1;
+                            ports.send_setpoint(SetpointSample {
+                                seq: setpoint_seq,
+                                stamp_ns: (t.max(0.0) * 1e9) as u64,
+                                position: reference.position.into(),
+                                velocity: reference.velocity.into(),
+                                acceleration: reference.acceleration.into(),
+                                yaw: f64::NAN,
+                            })?;
+                        }
+                        Ok(())
+                    })();
+                    (step, path_out)
+                };
                 if let Some(path) = path_out
                     && let Err(e) = tacos_bus::put(&session, &path_key, &path, false).await
                 {
@@ -380,22 +382,7 @@ async fn run_inner(
         if publish_now {
             publish_now = false;
             status_counter += 1;
-            let vehicle = executor.vehicle().copied();
-            let status = DroneStatus {
-                drone: drone.clone(),
-                counter: status_counter,
-                mode: executor.mode(),
-                armed: vehicle.is_some_and(|v| v.armed),
-                position: vehicle.map(|v| v.position).unwrap_or_default(),
-                velocity: vehicle.map(|v| v.velocity).unwrap_or_default(),
-                autopilot_link: vehicle.is_some_and(|v| v.link_ok),
-                action: executor.progress().cloned(),
-                failsafe: executor.failsafe(),
-                peers_silent: executor.peers_silent(),
-                malformed_actions,
-                ground: ground.grounds.followed(),
-                refused: ground.refused.clone(),
-            };
+            let status = status_of(&*core.lock()?, &drone, status_counter);
             if let Err(e) = tacos_bus::put(&session, &status_key, &status, false).await {
                 warn!(error = %e, "status not published");
             }

@@ -254,6 +254,32 @@ pub async fn subscribe(
         })
 }
 
+/// Declares a subscriber that decodes each sample and hands it to `handler` on zenoh's own
+/// receiving thread, in the order the samples arrived. For messages acted on at once (a drone's
+/// actions and the heartbeats they must follow): no hand-over to another thread, which costs as
+/// much as zenoh's whole delivery (README, "Latency"). `handler` must be quick and must not
+/// block on anything zenoh itself waits for; the subscriber lives until the returned value
+/// is dropped.
+pub async fn subscribe_with<T, F>(
+    session: &Session,
+    key: &str,
+    handler: F,
+) -> Result<zenoh::pubsub::Subscriber<()>, BusError>
+where
+    T: DeserializeOwned,
+    F: Fn(Result<T, CodecError>) + Send + Sync + 'static,
+{
+    session
+        .declare_subscriber(key.to_owned())
+        .callback(move |sample| handler(decode(&sample)))
+        .await
+        .map_err(|e| BusError::Declare {
+            what: "subscriber",
+            key: key.to_owned(),
+            reason: e.to_string(),
+        })
+}
+
 /// Declares a subscriber for a stream where only recent samples matter (neighbours' paths,
 /// targets): it keeps the last `capacity` samples and drops older ones. Unlike the FIFO of
 /// [`subscribe`], it never makes zenoh's receiving task wait for the reader, so a busy reader
@@ -326,4 +352,82 @@ pub enum ScenarioLoadError {
     Read { path: String, reason: String },
     #[error(transparent)]
     Invalid(#[from] tacos_shared::scenario::ScenarioError),
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::{Arc, Mutex};
+
+    /// Two peer sessions on loopback TCP, the second connected to the first.
+    async fn pair() -> (Session, Session) {
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .expect("a free port")
+            .port();
+        let swarm = SwarmId::new(format!("bus{}", std::process::id())).expect("swarm id");
+        let endpoint = format!("tcp/127.0.0.1:{port}");
+        let listening = BusArgs::loopback(swarm.clone(), Some(endpoint.clone()), vec![]);
+        let connecting = BusArgs::loopback(swarm, None, vec![endpoint]);
+        let a = listening.open().await.expect("first session");
+        let b = connecting.open().await.expect("second session");
+        (a, b)
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn subscribe_with_hands_each_sample_decoded_in_order_and_a_malformed_one_as_its_error() {
+        let (publisher_side, subscriber_side) = pair().await;
+        let key = "tacos/bus-test/with";
+        let heard: Arc<Mutex<Vec<Result<u64, CodecError>>>> = Arc::default();
+        let (done_tx, mut done_rx) = tokio::sync::mpsc::unbounded_channel();
+        let _subscriber = {
+            let heard = heard.clone();
+            subscribe_with(
+                &subscriber_side,
+                key,
+                move |value: Result<u64, CodecError>| {
+                    let mut heard = heard.lock().expect("not poisoned");
+                    heard.push(value);
+                    if heard.len() == 4 {
+                        let _ = done_tx.send(());
+                    }
+                },
+            )
+            .await
+            .expect("declared")
+        };
+        let publisher = publisher_side
+            .declare_publisher(key)
+            .await
+            .expect("publisher");
+        let deadline = std::time::Instant::now() + Duration::from_secs(10);
+        while !publisher
+            .matching_status()
+            .await
+            .expect("matching status")
+            .matching()
+        {
+            assert!(std::time::Instant::now() < deadline, "never matched");
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+        // All at the default priority: zenoh orders samples within a priority, not across.
+        put(&publisher_side, key, &1u64, false).await.expect("put");
+        publisher_side
+            .put(key, vec![codec::WIRE_VERSION])
+            .await
+            .expect("raw put");
+        put(&publisher_side, key, &3u64, false).await.expect("put");
+        put(&publisher_side, key, &4u64, false).await.expect("put");
+        tokio::time::timeout(Duration::from_secs(10), done_rx.recv())
+            .await
+            .expect("all four heard within 10 s");
+        let heard = heard.lock().expect("not poisoned");
+        assert_eq!(heard[0], Ok(1));
+        assert!(
+            matches!(heard[1], Err(CodecError::Truncated)),
+            "{:?}",
+            heard[1]
+        );
+        assert_eq!(heard[2..], [Ok(3), Ok(4)]);
+    }
 }
