@@ -2,18 +2,18 @@
 //!
 //! Actions and ground heartbeats are acted on in zenoh's subscriber callbacks, the moment they
 //! arrive, instead of being queued for the loop task: handing a sample from zenoh's thread to a
-//! task costs as much as zenoh's whole delivery (~20 µs, README "Latency"), and a `land` should
-//! not wait for it. The loop locks the same core for its control ticks; every lock is short and
-//! never held across an `.await`. The callbacks only ask the loop to publish the status.
+//! task costs as much as zenoh's whole delivery (20-35 µs on the 2-core machines, README
+//! "Benchmarks"), and a `land` should not wait for it. The loop locks the same core for its
+//! control ticks; every lock is short and never held across an `.await`. The callbacks only
+//! ask the loop to publish the status.
 
 use super::ground_side::GroundSide;
 use crate::executor::Executor;
 use std::sync::{Arc, Mutex, MutexGuard};
 use tacos_bus::clock::Clock;
 use tacos_bus::{BusError, subscribe_with};
-use tacos_shared::ActionCommand;
+use tacos_shared::codec::CodecError;
 use tacos_shared::keys::Keys;
-use tacos_shared::messages::GroundHeartbeat;
 use tokio::sync::Notify;
 use zenoh::Session;
 use zenoh::pubsub::Subscriber;
@@ -65,8 +65,7 @@ pub(super) struct GroundSubscribers {
 }
 
 /// Declares the subscribers of `drone`'s actions and of the ground heartbeats, each taken in on
-/// zenoh's thread by `core` at `clock`'s time. A callback that finds the core poisoned drops
-/// its message: the loop stops at its next lock.
+/// zenoh's thread by `core` at `clock`'s time.
 pub(super) async fn take_ground_messages(
     session: &Session,
     keys: &Keys,
@@ -74,46 +73,44 @@ pub(super) async fn take_ground_messages(
     core: &Arc<SharedCore>,
     clock: &Clock,
 ) -> Result<GroundSubscribers, BusError> {
-    // Callbacks run on zenoh's threads, outside the drone's span: they enter it themselves.
-    let span = tracing::Span::current();
-    let actions = {
-        let (core, clock, span) = (core.clone(), clock.clone(), span.clone());
-        subscribe_with(
-            session,
-            &keys.action(drone),
-            move |command: Result<ActionCommand, _>| {
-                let _entered = span.enter();
-                let Ok(mut held) = core.lock() else { return };
-                let Core { executor, ground } = &mut *held;
-                let due = ground.on_action(command, executor, clock.now());
-                drop(held);
-                if due {
-                    core.ask_status();
-                }
-            },
-        )
-        .await?
-    };
-    let heartbeats = {
-        let (core, clock) = (core.clone(), clock.clone());
-        subscribe_with(
-            session,
-            &keys.ground_heartbeat(),
-            move |beat: Result<GroundHeartbeat, _>| {
-                let _entered = span.enter();
-                let Ok(mut held) = core.lock() else { return };
-                let Core { executor, ground } = &mut *held;
-                let due = ground.on_heartbeat(beat, executor, clock.now());
-                drop(held);
-                if due {
-                    core.ask_status();
-                }
-            },
-        )
-        .await?
-    };
+    let actions = subscribe_with(
+        session,
+        &keys.action(drone),
+        taking(core, clock, GroundSide::on_action),
+    )
+    .await?;
+    let heartbeats = subscribe_with(
+        session,
+        &keys.ground_heartbeat(),
+        taking(core, clock, GroundSide::on_heartbeat),
+    )
+    .await?;
     Ok(GroundSubscribers {
         _actions: actions,
         _heartbeats: heartbeats,
     })
+}
+
+/// What the ground side does with one message of a kind: true when the status should go out.
+type Take<T> = fn(&mut GroundSide, Result<T, CodecError>, &mut Executor, f64) -> bool;
+
+/// A callback that takes each message in with `take` under the core's lock. One that finds the
+/// core poisoned drops its message: the loop stops at its next lock.
+fn taking<T: 'static>(
+    core: &Arc<SharedCore>,
+    clock: &Clock,
+    take: Take<T>,
+) -> impl Fn(Result<T, CodecError>) + Send + Sync + 'static {
+    // Callbacks run on zenoh's threads, outside the drone's span: they enter it themselves.
+    let (core, clock, span) = (core.clone(), clock.clone(), tracing::Span::current());
+    move |message| {
+        let _entered = span.enter();
+        let Ok(mut held) = core.lock() else { return };
+        let Core { executor, ground } = &mut *held;
+        let due = take(ground, message, executor, clock.now());
+        drop(held);
+        if due {
+            core.ask_status();
+        }
+    }
 }
