@@ -24,8 +24,8 @@ pub(super) struct Core {
 }
 
 /// A panic while the core was held (in a callback or a tick) may have left it half-changed:
-/// the onboard stops rather than fly on it (the writer then loses its setpoints and PX4's
-/// offboard-loss failsafe takes over).
+/// the onboard stops rather than fly on it (the writer, without setpoints, then holds the
+/// vehicle where it is and lands it after 15 s: `tacos-px4`'s `orphan`).
 #[derive(Debug, thiserror::Error)]
 #[error("the executor was left half-changed by a panic")]
 pub struct CorePoisoned;
