@@ -87,23 +87,27 @@ fn a_late_action_is_refused_and_the_refusal_told() {
     assert_eq!(ground.refused.as_ref().map(|r| r.seq), Some(1));
 }
 
-#[test]
-fn a_beat_heard_before_an_action_ends_the_failsafe_the_action_would_meet() {
+/// A drone whose ground beat at 0 and fell silent past the hold time: at 4 the tick has set
+/// the failsafe.
+fn in_failsafe() -> (GroundSide, Executor) {
     let (mut ground, mut executor) = drone();
     ground.on_heartbeat(beat(7, 0.0), &mut executor, 0.0);
-    // Silent past the hold time: the tick set the failsafe.
     executor.set_failsafe(ground.failsafe.stage(4.0), 4.0);
     assert_eq!(executor.failsafe(), Some(FailsafeStage::Holding));
+    (ground, executor)
+}
+
+#[test]
+fn a_beat_heard_before_an_action_ends_the_failsafe_the_action_would_meet() {
     // Without the beat the take-off is refused for the failsafe …
-    let (mut unheard, mut refusing) = drone();
-    unheard.on_heartbeat(beat(7, 0.0), &mut refusing, 0.0);
-    refusing.set_failsafe(unheard.failsafe.stage(4.0), 4.0);
+    let (mut unheard, mut refusing) = in_failsafe();
     assert!(unheard.on_action(take_off(1, 4.0), &mut refusing, 4.0));
     assert!(matches!(
         state(&refusing),
         Some((1, ActionState::Failed(FailureReason::Failsafe(_))))
     ));
     // … with it, taken.
+    let (mut ground, mut executor) = in_failsafe();
     ground.on_heartbeat(beat(7, 4.0), &mut executor, 4.0);
     assert_eq!(executor.failsafe(), None);
     assert!(ground.on_action(take_off(1, 4.0), &mut executor, 4.0));
