@@ -130,9 +130,30 @@ pub struct Stack {
     exits: mpsc::UnboundedReceiver<ChildExit>,
     exit_tx: mpsc::UnboundedSender<ChildExit>,
     pub config: StackConfig,
+    /// The first PX4 SITL instance, when the autopilots are PX4.
+    px4_base: Option<u16>,
 }
 
 impl Stack {
+    /// Where a ground station talks MAVLink to the autopilot of the `index`th drone, and the
+    /// autopilot's system id: PX4's GCS link, or the stand-in's vehicle port (which takes any
+    /// sender's messages, as PX4 does, and answers its first partner).
+    pub fn autopilot_address(&self, index: usize) -> Option<(std::net::SocketAddr, u8)> {
+        let index = u16::try_from(index).ok()?;
+        let (port, sysid) = match self.px4_base {
+            Some(base) => (
+                px4::GCS_PORT.checked_add(base)?.checked_add(index)?,
+                px4::sysid(base.checked_add(index)?),
+            ),
+            None => (
+                self.config.sitl_base_port.checked_add(index)?,
+                index.checked_add(1)?,
+            ),
+        };
+        let sysid = u8::try_from(sysid).ok()?;
+        Some((std::net::SocketAddr::from(([127, 0, 0, 1], port)), sysid))
+    }
+
     /// Starts the simulator, then a writer and an onboard process per drone.
     pub fn start(config: StackConfig) -> Result<Stack, LaunchError> {
         for role in [Role::Sitl, Role::Writer, Role::Onboard] {
@@ -154,6 +175,7 @@ impl Stack {
             exits,
             exit_tx,
             config,
+            px4_base: None,
         };
         let c = stack.config.clone();
         let bus = |args: &mut Vec<String>| {
@@ -182,6 +204,7 @@ impl Stack {
                 }
                 let bundle = px4::prepare(dir, &c.log_dir.join("px4"))?;
                 let base = px4::free_instance_base(c.drones)?;
+                stack.px4_base = Some(base);
                 Some((bundle, base))
             }
         };

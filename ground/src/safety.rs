@@ -45,7 +45,7 @@ impl fmt::Display for Rejection {
             }
             Rejection::Unavailable(d) => write!(
                 f,
-                "{d} is unavailable (gone, stale or without autopilot link)"
+                "{d} is unavailable (gone, stale, without autopilot link, or flown by PX4 out of offboard)"
             ),
             Rejection::ModeForbids {
                 drone,

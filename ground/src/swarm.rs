@@ -21,9 +21,12 @@ pub struct DroneEntry {
     pub gone_at: Option<Instant>,
 }
 
-/// A status that a mission can use: the autopilot is linked and the drone not unavailable.
+/// A status that a mission can use: the autopilot is linked, the drone not unavailable, and
+/// TACOS, not PX4, flies it (`DroneStatus::autopilot_took_over`).
 fn usable(status: &DroneStatus) -> bool {
-    status.autopilot_link && status.mode != DroneMode::Unavailable
+    status.autopilot_link
+        && status.mode != DroneMode::Unavailable
+        && status.autopilot_took_over.is_none()
 }
 
 impl DroneEntry {
@@ -52,10 +55,15 @@ impl DroneEntry {
         self.effective_mode(now) != DroneMode::Unavailable && !self.busy()
     }
 
-    /// The mode the ground should assume: unavailable when gone or stale.
+    /// The mode the ground should assume: unavailable when gone or stale, or while PX4 flies it
+    /// out of offboard (only hold and land, which take it back, may be sent then).
     pub fn effective_mode(&self, now: Instant) -> DroneMode {
         match (&self.status, self.link_age(now)) {
-            (Some(status), Some(age)) if self.alive && age <= STALE_AFTER_S => status.mode,
+            (Some(status), Some(age))
+                if self.alive && age <= STALE_AFTER_S && status.autopilot_took_over.is_none() =>
+            {
+                status.mode
+            }
             _ => DroneMode::Unavailable,
         }
     }
@@ -184,6 +192,7 @@ pub(crate) fn test_status(id: &str, mode: DroneMode) -> DroneStatus {
         malformed_actions: 0,
         ground: None,
         refused: None,
+        autopilot_took_over: None,
     }
 }
 
@@ -289,6 +298,36 @@ mod tests {
         assert_eq!(
             view.apply_status(status("alfa"), t0),
             SwarmChange::Joined(alfa)
+        );
+    }
+
+    #[test]
+    fn a_drone_px4_flies_out_of_offboard_leaves_missions_and_rejoins_when_it_is_back() {
+        let t0 = Instant::now();
+        let mut view = SwarmView::default();
+        let alfa = DroneId::new("alfa").expect("valid");
+        let taken = DroneStatus {
+            autopilot_took_over: Some(tacos_shared::px4_mode::Px4Mode::Hold),
+            ..status("alfa")
+        };
+        view.apply_liveliness(&alfa, true, t0);
+        view.apply_status(status("alfa"), t0);
+        assert_eq!(
+            view.apply_status(taken, t0),
+            SwarmChange::Left(alfa.clone())
+        );
+        assert!(view.present_ids().is_empty());
+        assert_eq!(
+            view.get(&alfa).expect("known").effective_mode(t0),
+            DroneMode::Unavailable
+        );
+        assert_eq!(
+            view.apply_status(status("alfa"), t0),
+            SwarmChange::Joined(alfa.clone())
+        );
+        assert_eq!(
+            view.get(&alfa).expect("known").effective_mode(t0),
+            DroneMode::Flying
         );
     }
 }

@@ -33,7 +33,10 @@ pub fn render(view: &SwarmView, now: Instant) -> String {
                 let failsafe = s
                     .failsafe
                     .map(|f| format!(" [failsafe {f:?}]"))
-                    .unwrap_or_default();
+                    .unwrap_or_default()
+                    + &s.autopilot_took_over
+                        .map(|m| format!(" [PX4 flies it: {m}]"))
+                        .unwrap_or_default();
                 (
                     format!(
                         "({:>7.1}, {:>7.1}, {:>5.1})",

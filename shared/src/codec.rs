@@ -64,6 +64,7 @@ mod tests {
     use crate::ids::DroneId;
     use crate::messages::*;
     use crate::mode::DroneMode;
+    use crate::px4_mode::Px4Mode;
     use proptest::prelude::*;
 
     fn finite() -> impl Strategy<Value = f64> {
@@ -131,6 +132,7 @@ mod tests {
                         bound_s: 2.0,
                     },
                 }),
+                autopilot_took_over: (counter % 2 == 0).then_some(Px4Mode::Hold),
             })
     }
 

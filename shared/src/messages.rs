@@ -116,6 +116,13 @@ pub struct DroneStatus {
     /// The latest action of the followed ground station that this drone refused on arrival
     /// (it came too late): the ground's wait for that action ends with the reason.
     pub refused: Option<ActionRefused>,
+    /// PX4 flies the drone in this mode, not TACOS: it left offboard control in flight without
+    /// TACOS asking (its own failsafe, a geofence, an RC pilot or another ground station
+    /// switched it). The drone is out of missions until PX4 is back in offboard or the drone
+    /// is on the ground; a hold or land sent to it takes it back into offboard. (Absent from
+    /// mission traces written before it: read as none.)
+    #[serde(default)]
+    pub autopilot_took_over: Option<crate::px4_mode::Px4Mode>,
 }
 
 /// An action of the followed ground station refused on arrival, and why.

@@ -21,7 +21,7 @@ pub const BASE_MODE_CUSTOM_ENABLED: u8 = 1;
 pub const BASE_MODE_ARMED: u8 = 128;
 
 /// The flight modes TACOS cares about.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub enum Px4Mode {
     Manual,
     Position,
@@ -66,6 +66,37 @@ impl Px4Mode {
     }
 }
 
+/// The mode's name as QGroundControl shows it ("Return", not "AUTO.RTL").
+impl std::fmt::Display for Px4Mode {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let name = match *self {
+            Px4Mode::Manual => "Manual",
+            Px4Mode::Position => "Position",
+            Px4Mode::Takeoff => "Takeoff",
+            Px4Mode::Hold => "Hold",
+            Px4Mode::Land => "Land",
+            Px4Mode::Offboard => "Offboard",
+            Px4Mode::Other {
+                main: MAIN_ALTCTL, ..
+            } => "Altitude",
+            Px4Mode::Other {
+                main: MAIN_AUTO,
+                sub: AUTO_RTL,
+            } => "Return",
+            Px4Mode::Other {
+                main: MAIN_AUTO,
+                sub: AUTO_MISSION,
+            } => "Mission",
+            Px4Mode::Other {
+                main: MAIN_AUTO,
+                sub: AUTO_READY,
+            } => "Ready",
+            Px4Mode::Other { main, sub } => return write!(f, "mode {main}.{sub}"),
+        };
+        f.write_str(name)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -85,5 +116,19 @@ mod tests {
         ] {
             assert_eq!(Px4Mode::from_custom_mode(m.custom_mode()), m);
         }
+    }
+
+    #[test]
+    fn modes_are_named_as_a_ground_station_names_them() {
+        let rtl = Px4Mode::from_custom_mode(
+            Px4Mode::Other {
+                main: MAIN_AUTO,
+                sub: AUTO_RTL,
+            }
+            .custom_mode(),
+        );
+        assert_eq!(rtl.to_string(), "Return");
+        assert_eq!(Px4Mode::Hold.to_string(), "Hold");
+        assert_eq!(Px4Mode::Other { main: 9, sub: 1 }.to_string(), "mode 9.1");
     }
 }

@@ -13,6 +13,7 @@ use tokio::sync::watch;
 
 pub mod chat_server;
 pub mod deploy;
+pub mod ground_station;
 pub mod llama_server;
 pub mod netns;
 pub mod probes;

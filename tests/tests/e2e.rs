@@ -263,14 +263,15 @@ async fn crash_onboard_and_writer(sim: &mut SimSwarm) -> anyhow::Result<()> {
 
     // Both restarted in flight, as systemd's Restart= would: each drone is seen flying and
     // available again, alfa is held where it stopped (through the planner, in OFFBOARD), and
-    // both take work again.
+    // both take work again. Bravo is PX4's until its failsafe ends, a second into the restarted
+    // writer's stream, when PX4 flies OFFBOARD again.
     sim.stack.restart(Role::Onboard, Some(&alfa))?;
     sim.stack.restart(Role::Writer, Some(&bravo))?;
     sim.link
         .wait_for_drones(
             &[alfa.clone(), bravo.clone()],
             Duration::from_secs(30),
-            |s| s.autopilot_link && s.mode == DroneMode::Flying,
+            |s| s.autopilot_link && s.mode == DroneMode::Flying && s.autopilot_took_over.is_none(),
         )
         .await?;
     let held = truth_until(&mut truth, Duration::from_secs(5), "a truth update", |_| {

@@ -42,7 +42,9 @@ fn kind_of(reason: &FailureReason) -> &'static str {
 }
 
 /// Take-off, offboard goto, land, the mode after landing (a second take-off must work), a
-/// writer killed mid-air (the autopilot's configured failsafe: hold) and restarted, land.
+/// writer killed mid-air (the autopilot's configured failsafe: hold) and restarted (offboard
+/// again), another ground station's switch to Hold (PX4 flies the drone: reported, out of
+/// missions), a hold that takes it back, land.
 async fn conformance(autopilot: AutopilotKind, tag: &str) -> anyhow::Result<Vec<Observation>> {
     let mut sim = SimSwarm::start_with(tag, "city", 1, |c| c.autopilot = autopilot).await?;
     let result = conformance_steps(&mut sim).await;
@@ -176,6 +178,30 @@ async fn conformance_steps(sim: &mut SimSwarm) -> anyhow::Result<Vec<Observation
             s.autopilot_link
         })
         .await?;
+    // With the stream back, PX4's offboard-loss failsafe ends and it flies OFFBOARD again.
+    seen.push((
+        "who flies it after the writer came back",
+        who_flies(sim, &alfa).await,
+    ));
+    // Another ground station (or an RC pilot's switch) puts it in Hold: PX4 flies it, not
+    // TACOS. The drone says so, and the ground counts it out of missions; a hold takes it back.
+    let (autopilot, sysid) = sim
+        .stack
+        .autopilot_address(0)
+        .ok_or_else(|| anyhow::anyhow!("no MAVLink address for alfa's autopilot"))?;
+    tacos_tests::ground_station::switch_mode(autopilot, sysid, Px4Mode::Hold)?;
+    seen.push((
+        "mode after another station's switch",
+        settled_mode(&mut truth, &alfa).await,
+    ));
+    seen.push(("who flies it then", who_flies(sim, &alfa).await));
+    seen.push((
+        "in the ground's missions",
+        format!("{:?}", sim.link.view().present_ids().contains(&alfa)),
+    ));
+    seen.push(("hold", act(sim, &gate, &alfa, Action::Hold).await));
+    seen.push(("mode after the hold", settled_mode(&mut truth, &alfa).await));
+    seen.push(("who flies it after the hold", who_flies(sim, &alfa).await));
     seen.push((
         "land after the writer came back",
         act(sim, &gate, &alfa, Action::Land).await,
@@ -191,6 +217,27 @@ async fn conformance_steps(sim: &mut SimSwarm) -> anyhow::Result<Vec<Observation
 }
 
 type Truth = tokio::sync::watch::Receiver<Option<tacos_shared::messages::SimTruth>>;
+
+/// Who the drone's status says flies it, once two statuses in a row agree (a status is sent at
+/// 20 Hz; PX4's heartbeat, which tells the mode, at 1 Hz): "TACOS" or "PX4 in MODE".
+async fn who_flies(sim: &SimSwarm, drone: &DroneId) -> String {
+    let says = |sim: &SimSwarm| {
+        let view = sim.link.view();
+        let status = view.get(drone)?.status.as_ref()?;
+        Some(match status.autopilot_took_over {
+            Some(mode) => format!("PX4 in {mode}"),
+            None => "TACOS".to_owned(),
+        })
+    };
+    // Past the onboard's grace for PX4's mode reports (1.6 s) and a heartbeat.
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let first = says(sim);
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    match (first, says(sim)) {
+        (Some(a), Some(b)) if a == b => a,
+        (a, b) => format!("unsettled: {a:?} then {b:?}"),
+    }
+}
 
 /// The mode the vehicle reports once its heartbeat (1 Hz) has caught up: unchanged for 2 s
 /// (within 8 s at most).
@@ -237,6 +284,19 @@ fn expected() -> Vec<Observation> {
                 Px4Mode::Hold
             ),
         ),
+        ("who flies it after the writer came back", "TACOS".into()),
+        (
+            "mode after another station's switch",
+            format!("{:?}", Some(Px4Mode::Hold)),
+        ),
+        ("who flies it then", "PX4 in Hold".into()),
+        ("in the ground's missions", "false".into()),
+        ("hold", "done".into()),
+        (
+            "mode after the hold",
+            format!("{:?}", Some(Px4Mode::Offboard)),
+        ),
+        ("who flies it after the hold", "TACOS".into()),
         ("land after the writer came back", "done".into()),
     ]
 }

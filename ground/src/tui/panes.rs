@@ -164,6 +164,9 @@ fn state_text(row: &DroneRow) -> (String, Color) {
     if row.peers_silent {
         text.push_str(" [no peer heard]");
     }
+    if let Some(mode) = row.autopilot_took_over {
+        text.push_str(&format!(" [PX4 flies it: {mode}]"));
+    }
     (text, color)
 }
 

@@ -13,6 +13,7 @@ use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
 use tacos_shared::geometry::is_finite;
 use tacos_shared::messages::{ActionState, FailsafeStage, TargetObservation};
+use tacos_shared::px4_mode::Px4Mode;
 use tacos_shared::scenario::Scenario;
 use tacos_shared::world::World;
 use tacos_shared::{DroneMode, Vec3};
@@ -51,6 +52,8 @@ pub struct DroneRow {
     pub failsafe: Option<FailsafeStage>,
     /// Holding because no neighbour is heard (`DroneStatus::peers_silent`).
     pub peers_silent: bool,
+    /// PX4 flies it in this mode, out of offboard (`DroneStatus::autopilot_took_over`).
+    pub autopilot_took_over: Option<Px4Mode>,
     /// Seconds since the last status.
     pub link_age: Option<f64>,
 }
@@ -68,6 +71,7 @@ impl DroneRow {
             state: None,
             failsafe: None,
             peers_silent: false,
+            autopilot_took_over: None,
             link_age: None,
         }
     }
@@ -423,6 +427,7 @@ impl TerminalState {
                 state: progress.map(|p| p.state.clone()),
                 failsafe: status.and_then(|s| s.failsafe),
                 peers_silent: status.is_some_and(|s| s.peers_silent),
+                autopilot_took_over: status.and_then(|s| s.autopilot_took_over),
                 link_age: entry.link_age(now),
             };
         }

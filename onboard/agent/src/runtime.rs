@@ -152,6 +152,7 @@ fn status_of(core: &Core, drone: &DroneId, counter: u64) -> DroneStatus {
         malformed_actions: ground.malformed_actions,
         ground: ground.grounds.followed(),
         refused: ground.refused.clone(),
+        autopilot_took_over: executor.autopilot_took_over(),
     }
 }
 

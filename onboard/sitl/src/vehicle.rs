@@ -17,6 +17,8 @@
 //!   5 holds where it is (AUTO.LOITER), 4 lands where it is (AUTO.LAND), 0–3 return (AUTO.RTL:
 //!   0–2 are manual modes that need a remote control, which a simulated vehicle never has; PX4
 //!   with no RC returns for its default 0, see `deploy/README.md`).
+//!   When the stream is back, a vehicle holding in this failsafe flies OFFBOARD again, as PX4
+//!   SITL did under a restarted writer (the other actions not measured, not modelled).
 //!   The return is approximated: it flies at its current altitude straight to above home (no
 //!   climb to PX4's `RTL_RETURN_ALT`), then lands there. 6 (Terminate) and 7 (Disarm) stop the
 //!   motors. PX4's default is 0, so a vehicle nobody set up returns; the writer sets 5.
@@ -385,6 +387,10 @@ impl Vehicle {
             && !self.setpoints_fresh(self.px4.offboard_loss_timeout())
         {
             self.offboard_lost();
+        } else if self.failsafe && self.mode == Px4Mode::Hold && self.offboard_stream_ok() {
+            // PX4's failsafe ends with its cause: the stream back, it flies the OFFBOARD asked
+            // for again (PX4 SITL, a writer restarted under a vehicle holding in this failsafe).
+            self.select_mode(Px4Mode::Offboard);
         }
         if !self.armed {
             if !self.landed {

@@ -116,6 +116,7 @@ fn pong_message(ping: &Ping, received_us: u64, drone: &DroneId) -> Pong {
             malformed_actions: 0,
             ground: Some(ping.command.ground),
             refused: None,
+            autopilot_took_over: None,
         },
     }
 }

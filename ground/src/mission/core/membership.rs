@@ -11,6 +11,7 @@ use crate::mission::log::Record;
 use crate::mission::report::EventTopic;
 use crate::swarm::SwarmChange;
 use tacos_prompts::render::HistoryEntry;
+use tacos_shared::DroneId;
 
 /// Takes in a membership change seen on `snap` (the view after it).
 pub(crate) fn membership_changed(
@@ -21,7 +22,7 @@ pub(crate) fn membership_changed(
 ) -> Vec<Effect> {
     let (topic, text) = match change {
         SwarmChange::Joined(d) => (EventTopic::Joined, format!("{d} joined the swarm")),
-        SwarmChange::Left(d) => (EventTopic::Failure, format!("{d} became unavailable")),
+        SwarmChange::Left(d) => (EventTopic::Failure, left_text(snap, d)),
         SwarmChange::Status(_) => return Vec::new(),
     };
     let mut effects = Effect::told(topic, text.clone()).to_vec();
@@ -61,4 +62,21 @@ pub(crate) fn membership_changed(
         }
     }
     effects
+}
+
+/// Why `drone` left, when its status says: PX4 flies it (it is back once PX4 is in offboard
+/// again or it is on the ground; a hold or land takes it back).
+fn left_text(snap: &Snapshot, drone: &DroneId) -> String {
+    let took_over = snap
+        .swarm
+        .get(drone)
+        .filter(|e| e.alive)
+        .and_then(|e| e.status.as_ref()?.autopilot_took_over);
+    match took_over {
+        Some(mode) => format!(
+            "{drone} became unavailable: PX4 left offboard and flies it in {mode} (a hold or \
+             land takes it back)"
+        ),
+        None => format!("{drone} became unavailable"),
+    }
 }

@@ -149,3 +149,22 @@ fn the_monolithic_model_hears_of_a_lost_drone_and_its_claim_is_withdrawn() {
     assert_eq!(book.mnl.executed, ["event: alfa became unavailable"]);
     assert!(!book.mnl.claimed_done);
 }
+
+/// A drone PX4 took out of offboard is said to be PX4's, in PX4's mode, with what takes it back.
+#[test]
+fn a_drone_px4_took_over_is_named_as_px4s_when_it_leaves() {
+    let (_, mut snap) = chase();
+    let mut alfa = test_status("alfa", DroneMode::Flying);
+    alfa.autopilot_took_over = Some(tacos_shared::px4_mode::Px4Mode::Position);
+    snap.swarm.apply_status(alfa, snap.now);
+    let mut book = PlanBook::default();
+    book.mnl.active = true;
+    membership_changed(&mut book, &snap, Mode::Mnl, &SwarmChange::Left(id("alfa")));
+    assert_eq!(
+        book.mnl.executed,
+        [
+            "event: alfa became unavailable: PX4 left offboard and flies it in Position (a hold or \
+          land takes it back)"
+        ]
+    );
+}

@@ -55,6 +55,7 @@ fn status(
         malformed_actions: 0,
         ground: None,
         refused: None,
+        autopilot_took_over: None,
     }
 }
 

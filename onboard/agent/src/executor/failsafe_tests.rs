@@ -1,4 +1,5 @@
-//! Tests of the executor's failsafes: a silent ground station, silent neighbours.
+//! Tests of the executor's failsafes: a silent ground station, silent neighbours, PX4 taking the
+//! drone out of offboard.
 
 use super::tests::{cmd, lab, state, state_of};
 use super::*;
@@ -171,4 +172,81 @@ fn silent_neighbours_make_an_airborne_drone_hold_and_take_only_land_and_hold() {
         Some(Steering::Toward(Goal::fixed(Vec3::new(-40.0, -95.0, 1.0)))),
         "a landing goes on with every neighbour silent"
     );
+}
+
+/// A drone taken off and hovering in OFFBOARD, PX4 having accepted the switch at 0.1 s.
+fn hovering_in_offboard(up: Vec3) -> Executor {
+    let mut ex = lab();
+    let pad = Vec3::new(up.x, up.y, 0.0);
+    ex.on_vehicle(&state(pad, false, Px4Mode::Hold));
+    ex.on_command(&cmd(1, Action::ArmTakeoff), 0.0);
+    let offboard = ex.tick(0.0).commands[0];
+    super::tests::accept(&mut ex, &offboard, 0.1);
+    ex.on_vehicle(&state(pad, false, Px4Mode::Offboard));
+    let arm = ex.tick(0.1).commands[0];
+    super::tests::accept(&mut ex, &arm, 0.2);
+    ex.on_vehicle(&state(up, true, Px4Mode::Offboard));
+    ex.tick(6.0);
+    assert_eq!(state_of(&ex), ActionState::Done);
+    ex
+}
+
+/// PX4 taking a hovering drone out of OFFBOARD (its own failsafe, a geofence, an RC pilot) is
+/// reported for as long as it lasts, with PX4's mode; a hold asked for takes the drone back.
+#[test]
+fn px4_taking_a_hovering_drone_out_of_offboard_is_reported_until_a_hold_takes_it_back() {
+    let up = Vec3::new(-50.0, -132.5, 10.0);
+    let mut ex = hovering_in_offboard(up);
+    assert_eq!(ex.autopilot_took_over(), None);
+    let rtl = Px4Mode::Other {
+        main: tacos_shared::px4_mode::MAIN_AUTO,
+        sub: tacos_shared::px4_mode::AUTO_RTL,
+    };
+    ex.on_vehicle(&state(up, true, rtl));
+    let out = ex.tick(7.0);
+    assert_eq!(ex.autopilot_took_over(), Some(rtl));
+    assert!(out.commands.is_empty(), "TACOS does not fight PX4 for it");
+    assert_eq!(ex.mode(), DroneMode::Flying);
+
+    ex.on_command(&cmd(2, Action::Hold), 8.0);
+    let out = ex.tick(8.0);
+    let offboard = out.commands[0];
+    assert_eq!(offboard.kind(), Some(CommandKind::Offboard));
+    assert_eq!(ex.autopilot_took_over(), None, "asked back, not taken");
+    super::tests::accept(&mut ex, &offboard, 8.2);
+    ex.on_vehicle(&state(up, true, Px4Mode::Offboard));
+    ex.tick(8.3);
+    assert_eq!(ex.autopilot_took_over(), None);
+    assert_eq!(state_of(&ex), ActionState::Done);
+
+    // PX4 takes it again, then lands and disarms it: on the ground nobody flies it.
+    ex.on_vehicle(&state(up, true, Px4Mode::Hold));
+    ex.tick(12.0);
+    assert_eq!(ex.autopilot_took_over(), Some(Px4Mode::Hold));
+    ex.on_vehicle(&state(Vec3::new(up.x, up.y, 0.0), false, Px4Mode::Land));
+    ex.tick(30.0);
+    assert_eq!(ex.autopilot_took_over(), None);
+    assert_eq!(ex.mode(), DroneMode::Idle);
+}
+
+/// A goto PX4 cuts short by leaving OFFBOARD fails, naming PX4's mode, and the drone is then
+/// reported as PX4's.
+#[test]
+fn a_goto_cut_short_by_px4_fails_with_its_mode_and_the_drone_is_reported_as_px4s() {
+    let up = Vec3::new(-50.0, -132.5, 10.0);
+    let mut ex = hovering_in_offboard(up);
+    let goto = Action::Goto {
+        target: Vec3::new(-50.0, -100.0, 10.0),
+    };
+    ex.on_command(&cmd(2, goto), 7.0);
+    ex.tick(7.0);
+    ex.on_vehicle(&state(up, true, Px4Mode::Position));
+    ex.tick(7.5);
+    match state_of(&ex) {
+        ActionState::Failed(FailureReason::Rejected(why)) => {
+            assert!(why.contains("left offboard for Position"), "{why}")
+        }
+        other => panic!("the goto should fail: {other:?}"),
+    }
+    assert_eq!(ex.autopilot_took_over(), Some(Px4Mode::Position));
 }

@@ -120,7 +120,7 @@ fn a_landing_descends_through_the_planner_sinks_onto_the_floor_and_disarms() {
 
 /// An onboard restarted beside a vehicle flying in OFFBOARD takes it over: it holds where the
 /// vehicle is through the planner, reports itself flying, and takes work. Beside a vehicle in
-/// another PX4 mode it leaves the vehicle to PX4.
+/// another PX4 mode it leaves the vehicle to PX4 and reports it as PX4's.
 #[test]
 fn a_restarted_onboard_takes_over_a_vehicle_flying_in_offboard() {
     let p = Vec3::new(-40.0, -100.0, 10.0);
@@ -153,4 +153,9 @@ fn a_restarted_onboard_takes_over_a_vehicle_flying_in_offboard() {
     let mut ex = lab();
     ex.on_vehicle(&state(p, true, Px4Mode::Hold));
     assert_eq!(ex.tick(0.0).steering, Some(Steering::Still(p)));
+    assert_eq!(
+        ex.autopilot_took_over(),
+        Some(Px4Mode::Hold),
+        "PX4 flies it, and the status says so"
+    );
 }

@@ -98,6 +98,8 @@ pub struct Executor {
     failsafe: Option<FailsafeStage>,
     /// No neighbour heard for the bound (see `failsafe`).
     peers_silent: bool,
+    /// PX4's mode while it flies the hovering drone after leaving offboard unasked.
+    took_over: Option<Px4Mode>,
 }
 
 impl Executor {
@@ -116,6 +118,7 @@ impl Executor {
             offboard_since: None,
             failsafe: None,
             peers_silent: false,
+            took_over: None,
         }
     }
 
@@ -129,6 +132,13 @@ impl Executor {
 
     pub fn failsafe(&self) -> Option<FailsafeStage> {
         self.failsafe
+    }
+
+    /// PX4's mode while PX4, not TACOS, flies the drone: it left offboard in flight without
+    /// being asked (`DroneStatus::autopilot_took_over`). A running goto or tracking has failed
+    /// with the reason; the drone holds until an action asks for offboard again.
+    pub fn autopilot_took_over(&self) -> Option<Px4Mode> {
+        self.took_over
     }
 
     /// The paper's mode of this drone.
@@ -250,13 +260,16 @@ impl Executor {
         self.vehicle.is_some_and(|v| v.px4 == Px4Mode::Offboard)
     }
 
+    /// An offboard switch is in flight or waits to be asked again.
+    fn offboard_asked(&self) -> bool {
+        self.awaiting
+            .or(self.retry.map(|(c, _)| c))
+            .is_some_and(|c| c.kind() == Some(CommandKind::Offboard))
+    }
+
     /// Asks for offboard unless PX4 is already there or the request is in flight.
     fn ensure_offboard(&mut self) {
-        let pending = self
-            .awaiting
-            .or(self.retry.map(|(c, _)| c))
-            .is_some_and(|c| c.kind() == Some(CommandKind::Offboard));
-        if !self.in_offboard() && !pending {
+        if !self.in_offboard() && !self.offboard_asked() {
             self.request(CommandKind::Offboard, 0.0);
         }
     }
@@ -445,6 +458,7 @@ impl Executor {
             self.send_request(kind, command.param);
         }
         self.advance(vehicle, now);
+        self.took_over = self.px4_flies_it(&vehicle, now).then_some(vehicle.px4);
         let hold_point = self.hold_point.unwrap_or(vehicle.position);
         let steering = match &self.task {
             Task::Goto { target, .. } => Steering::Toward(Goal::fixed(*target)),
@@ -465,15 +479,24 @@ impl Executor {
         }
     }
 
+    /// PX4, not TACOS, flies the airborne drone: it left offboard under a hold (a goto or
+    /// tracking it ended is a hold by now, the task having advanced), or this onboard found it
+    /// flying in another mode (a restarted onboard or writer: PX4's offboard-loss failsafe
+    /// had it). Not during a take-off or landing, which run in PX4's own modes.
+    fn px4_flies_it(&self, vehicle: &VehicleView, now: f64) -> bool {
+        self.airborne()
+            && match self.task {
+                Task::Hold => self.left_offboard(vehicle, now),
+                Task::Idle => vehicle.px4 != Px4Mode::Offboard && !self.offboard_asked(),
+                _ => false,
+            }
+    }
+
     fn left_offboard(&self, vehicle: &VehicleView, now: f64) -> bool {
         let settled = self
             .offboard_since
             .is_some_and(|t| now - t > MODE_REPORT_GRACE_S);
-        let pending = self
-            .awaiting
-            .or(self.retry.map(|(c, _)| c))
-            .is_some_and(|c| c.kind() == Some(CommandKind::Offboard));
-        settled && !pending && vehicle.px4 != Px4Mode::Offboard
+        settled && !self.offboard_asked() && vehicle.px4 != Px4Mode::Offboard
     }
 
     fn advance(&mut self, vehicle: VehicleView, now: f64) {
@@ -502,7 +525,7 @@ impl Executor {
                 if self.left_offboard(&vehicle, now) {
                     self.hold_point = Some(vehicle.position);
                     return self.fail(FailureReason::Rejected(format!(
-                        "the autopilot left offboard for {:?}",
+                        "the autopilot left offboard for {}",
                         vehicle.px4
                     )));
                 }
@@ -534,7 +557,7 @@ impl Executor {
                 if self.left_offboard(&vehicle, now) {
                     self.hold_point = Some(vehicle.position);
                     return self.fail(FailureReason::Rejected(format!(
-                        "the autopilot left offboard for {:?}",
+                        "the autopilot left offboard for {}",
                         vehicle.px4
                     )));
                 }

@@ -134,7 +134,7 @@ impl Executor {
             if self.left_offboard(&vehicle, now) {
                 self.hold_point = Some(vehicle.position);
                 return self.fail(FailureReason::Rejected(format!(
-                    "the autopilot left offboard for {:?} during the take-off",
+                    "the autopilot left offboard for {} during the take-off",
                     vehicle.px4
                 )));
             }

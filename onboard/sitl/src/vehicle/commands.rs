@@ -130,10 +130,7 @@ impl Vehicle {
         if self.armed && !self.can_run(wanted) {
             self.say(
                 MavSeverity::MAV_SEVERITY_CRITICAL,
-                format!(
-                    "Switching to {} is currently not available",
-                    mode_name(wanted)
-                ),
+                format!("Switching to {wanted} is currently not available"),
             );
             return MavResult::MAV_RESULT_TEMPORARILY_REJECTED;
         }
@@ -161,23 +158,5 @@ impl Vehicle {
             // other auto modes need a mission or a return the simulator does not model.
             _ => false,
         }
-    }
-}
-
-/// The mode's name as PX4 prints it.
-fn mode_name(mode: Px4Mode) -> &'static str {
-    match mode {
-        Px4Mode::Manual => "Manual",
-        Px4Mode::Position => "Position",
-        Px4Mode::Takeoff => "Takeoff",
-        Px4Mode::Hold => "Hold",
-        Px4Mode::Land => "Land",
-        Px4Mode::Offboard => "Offboard",
-        Px4Mode::Other { main, sub } => match (main, sub) {
-            (px4_mode::MAIN_ALTCTL, _) => "Altitude",
-            (px4_mode::MAIN_AUTO, px4_mode::AUTO_MISSION) => "Mission",
-            (px4_mode::MAIN_AUTO, px4_mode::AUTO_RTL) => "Return",
-            _ => "the requested mode",
-        },
     }
 }

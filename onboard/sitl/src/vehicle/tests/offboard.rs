@@ -81,6 +81,31 @@ fn offboard_flies_the_setpoints_then_fails_safe_to_hold() {
     assert_eq!(v.system_status(), MavState::MAV_STATE_ACTIVE);
 }
 
+/// The stream back after the offboard-loss hold: OFFBOARD again once it has streamed as long as
+/// a switch needs, as PX4 SITL did under a restarted writer. A hold asked for stays a hold.
+#[test]
+fn the_offboard_loss_hold_ends_when_the_stream_is_back() {
+    let (mut v, _) = offboard_at(5.0);
+    set_param(&mut v, COM_OBL_RC_ACT, ParamValue::Int(5));
+    let here = v.position();
+    stream(&mut v, here, 2.0);
+    run(&mut v, 1.5);
+    assert_eq!(v.mode(), Px4Mode::Hold);
+    stream(&mut v, here, 0.5);
+    assert_eq!(
+        v.mode(),
+        Px4Mode::Hold,
+        "half a second of stream is not enough"
+    );
+    stream(&mut v, here, 0.6);
+    assert_eq!(v.mode(), Px4Mode::Offboard);
+    assert_eq!(v.system_status(), MavState::MAV_STATE_ACTIVE);
+
+    assert_eq!(loiter(&mut v), MavResult::MAV_RESULT_ACCEPTED);
+    stream(&mut v, here, 3.0);
+    assert_eq!(v.mode(), Px4Mode::Hold, "a commanded hold is no failsafe");
+}
+
 /// Offboard at (12, -6, -7) (home is the spawn point), then the setpoints stop.
 fn offboard_lost_away_from_home(action: i32) -> (Vehicle, Vec3) {
     let (mut v, _) = offboard_at(5.0);
