@@ -218,8 +218,9 @@ async fn conformance_steps(sim: &mut SimSwarm) -> anyhow::Result<Vec<Observation
 
 type Truth = tokio::sync::watch::Receiver<Option<tacos_shared::messages::SimTruth>>;
 
-/// Who the drone's status says flies it, once two statuses in a row agree (a status is sent at
-/// 20 Hz; PX4's heartbeat, which tells the mode, at 1 Hz): "TACOS" or "PX4 in MODE".
+/// Who the drone's status says flies it, "TACOS" or "PX4 in MODE": looked at twice, 0.5 s
+/// apart, after 3 s (past the onboard's 1.6 s grace for PX4's mode reports and a heartbeat of
+/// PX4's, which tells the mode at 1 Hz); "unsettled: …" when the two looks differ.
 async fn who_flies(sim: &SimSwarm, drone: &DroneId) -> String {
     let says = |sim: &SimSwarm| {
         let view = sim.link.view();
@@ -229,7 +230,6 @@ async fn who_flies(sim: &SimSwarm, drone: &DroneId) -> String {
             None => "TACOS".to_owned(),
         })
     };
-    // Past the onboard's grace for PX4's mode reports (1.6 s) and a heartbeat.
     tokio::time::sleep(Duration::from_secs(3)).await;
     let first = says(sim);
     tokio::time::sleep(Duration::from_millis(500)).await;
