@@ -34,7 +34,13 @@ pub enum Px4Mode {
 
 impl Px4Mode {
     pub fn custom_mode(self) -> u32 {
-        let (main, sub) = match self {
+        let (main, sub) = self.main_sub();
+        (u32::from(main) << 16) | (u32::from(sub) << 24)
+    }
+
+    /// The main and sub mode, as DO_SET_MODE's second and third parameters carry them.
+    pub fn main_sub(self) -> (u8, u8) {
+        match self {
             Px4Mode::Manual => (MAIN_MANUAL, 0),
             Px4Mode::Position => (MAIN_POSCTL, 0),
             Px4Mode::Takeoff => (MAIN_AUTO, AUTO_TAKEOFF),
@@ -42,8 +48,7 @@ impl Px4Mode {
             Px4Mode::Land => (MAIN_AUTO, AUTO_LAND),
             Px4Mode::Offboard => (MAIN_OFFBOARD, 0),
             Px4Mode::Other { main, sub } => (main, sub),
-        };
-        (u32::from(main) << 16) | (u32::from(sub) << 24)
+        }
     }
 
     pub fn from_custom_mode(custom_mode: u32) -> Px4Mode {
