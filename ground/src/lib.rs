@@ -18,6 +18,7 @@ pub mod plot;
 pub mod safety;
 pub mod script;
 pub mod send;
+pub mod status_marks;
 pub mod swarm;
 pub mod table;
 pub mod task_guard;

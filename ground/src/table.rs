@@ -1,5 +1,6 @@
 //! The swarm as a text table (for `tacos-ground swarm` and the demo's log).
 
+use crate::status_marks::status_marks;
 use crate::swarm::SwarmView;
 use std::fmt::Write;
 use std::time::Instant;
@@ -30,13 +31,7 @@ pub fn render(view: &SwarmView, now: Instant) -> String {
                     ),
                     None => ("-".to_owned(), "-".to_owned()),
                 };
-                let failsafe = s
-                    .failsafe
-                    .map(|f| format!(" [failsafe {f:?}]"))
-                    .unwrap_or_default()
-                    + &s.autopilot_took_over
-                        .map(|m| format!(" [PX4 flies it: {m}]"))
-                        .unwrap_or_default();
+                let marks = status_marks(s.failsafe, s.peers_silent, s.autopilot_took_over);
                 (
                     format!(
                         "({:>7.1}, {:>7.1}, {:>5.1})",
@@ -44,7 +39,7 @@ pub fn render(view: &SwarmView, now: Instant) -> String {
                     ),
                     format!("{:.1}", s.velocity.norm()),
                     action,
-                    state + &failsafe,
+                    state + &marks,
                 )
             }
             None => ("-".into(), "-".into(), "-".into(), "-".into()),
@@ -55,7 +50,8 @@ pub fn render(view: &SwarmView, now: Instant) -> String {
             (true, None) => "no data".to_owned(),
         };
         let mut state = state;
-        state.truncate(40);
+        // The state holds a drone's own words (a failure's reason): cut on a character.
+        state.truncate(state.floor_char_boundary(40));
         let _ = writeln!(
             out,
             "{:<10} {:<11} {:>26} {:>6} {:<30} {:<22} {:>8}",
@@ -63,4 +59,49 @@ pub fn render(view: &SwarmView, now: Instant) -> String {
         );
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::swarm::test_status;
+    use tacos_shared::DroneMode;
+    use tacos_shared::action::Action;
+    use tacos_shared::messages::{ActionProgress, FailsafeStage, FailureReason};
+    use tacos_shared::px4_mode::Px4Mode;
+
+    /// A long reason in the drone's own (non-ASCII) words is cut on a character, and the marks
+    /// are the terminal's.
+    #[test]
+    fn a_row_cuts_a_long_reason_on_a_character_and_shows_the_marks() {
+        let now = Instant::now();
+        let mut view = SwarmView::default();
+        let mut alfa = test_status("alfa", DroneMode::Flying);
+        alfa.action = Some(ActionProgress {
+            seq: 7,
+            task_id: None,
+            action: Action::Hold,
+            state: ActionState::Failed(FailureReason::Rejected("ééééééééééééééééééééé".into())),
+        });
+        view.apply_status(alfa, now);
+        let mut bravo = test_status("bravo", DroneMode::Flying);
+        bravo.failsafe = Some(FailsafeStage::Holding);
+        bravo.autopilot_took_over = Some(Px4Mode::Hold);
+        view.apply_status(bravo, now);
+
+        let table = render(&view, now);
+        let alfa_row = table
+            .lines()
+            .find(|l| l.starts_with("alfa"))
+            .unwrap_or_default();
+        assert!(alfa_row.contains("failed: "), "{table}");
+        let bravo_row = table
+            .lines()
+            .find(|l| l.starts_with("bravo"))
+            .unwrap_or_default();
+        assert!(
+            bravo_row.contains(" - [failsafe hold] [PX4 flies it: Hold]"),
+            "{table}"
+        );
+    }
 }

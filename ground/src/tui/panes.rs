@@ -10,6 +10,7 @@ pub use super::map::{
     render_map,
 };
 use super::state::{DroneRow, EventKind, Focus, TerminalState};
+use crate::status_marks::status_marks;
 use ratatui::Frame;
 use ratatui::buffer::Buffer;
 use ratatui::layout::{Constraint, Layout, Position, Rect};
@@ -17,7 +18,7 @@ use ratatui::style::{Color, Modifier, Style};
 use ratatui::text::{Line, Span};
 use ratatui::widgets::{Block, Cell, Paragraph, Row, Table, Widget};
 use tacos_shared::DroneMode;
-use tacos_shared::messages::{ActionState, FailsafeStage};
+use tacos_shared::messages::ActionState;
 
 /// Where each pane goes; a pane that does not fit is `None`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -156,17 +157,11 @@ fn state_text(row: &DroneRow) -> (String, Color) {
         Some(ActionState::Failed(why)) => (format!("failed: {why}"), Color::Red),
         None => ("-".to_owned(), Color::DarkGray),
     };
-    match row.failsafe {
-        Some(FailsafeStage::Holding) => text.push_str(" [failsafe hold]"),
-        Some(FailsafeStage::Landing) => text.push_str(" [failsafe land]"),
-        None => {}
-    }
-    if row.peers_silent {
-        text.push_str(" [no peer heard]");
-    }
-    if let Some(mode) = row.autopilot_took_over {
-        text.push_str(&format!(" [PX4 flies it: {mode}]"));
-    }
+    text.push_str(&status_marks(
+        row.failsafe,
+        row.peers_silent,
+        row.autopilot_took_over,
+    ));
     (text, color)
 }
 

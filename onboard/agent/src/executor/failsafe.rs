@@ -10,11 +10,12 @@ impl Executor {
     /// the stage asks for, whatever happened before: called every tick, it acts on the state,
     /// not on changes of stage, so a drone that is airborne while the ground has been silent
     /// past a bound (it took off after the stage was set, or a task replaced the hold) holds or
-    /// lands all the same. Holding allows a landing; landing allows nothing else.
+    /// lands all the same. Holding allows a landing; landing allows nothing else. A drone PX4
+    /// flies is left to PX4 (`left_to_px4`).
     pub fn set_failsafe(&mut self, stage: Option<FailsafeStage>, now: f64) {
         self.failsafe = stage;
         let Some(stage) = stage else { return };
-        if !self.airborne() {
+        if !self.airborne() || self.left_to_px4() {
             return;
         }
         let landing = matches!(self.task, Task::Land { .. });
@@ -36,15 +37,23 @@ impl Executor {
     /// heard (with a margin growing with the silence): flying on, it would cross airspace the
     /// others may have entered since. Like the ground's failsafe it acts on the state, every
     /// tick, and a landing goes on. When a neighbour is heard again the drone stays in its
-    /// hold until the ground gives it work.
+    /// hold until the ground gives it work. A drone PX4 flies is left to PX4 (`left_to_px4`).
     pub fn set_peers_silent(&mut self, silent: bool) {
         self.peers_silent = silent;
-        if !silent || !self.airborne() {
+        if !silent || !self.airborne() || self.left_to_px4() {
             return;
         }
         if !matches!(self.task, Task::Land { .. } | Task::Hold) {
             self.fail_and_hold_here("no neighbour heard: holding where it is");
         }
+    }
+
+    /// Whether the failsafes leave the drone to PX4: PX4 flies it out of offboard, unasked (an
+    /// RC pilot's switch, another ground station, PX4's own failsafe or geofence). Taking it
+    /// back into offboard, or commanding a landing, would override that decision; PX4 applies
+    /// its own link-loss failsafes. An action from the pilot (hold, land) still takes it back.
+    fn left_to_px4(&self) -> bool {
+        self.took_over.is_some()
     }
 
     /// Fails the action for a failsafe and holds where the vehicle is now, under offboard

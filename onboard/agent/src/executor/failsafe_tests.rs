@@ -229,6 +229,49 @@ fn px4_taking_a_hovering_drone_out_of_offboard_is_reported_until_a_hold_takes_it
     assert_eq!(ex.mode(), DroneMode::Idle);
 }
 
+/// A drone PX4 flies out of offboard (here an RC pilot's Position mode) is left to PX4 by both
+/// failsafes: no offboard switch, no landing, however long the silence. When PX4 gives it back
+/// (offboard again), the failsafe's stage applies as usual.
+#[test]
+fn the_failsafes_leave_a_drone_px4_flies_to_px4() {
+    let up = Vec3::new(-50.0, -132.5, 10.0);
+    let mut ex = hovering_in_offboard(up);
+    ex.on_vehicle(&state(up, true, Px4Mode::Position));
+    ex.tick(7.0);
+    assert_eq!(ex.autopilot_took_over(), Some(Px4Mode::Position));
+
+    ex.set_peers_silent(true);
+    assert!(ex.tick(7.5).commands.is_empty(), "silent neighbours");
+    ex.set_peers_silent(false);
+    for (stage, t) in [
+        (FailsafeStage::Holding, 8.0),
+        (FailsafeStage::Landing, 40.0),
+    ] {
+        ex.set_failsafe(Some(stage), t);
+        let out = ex.tick(t);
+        assert!(out.commands.is_empty(), "{stage:?}: {:?}", out.commands);
+        assert_eq!(ex.autopilot_took_over(), Some(Px4Mode::Position));
+        assert_eq!(ex.task, Task::Hold, "{stage:?}");
+    }
+
+    // A restarted onboard beside a vehicle PX4 holds (its offboard-loss failsafe) has no task:
+    // neither failsafe takes it either.
+    let mut idle = lab();
+    idle.on_vehicle(&state(up, true, Px4Mode::Hold));
+    idle.tick(0.0);
+    idle.set_peers_silent(true);
+    idle.set_failsafe(Some(FailsafeStage::Holding), 5.0);
+    assert!(idle.tick(5.0).commands.is_empty());
+    assert_eq!(idle.task, Task::Idle);
+
+    // PX4 flies it in offboard again: the landing stage lands it.
+    ex.on_vehicle(&state(up, true, Px4Mode::Offboard));
+    ex.tick(41.0);
+    assert_eq!(ex.autopilot_took_over(), None);
+    ex.set_failsafe(Some(FailsafeStage::Landing), 41.5);
+    assert!(matches!(ex.task, Task::Land { .. }));
+}
+
 /// A goto PX4 cuts short by leaving OFFBOARD fails, naming PX4's mode, and the drone is then
 /// reported as PX4's.
 #[test]
