@@ -33,7 +33,21 @@ struct Args {
     max_action_late_s: f64,
 }
 
+/// zenoh's threads in this process unless `ZENOH_RUNTIME` says otherwise: every zenoh runtime
+/// handed over to one single-threaded one. A drone's traffic (its neighbours' paths, actions,
+/// heartbeats: a few hundred messages a second) does not need zenoh's default six threads, and
+/// with them a sample read on one thread was woken from another: in the 20-drone swap on two
+/// cores this nearly halved the onboards' context switches and took 4–7 % off their CPU (issue
+/// 19 item 3). Set `ZENOH_RUNTIME` to choose otherwise (zenoh's own syntax and defaults).
+const ZENOH_RUNTIME: &str = "(app: (worker_threads: 1), rx: (handover: app), tx: (handover: app), \
+     acc: (handover: app), net: (handover: app))";
+
 fn main() -> std::process::ExitCode {
+    if std::env::var_os("ZENOH_RUNTIME").is_none() {
+        // SAFETY: the first thing this process does, while it has one thread: nothing can read
+        // the environment at the same time. zenoh reads the variable when it first starts.
+        unsafe { std::env::set_var("ZENOH_RUNTIME", ZENOH_RUNTIME) };
+    }
     match run() {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {

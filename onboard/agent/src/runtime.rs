@@ -110,12 +110,29 @@ impl Malformed {
     }
 }
 
-/// Takes in one neighbour's path sample.
-fn take_path(motion: &mut Motion, sample: &zenoh::sample::Sample, malformed: &mut Malformed) {
-    match tacos_bus::decode::<PathMessage>(sample) {
-        Ok(path) => motion.on_path(path),
-        Err(e) => malformed.note(&e),
+/// Takes in the neighbours' path samples queued since the last call.
+///
+/// Paths are taken in at the control ticks and before a solve starts, never as each one
+/// arrives: a select arm per sample woke this loop for every neighbour's path (19 × 20 a
+/// second in a 20-drone swarm), and those wake-ups were a quarter of the onboards' context
+/// switches (issue 19 item 3). A path waits at most one control period (20 ms); its age is
+/// taken from its stamp either way.
+fn take_paths(
+    motion: &mut Motion,
+    paths: &zenoh::handlers::RingChannelHandler<zenoh::sample::Sample>,
+    malformed: &mut Malformed,
+    key: &str,
+) -> Result<(), OnboardError> {
+    while let Some(sample) = paths
+        .try_recv()
+        .map_err(|_| OnboardError::SubscriberClosed(key.to_owned()))?
+    {
+        match tacos_bus::decode::<PathMessage>(&sample) {
+            Ok(path) => motion.on_path(path),
+            Err(e) => malformed.note(&e),
+        }
     }
+    Ok(())
 }
 
 /// Hands a solve to a blocking thread when the planner flies (`Steering::Toward`).
@@ -192,7 +209,8 @@ async fn run_inner(
     });
     let _ground_subscribers = take_ground_messages(&session, &keys, &drone, &core, &clock).await?;
     // Enough room for a few rounds of every neighbour's path; older ones are superseded anyway.
-    let paths = tacos_bus::subscribe_latest(&session, &keys.all_paths(), 256).await?;
+    let paths_key = keys.all_paths();
+    let paths = tacos_bus::subscribe_latest(&session, &paths_key, 256).await?;
     let targets = tacos_bus::subscribe_latest(&session, &keys.targets(), 8).await?;
     let ipc = IpcNode::new(&cfg.bus.swarm, &drone)?;
     let ports = ipc.onboard_ports()?;
@@ -238,10 +256,6 @@ async fn run_inner(
         tokio::select! {
             _ = &mut shutdown => break,
             () = core.status_due() => publish_now = true,
-            sample = paths.recv_async() => {
-                let sample = sample.map_err(|_| OnboardError::SubscriberClosed(keys.all_paths()))?;
-                take_path(&mut motion, &sample, &mut malformed_paths);
-            }
             done = async {
                 match solving.as_mut() {
                     Some(job) => job.await,
@@ -261,6 +275,7 @@ async fn run_inner(
                     Err(e) => return Err(OnboardError::PlannerLost(e.to_string())),
                 }
                 if std::mem::take(&mut solve_due) && let Some(steering) = last_steering {
+                    take_paths(&mut motion, &paths, &mut malformed_paths, &paths_key)?;
                     solving = start_solve(&mut motion, &core.lock()?.executor, steering, now());
                 }
             }
@@ -268,6 +283,7 @@ async fn run_inner(
                 if solving.is_some() {
                     solve_due = true;
                 } else if let Some(steering) = last_steering {
+                    take_paths(&mut motion, &paths, &mut malformed_paths, &paths_key)?;
                     solving = start_solve(&mut motion, &core.lock()?.executor, steering, now());
                 }
             }
@@ -291,12 +307,9 @@ async fn run_inner(
                             warn!(deaf_s, "this onboard stalled: the time is not counted as silence");
                         }
                     }
-                    // The peers' silence is judged on every path heard: a tick picked before the
-                    // queued ones (after a stall, say) takes them in first. (Heartbeats are taken
-                    // in by their callback as they arrive.)
-                    while let Ok(Some(sample)) = paths.try_recv() {
-                        take_path(&mut motion, &sample, &mut malformed_paths);
-                    }
+                    // Every path queued since the last tick, before the peers' silence is judged
+                    // on them. (Heartbeats are taken in by their callback as they arrive.)
+                    take_paths(&mut motion, &paths, &mut malformed_paths, &paths_key)?;
                     let mut path_out = None;
                     let step = (|| -> Result<(), IpcError> {
                         for result in ports.results.drain()? {
