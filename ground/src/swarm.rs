@@ -22,11 +22,9 @@ pub struct DroneEntry {
 }
 
 /// A status that a mission can use: the autopilot is linked, the drone not unavailable, and
-/// TACOS, not PX4, flies it (`DroneStatus::autopilot_took_over`).
+/// TACOS, not PX4, flies it.
 fn usable(status: &DroneStatus) -> bool {
-    status.autopilot_link
-        && status.mode != DroneMode::Unavailable
-        && status.autopilot_took_over.is_none()
+    status.autopilot_link && status.mode != DroneMode::Unavailable && status.flown_by_tacos()
 }
 
 impl DroneEntry {
@@ -60,7 +58,7 @@ impl DroneEntry {
     pub fn effective_mode(&self, now: Instant) -> DroneMode {
         match (&self.status, self.link_age(now)) {
             (Some(status), Some(age))
-                if self.alive && age <= STALE_AFTER_S && status.autopilot_took_over.is_none() =>
+                if self.alive && age <= STALE_AFTER_S && status.flown_by_tacos() =>
             {
                 status.mode
             }

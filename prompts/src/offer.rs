@@ -25,40 +25,20 @@ pub fn callable_schema(
 ) -> serde_json::Value {
     use serde_json::json;
     let mut schema = schema::build(Output::Monolithic, drones, places, trackable);
-    let call = |c: &Callable, action: ActionName, target: serde_json::Value, xyz| {
-        json!({
-            "type": "object",
-            "properties": {
-                "task": { "type": "string", "enum": [c.task] },
-                "drone": { "type": "string", "enum": [c.drone] },
-                "action": { "type": "string", "enum": [serde_json::to_value(action).unwrap_or_default()] },
-                "target": { "type": "string", "enum": target },
-                "xyz": xyz
-            },
-            "required": ["task", "drone", "action", "target", "xyz"],
-            "additionalProperties": false
-        })
-    };
-    let none = json!([schema::NO_TARGET]);
-    let null = json!({ "type": "null" });
-    let point =
-        json!({ "type": "array", "items": { "type": "number" }, "minItems": 3, "maxItems": 3 });
+    // Each of the drone's actions in every shape `call.schema.json` gives it (a goto: to a place
+    // or to a point), narrowed to this drone under its fresh task id.
     let mut alternatives = Vec::new();
     for c in callable {
         for &action in &c.actions {
-            match action {
-                ActionName::Goto => {
-                    if !places.is_empty() {
-                        alternatives.push(call(c, action, json!(places), null.clone()));
-                    }
-                    alternatives.push(call(c, action, none.clone(), point.clone()));
-                }
-                ActionName::StartTracking => {
-                    if !trackable.is_empty() {
-                        alternatives.push(call(c, action, json!(trackable), null.clone()));
-                    }
-                }
-                _ => alternatives.push(call(c, action, none.clone(), null.clone())),
+            let name = serde_json::to_value(action).unwrap_or_default();
+            let Some(name_text) = name.as_str() else {
+                continue;
+            };
+            for mut shape in schema::shapes_of(name_text, places, trackable) {
+                shape["properties"]["task"] = json!({ "type": "string", "enum": [c.task] });
+                shape["properties"]["drone"] = json!({ "type": "string", "enum": [c.drone] });
+                shape["properties"]["action"] = json!({ "type": "string", "enum": [name] });
+                alternatives.push(shape);
             }
         }
     }

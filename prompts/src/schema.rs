@@ -35,6 +35,48 @@ impl Output {
     }
 }
 
+fn parse(text: &str) -> Value {
+    serde_json::from_str::<Value>(text).unwrap_or(Value::Null)
+}
+
+/// The call shapes of `call.schema.json` with the names filled in; a shape whose target list
+/// comes out empty (no place, nothing trackable) is left out, as no call could take it.
+fn shapes(names: &Names) -> Vec<Value> {
+    let mut call = parse(CALL);
+    fill(&mut call, names, &Value::Null);
+    let Value::Object(mut call) = call else {
+        return Vec::new();
+    };
+    let Some(Value::Array(mut shapes)) = call.remove("anyOf") else {
+        return Vec::new();
+    };
+    shapes.retain(|v| {
+        v.pointer("/properties/target/enum")
+            .and_then(Value::as_array)
+            .is_none_or(|e| !e.is_empty())
+    });
+    shapes
+}
+
+/// The call shapes (`call.schema.json`) that `action` can take, for a mission with these places
+/// and trackable targets: what [`crate::offer`] narrows to one task and one drone.
+pub(crate) fn shapes_of(action: &str, places: &[String], trackable: &[String]) -> Vec<Value> {
+    let names = Names {
+        drones: &[],
+        places,
+        trackable,
+    };
+    shapes(&names)
+        .into_iter()
+        .filter(|shape| {
+            shape
+                .pointer("/properties/action/enum")
+                .and_then(Value::as_array)
+                .is_some_and(|actions| actions.iter().any(|a| a == action))
+        })
+        .collect()
+}
+
 /// The names that fill a schema's placeholders.
 struct Names<'a> {
     drones: &'a [String],
@@ -67,21 +109,12 @@ fn fill(value: &mut Value, names: &Names, call: &Value) {
 /// refused anyway, and the 135M model, made to track the van, went on to "track" car_1 17
 /// times). With nothing trackable, a call cannot be a start_tracking.
 pub fn build(output: Output, drones: &[String], places: &[String], trackable: &[String]) -> Value {
-    let parse = |text: &str| serde_json::from_str::<Value>(text).unwrap_or(Value::Null);
     let names = Names {
         drones,
         places,
         trackable,
     };
-    let mut call = parse(CALL);
-    fill(&mut call, &names, &Value::Null);
-    if let Some(variants) = call.get_mut("anyOf").and_then(Value::as_array_mut) {
-        variants.retain(|v| {
-            v.pointer("/properties/target/enum")
-                .and_then(Value::as_array)
-                .is_none_or(|e| !e.is_empty())
-        });
-    }
+    let call = serde_json::json!({ "anyOf": shapes(&names) });
     let mut schema = parse(match output {
         Output::Coordinator => COORDINATOR,
         Output::Supervisor => SUPERVISOR,

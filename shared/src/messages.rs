@@ -125,6 +125,14 @@ pub struct DroneStatus {
     pub autopilot_took_over: Option<crate::px4_mode::Px4Mode>,
 }
 
+impl DroneStatus {
+    /// TACOS flies the drone, not PX4 on its own (see `autopilot_took_over`): only then can a
+    /// mission count on it.
+    pub fn flown_by_tacos(&self) -> bool {
+        self.autopilot_took_over.is_none()
+    }
+}
+
 /// An action of the followed ground station refused on arrival, and why.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ActionRefused {
