@@ -9,13 +9,17 @@ use tacos_ground::direct::{DirectError, run_actions};
 use tacos_ground::launch::{AutopilotKind, Role};
 use tacos_ground::safety::SafetyGate;
 use tacos_shared::action::Action;
-use tacos_shared::messages::FailureReason;
+use tacos_shared::messages::{FailsafeStage, FailureReason};
 use tacos_shared::px4_mode::Px4Mode;
 use tacos_shared::{DroneId, DroneMode, Vec3};
 use tacos_tests::{SimSwarm, all_ready, id, px4_sitl_or_skip, truth_until, vehicle};
 
 /// Time for one action (PX4 climbs at 1.5 m/s and lands at 0.7 m/s).
 const STEP: Duration = Duration::from_secs(90);
+
+/// The onboard's ground-silence landing stage in the conformance scenario (30 s by default): its
+/// silence step outlasts both stages (hold at 3 s) in a few seconds.
+const GROUND_SILENCE_LAND_S: u64 = 6;
 
 /// What one scenario step showed: its name and what was seen, in words both autopilots share.
 type Observation = (&'static str, String);
@@ -44,9 +48,17 @@ fn kind_of(reason: &FailureReason) -> &'static str {
 /// Take-off, offboard goto, land, the mode after landing (a second take-off must work), a
 /// writer killed mid-air (the autopilot's configured failsafe: hold) and restarted (offboard
 /// again), another ground station's switch to Hold (PX4 flies the drone: reported, out of
-/// missions), a hold that takes it back, land.
+/// missions, and left to PX4 by the onboard's failsafes while the ground is silent), a hold
+/// that takes it back, land.
 async fn conformance(autopilot: AutopilotKind, tag: &str) -> anyhow::Result<Vec<Observation>> {
-    let mut sim = SimSwarm::start_with(tag, "city", 1, |c| c.autopilot = autopilot).await?;
+    let mut sim = SimSwarm::start_with(tag, "city", 1, |c| {
+        c.autopilot = autopilot;
+        c.onboard_args = vec![
+            "--failsafe-land-s".into(),
+            GROUND_SILENCE_LAND_S.to_string(),
+        ];
+    })
+    .await?;
     let result = conformance_steps(&mut sim).await;
     if result.is_err() {
         tacos_tests::print_log_tails(&sim.stack.config.log_dir, 40);
@@ -199,6 +211,30 @@ async fn conformance_steps(sim: &mut SimSwarm) -> anyhow::Result<Vec<Observation
         "in the ground's missions",
         format!("{:?}", sim.link.view().present_ids().contains(&alfa)),
     ));
+    // The ground falls silent meanwhile: neither of the onboard's failsafe stages (hold, then
+    // land) takes the drone from PX4, which keeps it in Hold, in the air.
+    sim.link.set_heartbeat(false);
+    tokio::time::sleep(Duration::from_secs(GROUND_SILENCE_LAND_S + 3)).await;
+    let stage = sim
+        .link
+        .view()
+        .get(&alfa)
+        .and_then(|e| e.status.as_ref())
+        .map(|s| s.failsafe);
+    seen.push((
+        "ground silent past both failsafe stages",
+        format!(
+            "drone's failsafe {stage:?}, mode {}, {}",
+            settled_mode(&mut truth, &alfa).await,
+            flight_state(&truth, &alfa)
+        ),
+    ));
+    // The ground beats again, and the pilot acts once the drone has heard it (as in the field,
+    // where the first beat over a restored link comes before the pilot's next action).
+    sim.link.set_heartbeat(true);
+    sim.link
+        .wait_for_drones(std::slice::from_ref(&alfa), STEP, |s| s.failsafe.is_none())
+        .await?;
     seen.push(("hold", act(sim, &gate, &alfa, Action::Hold).await));
     seen.push(("mode after the hold", settled_mode(&mut truth, &alfa).await));
     seen.push(("who flies it after the hold", who_flies(sim, &alfa).await));
@@ -236,6 +272,14 @@ async fn who_flies(sim: &SimSwarm, drone: &DroneId) -> String {
     match (first, says(sim)) {
         (Some(a), Some(b)) if a == b => a,
         (a, b) => format!("unsettled: {a:?} then {b:?}"),
+    }
+}
+
+/// "armed …, landed …" as the vehicle reports it now.
+fn flight_state(truth: &Truth, drone: &DroneId) -> String {
+    match truth.borrow().as_ref().and_then(|t| vehicle(t, drone)) {
+        Some(v) => format!("armed {}, landed {}", v.armed, v.landed),
+        None => "not reported".into(),
     }
 }
 
@@ -291,6 +335,14 @@ fn expected() -> Vec<Observation> {
         ),
         ("who flies it then", "PX4 in Hold".into()),
         ("in the ground's missions", "false".into()),
+        (
+            "ground silent past both failsafe stages",
+            format!(
+                "drone's failsafe {:?}, mode {:?}, armed true, landed false",
+                Some(Some(FailsafeStage::Landing)),
+                Some(Px4Mode::Hold)
+            ),
+        ),
         ("hold", "done".into()),
         (
             "mode after the hold",
