@@ -27,14 +27,13 @@ pub fn callable_schema(
     let mut schema = schema::build(Output::Monolithic, drones, places, trackable);
     // Each of the drone's actions in every shape `call.schema.json` gives it (a goto: to a place
     // or to a point), narrowed to this drone under its fresh task id.
+    let shapes = schema::call_shapes(places, trackable);
     let mut alternatives = Vec::new();
     for c in callable {
         for &action in &c.actions {
             let name = serde_json::to_value(action).unwrap_or_default();
-            let Some(name_text) = name.as_str() else {
-                continue;
-            };
-            for mut shape in schema::shapes_of(name_text, places, trackable) {
+            for shape in shapes.iter().filter(|s| schema::shape_takes(s, &name)) {
+                let mut shape = shape.clone();
                 shape["properties"]["task"] = json!({ "type": "string", "enum": [c.task] });
                 shape["properties"]["drone"] = json!({ "type": "string", "enum": [c.drone] });
                 shape["properties"]["action"] = json!({ "type": "string", "enum": [name] });

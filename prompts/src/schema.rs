@@ -58,23 +58,22 @@ fn shapes(names: &Names) -> Vec<Value> {
     shapes
 }
 
-/// The call shapes (`call.schema.json`) that `action` can take, for a mission with these places
-/// and trackable targets: what [`crate::offer`] narrows to one task and one drone.
-pub(crate) fn shapes_of(action: &str, places: &[String], trackable: &[String]) -> Vec<Value> {
-    let names = Names {
+/// The call shapes (`call.schema.json`) for a mission with these places and trackable targets
+/// (any drone): what [`crate::offer`] narrows to one task and one drone.
+pub(crate) fn call_shapes(places: &[String], trackable: &[String]) -> Vec<Value> {
+    shapes(&Names {
         drones: &[],
         places,
         trackable,
-    };
-    shapes(&names)
-        .into_iter()
-        .filter(|shape| {
-            shape
-                .pointer("/properties/action/enum")
-                .and_then(Value::as_array)
-                .is_some_and(|actions| actions.iter().any(|a| a == action))
-        })
-        .collect()
+    })
+}
+
+/// True when call shape `shape` (see [`call_shapes`]) is one that `action` takes.
+pub(crate) fn shape_takes(shape: &Value, action: &Value) -> bool {
+    shape
+        .pointer("/properties/action/enum")
+        .and_then(Value::as_array)
+        .is_some_and(|actions| actions.contains(action))
 }
 
 /// The names that fill a schema's placeholders.
