@@ -217,7 +217,7 @@ impl GroundLink {
                         ground: epoch,
                         stamp: hb_clock.now(),
                     },
-                    false,
+                    tacos_bus::Delivery::Beat,
                 )
                 .await
                 {
@@ -235,7 +235,14 @@ impl GroundLink {
                     let pace = SimPace {
                         model_call_in_flight: *calls.borrow_and_update() > 0,
                     };
-                    if let Err(e) = tacos_bus::put(&pace_session, &pace_key, &pace, true).await {
+                    if let Err(e) = tacos_bus::put(
+                        &pace_session,
+                        &pace_key,
+                        &pace,
+                        tacos_bus::Delivery::Command,
+                    )
+                    .await
+                    {
                         warn!(error = %e, "simulator pace not sent");
                     }
                     // Wakes at a change, or to repeat the current pace; ends with the link.
@@ -327,7 +334,7 @@ impl GroundLink {
             &self.session,
             &self.keys.action(checked.drone()),
             &command,
-            true,
+            tacos_bus::Delivery::Command,
         )
         .await?;
         Ok(seq)
@@ -340,7 +347,13 @@ impl GroundLink {
             drone: drone.clone(),
             fault,
         };
-        tacos_bus::put(&self.session, &self.keys.sim_faults(), &request, true).await?;
+        tacos_bus::put(
+            &self.session,
+            &self.keys.sim_faults(),
+            &request,
+            tacos_bus::Delivery::Command,
+        )
+        .await?;
         Ok(())
     }
 

@@ -215,7 +215,9 @@ async fn send_on(
     len: usize,
 ) -> anyhow::Result<()> {
     match path {
-        ZenohPath::Tacos => Ok(tacos_bus::put(ground, key, &command(seq), true).await?),
+        ZenohPath::Tacos => {
+            Ok(tacos_bus::put(ground, key, &command(seq), tacos_bus::Delivery::Command).await?)
+        }
         ZenohPath::Bare | ZenohPath::BareFifo => ground
             .put(key, probe(seq, len))
             .await

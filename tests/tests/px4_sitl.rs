@@ -227,8 +227,22 @@ async fn conformance_steps(sim: &mut SimSwarm) -> anyhow::Result<Vec<Observation
             flight_state(&truth, &alfa)
         ),
     ));
-    // The ground beats again, and the pilot acts once the drone has heard it (as in the field,
-    // where the first beat over a restored link comes before the pilot's next action).
+    // A hold sent without a beat (a pilot acting before the drone hears the ground again) is
+    // refused in the landing stage: taking the drone back from PX4, the next tick's landing
+    // stage would land it.
+    seen.push((
+        "hold before a beat",
+        act(sim, &gate, &alfa, Action::Hold).await,
+    ));
+    seen.push((
+        "after the refused hold",
+        format!(
+            "mode {}, {}",
+            settled_mode(&mut truth, &alfa).await,
+            flight_state(&truth, &alfa)
+        ),
+    ));
+    // The ground beats again, and the pilot acts once the drone has heard it.
     sim.link.set_heartbeat(true);
     sim.link
         .wait_for_drones(std::slice::from_ref(&alfa), STEP, |s| s.failsafe.is_none())
@@ -335,6 +349,11 @@ fn expected() -> Vec<Observation> {
         ("in the ground's missions", "false".into()),
         (
             "ground silent into the landing stage",
+            format!("mode {:?}, armed true, landed false", Some(Px4Mode::Hold)),
+        ),
+        ("hold before a beat", "failed: failsafe".into()),
+        (
+            "after the refused hold",
             format!("mode {:?}, armed true, landed false", Some(Px4Mode::Hold)),
         ),
         ("hold", "done".into()),

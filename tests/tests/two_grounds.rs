@@ -171,7 +171,13 @@ async fn held_steps(sim: &SimSwarm) -> anyhow::Result<()> {
     let goto = Action::Goto {
         target: Vec3::new(-75.0, -70.0, 12.0),
     };
-    tacos_bus::put(&network, &key, &held(seq, goto), true).await?;
+    tacos_bus::put(
+        &network,
+        &key,
+        &held(seq, goto),
+        tacos_bus::Delivery::Command,
+    )
+    .await?;
     match link.wait_outcome(&alfa, seq, Duration::from_secs(10)).await {
         Err(LinkError::Refused {
             why: RefusedBecause::Late { late_s, bound_s },
@@ -196,7 +202,13 @@ async fn held_steps(sim: &SimSwarm) -> anyhow::Result<()> {
         after.position
     );
     // What makes the drone safer is taken however late (and last here: its number is taken).
-    tacos_bus::put(&network, &key, &held(seq + 1, Action::Land), true).await?;
+    tacos_bus::put(
+        &network,
+        &key,
+        &held(seq + 1, Action::Land),
+        tacos_bus::Delivery::Command,
+    )
+    .await?;
     assert_eq!(
         link.wait_outcome(&alfa, seq + 1, Duration::from_secs(60))
             .await?,

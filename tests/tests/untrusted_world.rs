@@ -75,8 +75,20 @@ async fn fly_with_forgeries(sim: &SimSwarm) -> anyhow::Result<()> {
                 landmark: None,
                 position: Vec3::new(0.0, 0.0, 0.0),
             };
-            let _ = tacos_bus::put(&session, &keys.targets(), &targets, false).await;
-            let _ = tacos_bus::put(&session, &keys.events(), &detection, true).await;
+            let _ = tacos_bus::put(
+                &session,
+                &keys.targets(),
+                &targets,
+                tacos_bus::Delivery::Telemetry,
+            )
+            .await;
+            let _ = tacos_bus::put(
+                &session,
+                &keys.events(),
+                &detection,
+                tacos_bus::Delivery::Command,
+            )
+            .await;
             tokio::time::sleep(Duration::from_millis(100)).await;
         }
     });

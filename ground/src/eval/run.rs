@@ -365,7 +365,7 @@ async fn fly(
                 if let (Some((_, drone)), Some(fault)) = (fault_at.take(), &plan.task.fault) {
                     failed = Some(drone.clone());
                     let request = FaultRequest { drone: drone.clone(), fault: scenario::FaultKind::VehicleDies };
-                    if let Err(e) = tacos_bus::put(link.session(), &link.keys().sim_faults(), &request, true).await {
+                    if let Err(e) = tacos_bus::put(link.session(), &link.keys().sim_faults(), &request, tacos_bus::Delivery::Command).await {
                         break Err(Infra(format!("injecting the fault: {e}")));
                     }
                     if fault.kind == FaultKind::PowerLoss {

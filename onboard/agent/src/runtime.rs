@@ -266,7 +266,7 @@ async fn run_inner(
                 match done {
                     Ok(done) => {
                         if let Some(path) = motion.solve_done(done, now())
-                            && let Err(e) = tacos_bus::put(&session, &path_key, &path, false).await
+                            && let Err(e) = tacos_bus::put(&session, &path_key, &path, tacos_bus::Delivery::Telemetry).await
                         {
                             warn!(error = %e, "path not published");
                         }
@@ -372,7 +372,7 @@ async fn run_inner(
                     (step, path_out)
                 };
                 if let Some(path) = path_out
-                    && let Err(e) = tacos_bus::put(&session, &path_key, &path, false).await
+                    && let Err(e) = tacos_bus::put(&session, &path_key, &path, tacos_bus::Delivery::Telemetry).await
                 {
                     warn!(error = %e, "path not published");
                 }
@@ -397,7 +397,14 @@ async fn run_inner(
             publish_now = false;
             status_counter += 1;
             let status = status_of(&*core.lock()?, &drone, status_counter);
-            if let Err(e) = tacos_bus::put(&session, &status_key, &status, false).await {
+            if let Err(e) = tacos_bus::put(
+                &session,
+                &status_key,
+                &status,
+                tacos_bus::Delivery::Telemetry,
+            )
+            .await
+            {
                 warn!(error = %e, "status not published");
             }
         }

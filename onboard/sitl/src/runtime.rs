@@ -409,12 +409,12 @@ struct Shell<'a> {
 
 impl Shell<'_> {
     async fn publish<T: Serialize>(&mut self, key: &str, value: &T) {
-        let result = tacos_bus::put(self.session, key, value, false).await;
+        let result = tacos_bus::put(self.session, key, value, tacos_bus::Delivery::Telemetry).await;
         self.check(result);
     }
 
     async fn publish_urgent<T: Serialize>(&mut self, key: &str, value: &T) {
-        let result = tacos_bus::put(self.session, key, value, true).await;
+        let result = tacos_bus::put(self.session, key, value, tacos_bus::Delivery::Command).await;
         self.check(result);
     }
 

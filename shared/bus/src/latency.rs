@@ -2,7 +2,7 @@
 //! network a [`crate::BusArgs`] describes: TCP on loopback, QUIC with mutual TLS through the
 //! swarm's router, one host or two. A round trip carries TACOS's real messages, an
 //! `ActionCommand` out and a `DroneStatus` back, encoded by the wire codec and sent with the QoS
-//! the binaries give them (`crate::put`: urgent for the command, telemetry for the status); beside
+//! the binaries give them (`crate::put`: `Delivery::Command` for the command, `Telemetry` for the status); beside
 //! it, on the same sessions, as many bytes go out and back as bare zenoh puts. The two figures
 //! differ only by what TACOS adds. The keys are `bench/<drone>/{ping,pong}/{tacos,bare}` of the
 //! swarm, which no TACOS process reads: a ponger in a drone's name never meets its onboard.
@@ -167,7 +167,7 @@ pub async fn pong(
                 match crate::decode::<Ping>(&sample) {
                     Ok(ping) => {
                         let reply = pong_message(&ping, received, drone);
-                        crate::put(session, &keys.pong(Carrier::Tacos), &reply, false).await?;
+                        crate::put(session, &keys.pong(Carrier::Tacos), &reply, crate::Delivery::Telemetry).await?;
                         count.answered += 1;
                     }
                     Err(_) => count.malformed += 1,
@@ -278,7 +278,13 @@ impl Pinger<'_> {
         let key = self.keys.ping(self.carrier);
         match self.carrier {
             Carrier::Tacos => {
-                crate::put(self.session, &key, &ping_message(seq, self.drone), true).await
+                crate::put(
+                    self.session,
+                    &key,
+                    &ping_message(seq, self.drone),
+                    crate::Delivery::Command,
+                )
+                .await
             }
             Carrier::Bare => self
                 .session

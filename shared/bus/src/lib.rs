@@ -208,25 +208,42 @@ fn join_description(config: &zenoh::Config) -> String {
     )
 }
 
-/// Encodes `value` and puts it on `key`. `urgent` marks commands: reliable, never dropped,
-/// sent at once at high priority; telemetry may be dropped under congestion instead.
+/// How a message goes out: zenoh's priority, congestion control and batching.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Delivery {
+    /// Commands (actions, faults, the simulator's events): reliable, never dropped, sent at
+    /// once at high priority.
+    Command,
+    /// The ground's heartbeat: at the commands' priority, so that zenoh's per-priority queues
+    /// keep a beat ahead of every action sent after it (a drone judges an action after the
+    /// beats before it, `onboard/agent/src/runtime/ground_side.rs`), but dropped under
+    /// congestion: a newer beat follows.
+    Beat,
+    /// Telemetry (statuses, paths): may be dropped under congestion, batched at data priority.
+    Telemetry,
+}
+
+/// Encodes `value` and puts it on `key` as `delivery` says.
 pub async fn put<T: Serialize>(
     session: &Session,
     key: &str,
     value: &T,
-    urgent: bool,
+    delivery: Delivery,
 ) -> Result<(), BusError> {
     let bytes = codec::encode(value)?;
     let builder = session.put(key, bytes);
-    let builder = if urgent {
-        builder
+    let builder = match delivery {
+        Delivery::Command => builder
             .congestion_control(CongestionControl::Block)
             .priority(Priority::InteractiveHigh)
-            .express(true)
-    } else {
-        builder
+            .express(true),
+        Delivery::Beat => builder
             .congestion_control(CongestionControl::Drop)
-            .priority(Priority::Data)
+            .priority(Priority::InteractiveHigh)
+            .express(true),
+        Delivery::Telemetry => builder
+            .congestion_control(CongestionControl::Drop)
+            .priority(Priority::Data),
     };
     builder.await.map_err(|e| BusError::Put {
         key: key.to_owned(),
@@ -411,13 +428,19 @@ mod tests {
             tokio::time::sleep(Duration::from_millis(10)).await;
         }
         // All at the default priority: zenoh orders samples within a priority, not across.
-        put(&publisher_side, key, &1u64, false).await.expect("put");
+        put(&publisher_side, key, &1u64, Delivery::Telemetry)
+            .await
+            .expect("put");
         publisher_side
             .put(key, vec![codec::WIRE_VERSION])
             .await
             .expect("raw put");
-        put(&publisher_side, key, &3u64, false).await.expect("put");
-        put(&publisher_side, key, &4u64, false).await.expect("put");
+        put(&publisher_side, key, &3u64, Delivery::Telemetry)
+            .await
+            .expect("put");
+        put(&publisher_side, key, &4u64, Delivery::Telemetry)
+            .await
+            .expect("put");
         tokio::time::timeout(Duration::from_secs(10), done_rx.recv())
             .await
             .expect("all four heard within 10 s");

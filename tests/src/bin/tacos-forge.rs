@@ -68,13 +68,25 @@ async fn main() -> anyhow::Result<()> {
             task_id: None,
             action: Action::Land,
         };
-        tacos_bus::put(&session, &keys.action(&args.victim), &land, true).await?;
+        tacos_bus::put(
+            &session,
+            &keys.action(&args.victim),
+            &land,
+            tacos_bus::Delivery::Command,
+        )
+        .await?;
         let forged_beat = GroundHeartbeat {
             counter: beat.counter + 1 + i,
             ground: beat.ground,
             stamp: beat.stamp,
         };
-        tacos_bus::put(&session, &keys.ground_heartbeat(), &forged_beat, true).await?;
+        tacos_bus::put(
+            &session,
+            &keys.ground_heartbeat(),
+            &forged_beat,
+            tacos_bus::Delivery::Beat,
+        )
+        .await?;
         let target = TargetsMessage {
             stamp: 0.0,
             targets: vec![TargetObservation {
@@ -83,7 +95,13 @@ async fn main() -> anyhow::Result<()> {
                 velocity: Vec3::zeros(),
             }],
         };
-        tacos_bus::put(&session, &keys.targets(), &target, true).await?;
+        tacos_bus::put(
+            &session,
+            &keys.targets(),
+            &target,
+            tacos_bus::Delivery::Command,
+        )
+        .await?;
         // The victim's status: any bytes do, the router refuses it unread.
         session
             .put(status.as_str(), vec![0u8; 8])

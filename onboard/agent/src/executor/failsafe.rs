@@ -70,10 +70,18 @@ impl Executor {
     }
 
     /// Why `action` is refused on arrival because of a failsafe: only what makes the drone
-    /// safer (land, hold) is taken while one is on.
+    /// safer (land, hold) is taken while one is on, and only a landing in the landing stage.
+    /// A hold taken there would not last (the next tick's `set_failsafe` fails it and lands),
+    /// and for a drone PX4 flies it would first take the drone back from PX4 only to land it.
     pub(super) fn failsafe_refusal(&self, action: &Action) -> Option<&'static str> {
-        if matches!(action, Action::Land | Action::Hold) {
+        if matches!(action, Action::Land) {
             return None;
+        }
+        if matches!(action, Action::Hold) {
+            return (self.failsafe == Some(FailsafeStage::Landing)).then_some(
+                "ground silent long enough to land: only a landing is taken until a ground \
+                 station in control is heard",
+            );
         }
         if self.failsafe.is_some() {
             // A ground that sends without beating is not in control.

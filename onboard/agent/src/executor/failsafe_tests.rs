@@ -99,9 +99,17 @@ fn the_failsafe_acts_on_the_state_not_on_changes_of_stage() {
         Some(Steering::Toward(Goal::fixed(Vec3::new(-40.0, -100.0, 1.0)))),
         "the landing goes on under the hold stage"
     );
+    // Landing: a hold is refused and the landing goes on.
+    ex.set_failsafe(Some(FailsafeStage::Landing), 5.5);
+    ex.on_command(&cmd(5, Action::Hold), 5.6);
+    assert!(matches!(
+        state_of(&ex),
+        ActionState::Failed(FailureReason::Failsafe(_))
+    ));
+    assert!(matches!(ex.task, Task::Land { .. }));
     // Heard again: work is taken again.
     ex.set_failsafe(None, 6.0);
-    ex.on_command(&cmd(4, goto), 6.1);
+    ex.on_command(&cmd(6, goto), 6.1);
     assert!(matches!(state_of(&ex), ActionState::Running { .. }));
 }
 
@@ -253,6 +261,19 @@ fn the_failsafes_leave_a_drone_px4_flies_to_px4() {
         assert_eq!(ex.autopilot_took_over(), Some(Px4Mode::Position));
         assert_eq!(ex.task, Task::Hold, "{stage:?}");
     }
+    // A hold heard in the landing stage (a pilot's, sent before the ground's first beat after
+    // the silence) is refused, with why: taken, it would take the drone back from PX4 only for
+    // the next tick's landing stage to land it.
+    ex.on_command(&cmd(2, Action::Hold), 40.1);
+    match state_of(&ex) {
+        ActionState::Failed(FailureReason::Failsafe(why)) => {
+            assert!(why.contains("only a landing"), "{why}")
+        }
+        other => panic!("a hold taken in the landing stage: {other:?}"),
+    }
+    ex.set_failsafe(Some(FailsafeStage::Landing), 40.2);
+    assert!(ex.tick(40.2).commands.is_empty(), "still PX4's");
+    assert_eq!(ex.autopilot_took_over(), Some(Px4Mode::Position));
 
     // A restarted onboard beside a vehicle PX4 holds (its offboard-loss failsafe) has no task:
     // neither failsafe takes it either.

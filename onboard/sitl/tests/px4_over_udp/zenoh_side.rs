@@ -76,7 +76,7 @@ async fn publishes_truth_and_takes_faults_over_zenoh() {
         drone: DroneId::new("bravo").expect("valid"),
         fault: FaultKind::VehicleDies,
     };
-    tacos_bus::put(&session, &faults, &request, true)
+    tacos_bus::put(&session, &faults, &request, tacos_bus::Delivery::Command)
         .await
         .expect("put fault");
     let sample = timeout(Duration::from_secs(5), events.recv_async())
