@@ -119,15 +119,15 @@ impl Malformed {
 /// taken from its stamp either way.
 fn take_paths(
     motion: &mut Motion,
-    paths: &zenoh::handlers::RingChannelHandler<zenoh::sample::Sample>,
+    paths: &tacos_bus::Latest<PathMessage>,
     malformed: &mut Malformed,
     key: &str,
 ) -> Result<(), OnboardError> {
-    while let Some(sample) = paths
+    while let Some(path) = paths
         .try_recv()
         .map_err(|_| OnboardError::SubscriberClosed(key.to_owned()))?
     {
-        match tacos_bus::decode::<PathMessage>(&sample) {
+        match path {
             Ok(path) => motion.on_path(path),
             Err(e) => malformed.note(&e),
         }
@@ -210,8 +210,9 @@ async fn run_inner(
     let _ground_subscribers = take_ground_messages(&session, &keys, &drone, &core, &clock).await?;
     // Enough room for a few rounds of every neighbour's path; older ones are superseded anyway.
     let paths_key = keys.all_paths();
-    let paths = tacos_bus::subscribe_latest(&session, &paths_key, 256).await?;
-    let targets = tacos_bus::subscribe_latest(&session, &keys.targets(), 8).await?;
+    let paths = tacos_bus::subscribe_latest::<PathMessage>(&session, &paths_key, 256).await?;
+    let targets =
+        tacos_bus::subscribe_latest::<TargetsMessage>(&session, &keys.targets(), 8).await?;
     let ipc = IpcNode::new(&cfg.bus.swarm, &drone)?;
     let ports = ipc.onboard_ports()?;
     // Declared last: the ground sees the drone only once it can take actions.
@@ -287,9 +288,8 @@ async fn run_inner(
                     solving = start_solve(&mut motion, &core.lock()?.executor, steering, now());
                 }
             }
-            sample = targets.recv_async() => {
-                let sample = sample.map_err(|_| OnboardError::SubscriberClosed(keys.targets()))?;
-                match tacos_bus::decode::<TargetsMessage>(&sample) {
+            message = targets.recv_async() => {
+                match message.map_err(|_| OnboardError::SubscriberClosed(keys.targets()))? {
                     Ok(message) => motion.on_targets(&message, now()),
                     Err(e) => malformed_targets.note(&e),
                 }

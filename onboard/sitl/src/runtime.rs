@@ -80,7 +80,7 @@ pub async fn run(config: SitlConfig, shutdown: impl Future<Output = ()>) -> Resu
     let session = config.bus.open().await?;
     let keys = config.bus.keys();
     let faults = tacos_bus::subscribe(&session, &keys.sim_faults()).await?;
-    let pace = tacos_bus::subscribe_latest(&session, &keys.sim_pace(), 4).await?;
+    let pace = tacos_bus::subscribe_latest::<SimPace>(&session, &keys.sim_pace(), 4).await?;
     let mut sim = match config.observe {
         None => Simulation::with_px4(&config.scenario, &slots, &config.px4),
         Some(observe) => Simulation::observing(
@@ -179,7 +179,7 @@ pub async fn run(config: SitlConfig, shutdown: impl Future<Output = ()>) -> Resu
                 }
             },
             sample = pace.recv_async(), if pace_open => match sample {
-                Ok(sample) => match tacos_bus::decode::<SimPace>(&sample) {
+                Ok(message) => match message {
                     Ok(p) => {
                         if p.model_call_in_flight != model_call_in_flight {
                             debug!(model_call_in_flight = p.model_call_in_flight, "pace changed");

@@ -127,7 +127,7 @@ impl Clock {
     /// it reads the wall clock (see [`Clock::synced`]).
     pub async fn follow(session: &Session, keys: &Keys) -> Result<Clock, BusError> {
         let key = keys.sim_clock();
-        let subscriber = crate::subscribe_latest(session, &key, 4).await?;
+        let subscriber = crate::subscribe_latest::<SimClock>(session, &key, 4).await?;
         let wall = wall_unix();
         let (synced, _) = tokio::sync::watch::channel(false);
         let shared = Arc::new(Shared {
@@ -145,12 +145,9 @@ impl Clock {
         let weak: Weak<Shared> = Arc::downgrade(&shared);
         let task = tokio::spawn(async move {
             let mut malformed = 0u64;
-            while let Ok(sample) = subscriber.recv_async().await {
+            while let Ok(message) = subscriber.recv_async().await {
                 let Some(shared) = weak.upgrade() else { return };
-                match crate::decode::<SimClock>(&sample)
-                    .ok()
-                    .and_then(|m| Anchor::from_message(&m))
-                {
+                match message.ok().and_then(|m| Anchor::from_message(&m)) {
                     Some(anchor) => {
                         lock(&shared.followed).update(anchor);
                         shared

@@ -3,7 +3,10 @@
 
 pub mod clock;
 pub mod latency;
+mod latest;
 pub mod router;
+
+pub use latest::{Closed, Latest, subscribe_latest};
 
 use serde::Serialize;
 use serde::de::DeserializeOwned;
@@ -297,26 +300,6 @@ where
         })
 }
 
-/// Declares a subscriber for a stream where only recent samples matter (neighbours' paths,
-/// targets): it keeps the last `capacity` samples and drops older ones. Unlike the FIFO of
-/// [`subscribe`], it never makes zenoh's receiving task wait for the reader, so a busy reader
-/// cannot stall the session (and with it this process's own puts).
-pub async fn subscribe_latest(
-    session: &Session,
-    key: &str,
-    capacity: usize,
-) -> Result<zenoh::pubsub::Subscriber<zenoh::handlers::RingChannelHandler<Sample>>, BusError> {
-    session
-        .declare_subscriber(key.to_owned())
-        .with(zenoh::handlers::RingChannel::new(capacity.max(1)))
-        .await
-        .map_err(|e| BusError::Declare {
-            what: "subscriber",
-            key: key.to_owned(),
-            reason: e.to_string(),
-        })
-}
-
 /// Declares this process's liveliness token on `key`; dropping it (or dying) withdraws it.
 pub async fn declare_alive(
     session: &Session,
@@ -377,7 +360,7 @@ mod tests {
     use std::sync::{Arc, Mutex};
 
     /// Two peer sessions on loopback TCP, the second connected to the first.
-    async fn pair() -> (Session, Session) {
+    pub(crate) async fn pair() -> (Session, Session) {
         let port = std::net::TcpListener::bind("127.0.0.1:0")
             .and_then(|l| l.local_addr())
             .expect("a free port")
@@ -389,6 +372,24 @@ mod tests {
         let a = listening.open().await.expect("first session");
         let b = connecting.open().await.expect("second session");
         (a, b)
+    }
+
+    /// Waits (10 s at most) until `session` knows a subscriber of `key`.
+    pub(crate) async fn until_matched(session: &Session, key: &str) {
+        let publisher = session
+            .declare_publisher(key.to_owned())
+            .await
+            .expect("publisher");
+        let deadline = std::time::Instant::now() + Duration::from_secs(10);
+        while !publisher
+            .matching_status()
+            .await
+            .expect("matching status")
+            .matching()
+        {
+            assert!(std::time::Instant::now() < deadline, "never matched");
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
     }
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -413,20 +414,7 @@ mod tests {
             .await
             .expect("declared")
         };
-        let publisher = publisher_side
-            .declare_publisher(key)
-            .await
-            .expect("publisher");
-        let deadline = std::time::Instant::now() + Duration::from_secs(10);
-        while !publisher
-            .matching_status()
-            .await
-            .expect("matching status")
-            .matching()
-        {
-            assert!(std::time::Instant::now() < deadline, "never matched");
-            tokio::time::sleep(Duration::from_millis(10)).await;
-        }
+        until_matched(&publisher_side, key).await;
         // All at the default priority: zenoh orders samples within a priority, not across.
         put(&publisher_side, key, &1u64, Delivery::Telemetry)
             .await
