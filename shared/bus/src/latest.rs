@@ -136,10 +136,9 @@ impl<T> std::fmt::Debug for Latest<T> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::tests::{pair, until_matched};
+    use crate::tests::{pair, put_one_malformed_between, until_matched};
     use crate::{Delivery, put};
     use std::time::Duration;
-    use tacos_shared::codec;
 
     #[test]
     fn the_oldest_value_is_dropped_beyond_the_capacity() {
@@ -167,16 +166,7 @@ mod tests {
             .expect("declared");
         assert_eq!(latest.try_recv(), Ok(None), "nothing yet, not closed");
         until_matched(&publisher_side, key).await;
-        put(&publisher_side, key, &1u64, Delivery::Telemetry)
-            .await
-            .expect("put");
-        publisher_side
-            .put(key, vec![codec::WIRE_VERSION])
-            .await
-            .expect("raw put");
-        put(&publisher_side, key, &3u64, Delivery::Telemetry)
-            .await
-            .expect("put");
+        put_one_malformed_between(&publisher_side, key).await;
         let mut heard = Vec::new();
         for _ in 0..3 {
             let value = tokio::time::timeout(Duration::from_secs(10), latest.recv_async())

@@ -374,6 +374,21 @@ mod tests {
         (a, b)
     }
 
+    /// Puts 1, a payload cut short (the wire version alone), then 3; all at the same priority:
+    /// zenoh orders samples within a priority, not across.
+    pub(crate) async fn put_one_malformed_between(session: &Session, key: &str) {
+        put(session, key, &1u64, Delivery::Telemetry)
+            .await
+            .expect("put");
+        session
+            .put(key, vec![codec::WIRE_VERSION])
+            .await
+            .expect("raw put");
+        put(session, key, &3u64, Delivery::Telemetry)
+            .await
+            .expect("put");
+    }
+
     /// Waits (10 s at most) until `session` knows a subscriber of `key`.
     pub(crate) async fn until_matched(session: &Session, key: &str) {
         let publisher = session
@@ -415,17 +430,7 @@ mod tests {
             .expect("declared")
         };
         until_matched(&publisher_side, key).await;
-        // All at the default priority: zenoh orders samples within a priority, not across.
-        put(&publisher_side, key, &1u64, Delivery::Telemetry)
-            .await
-            .expect("put");
-        publisher_side
-            .put(key, vec![codec::WIRE_VERSION])
-            .await
-            .expect("raw put");
-        put(&publisher_side, key, &3u64, Delivery::Telemetry)
-            .await
-            .expect("put");
+        put_one_malformed_between(&publisher_side, key).await;
         put(&publisher_side, key, &4u64, Delivery::Telemetry)
             .await
             .expect("put");
