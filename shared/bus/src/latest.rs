@@ -82,15 +82,7 @@ where
         arrived: Notify::new(),
     });
     let guard = CloseOnDrop(shared.clone());
-    let subscriber = session
-        .declare_subscriber(key.to_owned())
-        .callback(move |sample| guard.0.push(crate::decode(&sample)))
-        .await
-        .map_err(|e| BusError::Declare {
-            what: "subscriber",
-            key: key.to_owned(),
-            reason: e.to_string(),
-        })?;
+    let subscriber = crate::subscribe_with(session, key, move |value| guard.0.push(value)).await?;
     Ok(Latest {
         shared,
         _subscriber: subscriber,
@@ -100,10 +92,13 @@ where
 impl<T> Latest<T> {
     /// The oldest value kept, if any, without waiting.
     pub fn try_recv(&self) -> Result<Option<Result<T, CodecError>>, Closed> {
+        // Read before the queue: once closed, no value is pushed any more, so an empty queue
+        // then is empty for good (read after, a last value pushed in between would be lost).
+        let closed = self.shared.closed.load(Ordering::Acquire);
         if let Some(value) = self.shared.queue().pop_front() {
             return Ok(Some(value));
         }
-        if self.shared.closed.load(Ordering::Acquire) {
+        if closed {
             return Err(Closed);
         }
         Ok(None)

@@ -276,8 +276,9 @@ pub async fn subscribe(
 
 /// Declares a subscriber that decodes each sample and hands it to `handler` on zenoh's own
 /// receiving thread, in the order the samples arrived. For messages acted on at once (a drone's
-/// actions and the heartbeats they must follow): no hand-over to another thread, which costs as
-/// much as zenoh's whole delivery (README, "Benchmarks"). `handler` must be quick and must not
+/// actions and the heartbeats they must follow), and under [`subscribe_latest`]'s ring: no
+/// hand-over to another thread, which costs as much as zenoh's whole delivery (README,
+/// "Benchmarks"). `handler` must be quick and must not
 /// block on anything zenoh itself waits for; the subscriber lives until the returned value
 /// is dropped.
 pub async fn subscribe_with<T, F>(
