@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Planner solves per second per drone, from the onboards' logs of a demo run (issue 19, item 3).
 # Every onboard logs `planner solves=N` (a running count) every 10 s; this prints, for each
-# 10 s window, the mean and the lowest rate over the drones.
+# 10 s window before the drone is told to land, the mean and the lowest rate over the drones.
 #   usage: deploy/solve-rates.sh /tmp/tacos-demo<PID>
 set -euo pipefail
 dir=${1:?usage: $0 LOG_DIR (the demo prints it; /tmp/tacos-demo<PID>)}
@@ -12,8 +12,11 @@ if [ ${#logs[@]} -eq 0 ]; then
     exit 1
 fi
 for log in "${logs[@]}"; do
-    # Strip the colour codes, keep the running count of each `planner` line, print the rates.
+    # Strip the colour codes, keep the running count of each `planner` line up to the drone's
+    # first landing (a landed drone stops planning, so the window holding its touch-down would
+    # read as a slow planner), print the rates.
     sed 's/\x1b\[[0-9;]*m//g' "$log" \
+        | sed '/action=land()/q' \
         | grep ' planner solves=' \
         | sed 's/.* planner solves=\([0-9]*\) .*/\1/' \
         | awk 'NR > 1 { printf "%.1f ", ($1 - prev) / 10 } { prev = $1 } END { print "" }'

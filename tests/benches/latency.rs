@@ -21,9 +21,12 @@ use tacos_shared::{DroneId, SwarmId, Vec3};
 
 const MESSAGES: usize = 10_000;
 /// Messages sent before each round's measured ones.
-const WARMUP: usize = 200;
-/// Each path's messages are measured in this many rounds, the paths taking turns.
-const ROUNDS: usize = 10;
+const WARMUP: usize = 50;
+/// Each path's messages are measured in this many rounds, the paths taking turns. Short
+/// rounds: this machine's wake-up latency moves between levels for seconds at a time (5, 9,
+/// 13 or 18 µs for the same iceoryx2 path in one session), and with ten rounds of 1,000 a
+/// path that drew more of a slow spell read up to 1.44× the other.
+const ROUNDS: usize = 50;
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
     if sorted.is_empty() {
