@@ -178,21 +178,19 @@ pub async fn run(config: SitlConfig, shutdown: impl Future<Output = ()>) -> Resu
                     faults_open = false;
                 }
             },
-            sample = pace.recv_async(), if pace_open => match sample {
-                Ok(message) => match message {
-                    Ok(p) => {
-                        if p.model_call_in_flight != model_call_in_flight {
-                            debug!(model_call_in_flight = p.model_call_in_flight, "pace changed");
-                        }
-                        model_call_in_flight = p.model_call_in_flight;
+            received = pace.recv_async(), if pace_open => match received {
+                Ok(Ok(p)) => {
+                    if p.model_call_in_flight != model_call_in_flight {
+                        debug!(model_call_in_flight = p.model_call_in_flight, "pace changed");
                     }
-                    Err(e) => {
-                        malformed_pace += 1;
-                        if malformed_pace.is_power_of_two() {
-                            warn!(count = malformed_pace, "malformed pace request ignored: {e}");
-                        }
+                    model_call_in_flight = p.model_call_in_flight;
+                }
+                Ok(Err(e)) => {
+                    malformed_pace += 1;
+                    if malformed_pace.is_power_of_two() {
+                        warn!(count = malformed_pace, "malformed pace request ignored: {e}");
                     }
-                },
+                }
                 Err(e) => {
                     warn!("pace subscriber closed: {e}");
                     pace_open = false;

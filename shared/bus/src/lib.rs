@@ -278,9 +278,8 @@ pub async fn subscribe(
 /// receiving thread, in the order the samples arrived. For messages acted on at once (a drone's
 /// actions and the heartbeats they must follow), and under [`subscribe_latest`]'s ring: no
 /// hand-over to another thread, which costs as much as zenoh's whole delivery (README,
-/// "Benchmarks"). `handler` must be quick and must not
-/// block on anything zenoh itself waits for; the subscriber lives until the returned value
-/// is dropped.
+/// "Benchmarks"). `handler` must be quick and must not block on anything zenoh itself waits
+/// for; the subscriber lives until the returned value is dropped.
 pub async fn subscribe_with<T, F>(
     session: &Session,
     key: &str,

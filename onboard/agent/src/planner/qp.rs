@@ -360,7 +360,7 @@ impl QpWorkspace {
             // normal·x + σ ≥ offset  ⇔  (−normal)·x − σ ≤ −offset
             let neg = -c.half.normal;
             for point in layout.control_points(c.segment, &p0, &input.v0, dt) {
-                if point.len == 0 {
+                if point.terms().is_empty() {
                     continue; // fixed by the current state
                 }
                 self.le_row(
@@ -379,7 +379,7 @@ impl QpWorkspace {
             // Skip the first point of segments ≥ 1: it is the last of the previous one.
             let skip = if seg == 0 { 0 } else { 1 };
             for point in points.iter().skip(skip) {
-                if point.len == 0 {
+                if point.terms().is_empty() {
                     continue;
                 }
                 for axis in 0..3 {

@@ -11,7 +11,7 @@ const AFFINE_TERMS: usize = 3;
 #[derive(Debug, Clone, Copy)]
 pub(super) struct Affine {
     terms: [(usize, f64); AFFINE_TERMS],
-    pub(super) len: usize,
+    len: usize,
     pub(super) constant: Vec3,
 }
 
