@@ -7,11 +7,12 @@
 //! last one, so the fixed part of the mission prompts (system text, few-shot turns, the map) is
 //! computed once, not on every call. The decoder itself is immutable and shared.
 
-use candle_core::quantized::{QMatMul, QTensor, gguf_file};
+use candle_core::quantized::{QTensor, gguf_file};
 use candle_core::{DType, Device, IndexOp, Module, Result, Tensor};
 use candle_nn::Embedding;
 
 use crate::catalogue::Architecture;
+use crate::matvec::Linear;
 use crate::output::{BLOCK_ROWS, OutputProjection};
 
 /// The longest sequence (prompt and reply) a call may have, whatever the model was trained for:
@@ -20,18 +21,18 @@ pub const MAX_WINDOW: usize = 8192;
 
 struct Layer {
     attn_norm: RmsNorm,
-    wq: QMatMul,
-    wk: QMatMul,
-    wv: QMatMul,
+    wq: Linear,
+    wk: Linear,
+    wv: Linear,
     /// Qwen2 has biases on the query, key and value projections; Llama has none.
     bq: Option<Tensor>,
     bk: Option<Tensor>,
     bv: Option<Tensor>,
-    wo: QMatMul,
+    wo: Linear,
     ffn_norm: RmsNorm,
-    w_gate: QMatMul,
-    w_up: QMatMul,
-    w_down: QMatMul,
+    w_gate: Linear,
+    w_up: Linear,
+    w_down: Linear,
 }
 
 /// The weights and shape of one model.
@@ -194,8 +195,8 @@ impl Decoder {
         let mut layers = Vec::with_capacity(n_layer);
         for i in 0..n_layer {
             let b = format!("blk.{i}");
-            let q = |name: &str, r: &mut R| -> Result<QMatMul> {
-                QMatMul::from_qtensor(ct.tensor(r, &format!("{b}.{name}.weight"), device)?)
+            let q = |name: &str, r: &mut R| -> Result<Linear> {
+                Linear::new(ct.tensor(r, &format!("{b}.{name}.weight"), device)?)
             };
             let n = |name: &str, r: &mut R| -> Result<RmsNorm> {
                 let t: QTensor = ct.tensor(r, &format!("{b}.{name}.weight"), device)?;
@@ -289,7 +290,7 @@ impl Decoder {
         sin: &Tensor,
     ) -> Result<Tensor> {
         let (b, seq, _) = x.dims3()?;
-        let project = |w: &QMatMul, bias: &Option<Tensor>, heads: usize| -> Result<Tensor> {
+        let project = |w: &Linear, bias: &Option<Tensor>, heads: usize| -> Result<Tensor> {
             let mut t = w.forward(x)?;
             if let Some(bias) = bias {
                 t = t.broadcast_add(bias)?;

@@ -32,6 +32,7 @@ pub mod catalogue;
 mod decoder;
 mod engine;
 pub mod fetch;
+mod matvec;
 mod output;
 mod sampling;
 pub mod template;

@@ -1,0 +1,140 @@
+//! The Q4_K × 8-bit kernel with AVX-512 VNNI: one weight row against up to four activation
+//! rows, each block's weights unpacked once for all of them.
+//!
+//! Per block: two 64-byte loads of the 4-bit values; low and high nibbles by mask and shift
+//! (four vectors of 64 unsigned bytes); per activation row four `vpdpbusd` against the
+//! activation's 64-byte vectors (arranged to match by `ActivationBlock::quantise`), each giving
+//! 16 sums of four products: lanes 0–7 belong to one 32-value sub-block, 8–15 to another, so the
+//! sub-block scales are spread to match by a byte shuffle and multiplied in. One float multiply
+//! by the two scales per block and row; the mins through the activation's sub-block sums.
+
+use std::arch::x86_64::*;
+
+use super::{ActivationBlock, BLOCK_BYTES, MAX_ROWS, unpack_scales};
+
+/// Offsets inside a block.
+const D_AT: usize = 0;
+const SCALES_AT: usize = 4;
+const VALUES_AT: usize = 16;
+
+/// The dot products of one weight row with `m` activation rows.
+///
+/// # Safety
+/// The CPU has AVX-512 F, BW and VNNI, FMA and F16C. `row` holds whole blocks and
+/// `activations` `m` rows of as many blocks (1 ≤ `m` ≤ [`MAX_ROWS`]); both are checked here and
+/// a mismatch panics rather than reading out of bounds.
+pub unsafe fn row_products(
+    row: &[u8],
+    activations: &[ActivationBlock],
+    m: usize,
+    dots: &mut [f32; MAX_ROWS],
+) {
+    let blocks = row.len() / BLOCK_BYTES;
+    assert!(
+        (1..=MAX_ROWS).contains(&m)
+            && row.len() == blocks * BLOCK_BYTES
+            && activations.len() == m * blocks,
+        "a Q4_K row of {} bytes against {} activation blocks in {m} rows",
+        row.len(),
+        activations.len()
+    );
+    // SAFETY: the features are the caller's promise; the sizes were checked just above.
+    unsafe {
+        match m {
+            1 => rows_of::<1>(row, activations, blocks, dots),
+            2 => rows_of::<2>(row, activations, blocks, dots),
+            3 => rows_of::<3>(row, activations, blocks, dots),
+            _ => rows_of::<4>(row, activations, blocks, dots),
+        }
+    }
+}
+
+/// Spreads two sub-block scales (byte indices `a` and `b`) over 8 lanes each.
+#[target_feature(enable = "avx512f")]
+fn spread(scale_bytes: __m128i, a: i8, b: i8) -> __m512i {
+    let order = _mm_setr_epi8(a, a, a, a, a, a, a, a, b, b, b, b, b, b, b, b);
+    _mm512_cvtepu8_epi32(_mm_shuffle_epi8(scale_bytes, order))
+}
+
+/// `row_products` for `M` rows; `row` is `blocks` blocks, `activations` `M` rows of `blocks`.
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni,fma,f16c")]
+fn rows_of<const M: usize>(
+    row: &[u8],
+    activations: &[ActivationBlock],
+    blocks: usize,
+    dots: &mut [f32; MAX_ROWS],
+) {
+    let nibble = _mm512_set1_epi8(0x0F);
+    let mut sums = [_mm512_setzero_ps(); M];
+    let mut mins = [_mm_setzero_ps(); M];
+    for (b, block) in row.chunks_exact(BLOCK_BYTES).enumerate() {
+        let Some(packed) = block[SCALES_AT..SCALES_AT + 12].first_chunk::<12>() else {
+            continue;
+        };
+        let (scales, min_scales) = unpack_scales(packed);
+        let scale_bytes = _mm_cvtsi64_si128(scales as i64);
+        let min_bytes = _mm_cvtsi64_si128(min_scales as i64);
+        let d_and_min = i32::from_le_bytes([
+            block[D_AT],
+            block[D_AT + 1],
+            block[D_AT + 2],
+            block[D_AT + 3],
+        ]);
+        // SAFETY: `block` is 144 bytes, 128 read from VALUES_AT.
+        let (low, high) = unsafe {
+            (
+                _mm512_loadu_si512(block.as_ptr().add(VALUES_AT) as *const _),
+                _mm512_loadu_si512(block.as_ptr().add(VALUES_AT + 64) as *const _),
+            )
+        };
+        let weights = [
+            _mm512_and_si512(low, nibble),
+            _mm512_and_si512(_mm512_srli_epi16(low, 4), nibble),
+            _mm512_and_si512(high, nibble),
+            _mm512_and_si512(_mm512_srli_epi16(high, 4), nibble),
+        ];
+        // Low nibbles of the first 64 bytes hold sub-blocks 0 and 2, high nibbles 1 and 3; of
+        // the next 64 bytes, 4 and 6, then 5 and 7.
+        let lane_scales = [
+            spread(scale_bytes, 0, 2),
+            spread(scale_bytes, 1, 3),
+            spread(scale_bytes, 4, 6),
+            spread(scale_bytes, 5, 7),
+        ];
+        let min_words = _mm_cvtepu8_epi16(min_bytes);
+        let d_and_min = _mm_cvtph_ps(_mm_cvtsi32_si128(d_and_min));
+        let d = _mm_cvtss_f32(d_and_min);
+        let d_min = _mm_cvtss_f32(_mm_shuffle_ps(d_and_min, d_and_min, 1));
+        for i in 0..M {
+            let a = &activations[i * blocks + b];
+            let x = a.values.as_ptr();
+            let zero = _mm512_setzero_si512();
+            let mut total = zero;
+            for k in 0..4 {
+                // SAFETY: `values` is 256 bytes, 64-byte aligned: four aligned 64-byte loads.
+                let xs = unsafe { _mm512_load_si512(x.add(64 * k) as *const _) };
+                let dot = _mm512_dpbusd_epi32(zero, weights[k], xs);
+                total = _mm512_add_epi32(total, _mm512_mullo_epi32(dot, lane_scales[k]));
+            }
+            sums[i] = _mm512_fmadd_ps(
+                _mm512_cvtepi32_ps(total),
+                _mm512_set1_ps(d * a.scale),
+                sums[i],
+            );
+            // SAFETY: `sums` is 8 × i16, 16 bytes.
+            let block_sums = unsafe { _mm_loadu_si128(a.sums.as_ptr() as *const __m128i) };
+            let weighted = _mm_madd_epi16(min_words, block_sums);
+            mins[i] = _mm_fmadd_ps(
+                _mm_cvtepi32_ps(weighted),
+                _mm_set1_ps(d_min * a.scale),
+                mins[i],
+            );
+        }
+    }
+    for i in 0..M {
+        let mut lanes = [0f32; 4];
+        // SAFETY: `lanes` is 4 × f32.
+        unsafe { _mm_storeu_ps(lanes.as_mut_ptr(), mins[i]) };
+        dots[i] = _mm512_reduce_add_ps(sums[i]) - lanes.iter().sum::<f32>();
+    }
+}
