@@ -1,4 +1,4 @@
-//! The Q4_K × 8-bit kernel with AVX-512 VNNI: one weight row against up to four activation
+//! The Q4_K × 8-bit kernel with AVX-512 VNNI: one weight row against up to eight activation
 //! rows, each block's weights unpacked once for all of them.
 //!
 //! Per block: two 64-byte loads of the 4-bit values; low and high nibbles by mask and shift
@@ -10,7 +10,9 @@
 
 use std::arch::x86_64::*;
 
-use super::{ActivationBlock, BLOCK_BYTES, MAX_ROWS, unpack_scales};
+use super::{ActivationBlock, Format, MAX_ROWS};
+
+const BLOCK_BYTES: usize = Format::Q4K.block_bytes();
 
 /// Offsets inside a block.
 const D_AT: usize = 0;
@@ -44,7 +46,11 @@ pub unsafe fn row_products(
             1 => rows_of::<1>(row, activations, blocks, dots),
             2 => rows_of::<2>(row, activations, blocks, dots),
             3 => rows_of::<3>(row, activations, blocks, dots),
-            _ => rows_of::<4>(row, activations, blocks, dots),
+            4 => rows_of::<4>(row, activations, blocks, dots),
+            5 => rows_of::<5>(row, activations, blocks, dots),
+            6 => rows_of::<6>(row, activations, blocks, dots),
+            7 => rows_of::<7>(row, activations, blocks, dots),
+            _ => rows_of::<8>(row, activations, blocks, dots),
         }
     }
 }
@@ -107,11 +113,11 @@ fn rows_of<const M: usize>(
         let d_min = _mm_cvtss_f32(_mm_shuffle_ps(d_and_min, d_and_min, 1));
         for i in 0..M {
             let a = &activations[i * blocks + b];
-            let x = a.values.as_ptr();
+            let x = a.q4k_order.as_ptr();
             let zero = _mm512_setzero_si512();
             let mut total = zero;
             for k in 0..4 {
-                // SAFETY: `values` is 256 bytes, 64-byte aligned: four aligned 64-byte loads.
+                // SAFETY: `q4k_order` is 256 bytes, 64-byte aligned: four aligned 64-byte loads.
                 let xs = unsafe { _mm512_load_si512(x.add(64 * k) as *const _) };
                 let dot = _mm512_dpbusd_epi32(zero, weights[k], xs);
                 total = _mm512_add_epi32(total, _mm512_mullo_epi32(dot, lane_scales[k]));
@@ -121,8 +127,8 @@ fn rows_of<const M: usize>(
                 _mm512_set1_ps(d * a.scale),
                 sums[i],
             );
-            // SAFETY: `sums` is 8 × i16, 16 bytes.
-            let block_sums = unsafe { _mm_loadu_si128(a.sums.as_ptr() as *const __m128i) };
+            // SAFETY: `sums32` is 8 × i16, 16 bytes.
+            let block_sums = unsafe { _mm_loadu_si128(a.sums32.as_ptr() as *const __m128i) };
             let weighted = _mm_madd_epi16(min_words, block_sums);
             mins[i] = _mm_fmadd_ps(
                 _mm_cvtepi32_ps(weighted),
@@ -137,4 +143,27 @@ fn rows_of<const M: usize>(
         unsafe { _mm_storeu_ps(lanes.as_mut_ptr(), mins[i]) };
         dots[i] = _mm512_reduce_add_ps(sums[i]) - lanes.iter().sum::<f32>();
     }
+}
+
+/// The 6-bit scales and mins of a block's eight sub-blocks, from its 12 packed bytes: bytes
+/// 0–3 hold scales 0–3 (low 6 bits), 4–7 mins 0–3; bytes 8–11 the low 4 bits of scales 4–7
+/// (low nibble) and of mins 4–7 (high nibble), whose top 2 bits are the top bits of bytes 0–3
+/// (scales) and 4–7 (mins). Four bytes at a time, as little-endian words; byte `j` of each
+/// result is sub-block `j`'s.
+#[inline(always)]
+pub fn unpack_scales(packed: &[u8; 12]) -> (u64, u64) {
+    const LOW6: u32 = 0x3f3f_3f3f;
+    const LOW4: u32 = 0x0f0f_0f0f;
+    const LOW2: u32 = 0x0303_0303;
+    let word =
+        |i: usize| u32::from_le_bytes([packed[i], packed[i + 1], packed[i + 2], packed[i + 3]]);
+    let (w0, w1, w2) = (word(0), word(4), word(8));
+    let scales_low = w0 & LOW6;
+    let mins_low = w1 & LOW6;
+    let scales_high = (w2 & LOW4) | (((w0 >> 6) & LOW2) << 4);
+    let mins_high = ((w2 >> 4) & LOW4) | (((w1 >> 6) & LOW2) << 4);
+    (
+        scales_low as u64 | (scales_high as u64) << 32,
+        mins_low as u64 | (mins_high as u64) << 32,
+    )
 }

@@ -1,0 +1,159 @@
+//! The Q6_K × 8-bit kernel with AVX-512 VNNI: one weight row against up to eight activation
+//! rows, each block's 6-bit values assembled once for all of them.
+//!
+//! A Q6_K block (210 bytes) holds 256 values as 128 bytes of low 4 bits (`ql`), 64 bytes of
+//! high 2 bits (`qh`), 16 signed 8-bit scales (one per 16 values) and an f16 scale. Per half of
+//! the block (128 values): one 64-byte load of `ql` gives, as low nibbles, values 0–63 of the
+//! half and, as high nibbles, values 64–127, in order; the 32 bytes of `qh` hold the two high
+//! bits of four values each (bits 0–1: values 0–31, 2–3: 32–63, 4–5: 64–95, 6–7: 96–127),
+//! broadcast to both halves of a vector and shifted per half. The values are stored plus 32:
+//! `Σ (q − 32)·x = Σ q·x − 32 Σ x`, the second from the activation's 16-value sums.
+
+use std::arch::x86_64::*;
+
+use super::{ActivationBlock, Format, MAX_ROWS};
+
+const BLOCK_BYTES: usize = Format::Q6K.block_bytes();
+/// Offsets inside a block.
+const QL_AT: usize = 0;
+const QH_AT: usize = 128;
+const SCALES_AT: usize = 192;
+const D_AT: usize = 208;
+
+/// The dot products of one weight row with `m` activation rows.
+///
+/// # Safety
+/// The CPU has AVX-512 F, BW and VNNI, FMA and F16C. Sizes are checked here: `row` holds whole
+/// blocks and `activations` `m` rows of as many blocks (1 ≤ `m` ≤ [`MAX_ROWS`]), else a panic.
+pub unsafe fn row_products(
+    row: &[u8],
+    activations: &[ActivationBlock],
+    m: usize,
+    dots: &mut [f32; MAX_ROWS],
+) {
+    let blocks = row.len() / BLOCK_BYTES;
+    assert!(
+        (1..=MAX_ROWS).contains(&m)
+            && row.len() == blocks * BLOCK_BYTES
+            && activations.len() == m * blocks,
+        "a Q6_K row of {} bytes against {} activation blocks in {m} rows",
+        row.len(),
+        activations.len()
+    );
+    // SAFETY: the features are the caller's promise; the sizes were checked just above.
+    unsafe {
+        match m {
+            1 => rows_of::<1>(row, activations, blocks, dots),
+            2 => rows_of::<2>(row, activations, blocks, dots),
+            3 => rows_of::<3>(row, activations, blocks, dots),
+            4 => rows_of::<4>(row, activations, blocks, dots),
+            5 => rows_of::<5>(row, activations, blocks, dots),
+            6 => rows_of::<6>(row, activations, blocks, dots),
+            7 => rows_of::<7>(row, activations, blocks, dots),
+            _ => rows_of::<8>(row, activations, blocks, dots),
+        }
+    }
+}
+
+/// Spreads four of the 16 scales (from `first`) over four lanes each, sign-extended.
+#[target_feature(enable = "avx512f")]
+fn spread(scales: __m128i, first: i8) -> __m512i {
+    let (a, b, c, d) = (first, first + 1, first + 2, first + 3);
+    let order = _mm_setr_epi8(a, a, a, a, b, b, b, b, c, c, c, c, d, d, d, d);
+    _mm512_cvtepi8_epi32(_mm_shuffle_epi8(scales, order))
+}
+
+/// `row_products` for `M` rows; `row` is `blocks` blocks, `activations` `M` rows of `blocks`.
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni,fma,f16c")]
+fn rows_of<const M: usize>(
+    row: &[u8],
+    activations: &[ActivationBlock],
+    blocks: usize,
+    dots: &mut [f32; MAX_ROWS],
+) {
+    let nibble = _mm512_set1_epi8(0x0F);
+    let two_bits = _mm512_set1_epi8(0x03);
+    // Per 16-bit lane: the low half of the vector (values 0–31) shifts `qh` by 0 (or 4), the
+    // high half (values 32–63) by 2 (or 6).
+    let shifts_low = _mm512_inserti64x4(_mm512_set1_epi16(0), _mm256_set1_epi16(2), 1);
+    let shifts_high = _mm512_inserti64x4(_mm512_set1_epi16(4), _mm256_set1_epi16(6), 1);
+    let mut sums = [_mm512_setzero_ps(); M];
+    let mut offsets = [_mm256_setzero_ps(); M];
+    for (b, block) in row.chunks_exact(BLOCK_BYTES).enumerate() {
+        let d = f16_to_f32(u16::from_le_bytes([block[D_AT], block[D_AT + 1]]));
+        // SAFETY: `block` is 210 bytes: 2 × 64 from QL_AT, 2 × 32 from QH_AT, 16 from
+        // SCALES_AT.
+        let (ql, qh, scales) = unsafe {
+            let p = block.as_ptr();
+            (
+                [
+                    _mm512_loadu_si512(p.add(QL_AT) as *const _),
+                    _mm512_loadu_si512(p.add(QL_AT + 64) as *const _),
+                ],
+                [
+                    _mm256_loadu_si256(p.add(QH_AT) as *const _),
+                    _mm256_loadu_si256(p.add(QH_AT + 32) as *const _),
+                ],
+                _mm_loadu_si128(p.add(SCALES_AT) as *const _),
+            )
+        };
+        // The four 64-value vectors of the block, in order, and their lanes' scales.
+        let mut weights = [_mm512_setzero_si512(); 4];
+        for half in 0..2 {
+            let high_bits = _mm512_broadcast_i64x4(qh[half]);
+            let low_top = _mm512_and_si512(_mm512_srlv_epi16(high_bits, shifts_low), two_bits);
+            let high_top = _mm512_and_si512(_mm512_srlv_epi16(high_bits, shifts_high), two_bits);
+            weights[2 * half] = _mm512_or_si512(
+                _mm512_and_si512(ql[half], nibble),
+                _mm512_slli_epi16(low_top, 4),
+            );
+            weights[2 * half + 1] = _mm512_or_si512(
+                _mm512_and_si512(_mm512_srli_epi16(ql[half], 4), nibble),
+                _mm512_slli_epi16(high_top, 4),
+            );
+        }
+        let lane_scales = [
+            spread(scales, 0),
+            spread(scales, 4),
+            spread(scales, 8),
+            spread(scales, 12),
+        ];
+        let scale_words = _mm256_cvtepi8_epi16(scales);
+        for i in 0..M {
+            let a = &activations[i * blocks + b];
+            let x = a.natural.as_ptr();
+            let zero = _mm512_setzero_si512();
+            let mut total = zero;
+            for k in 0..4 {
+                // SAFETY: `natural` is 256 bytes, 64-byte aligned: four aligned 64-byte loads.
+                let xs = unsafe { _mm512_load_si512(x.add(64 * k) as *const _) };
+                let dot = _mm512_dpbusd_epi32(zero, weights[k], xs);
+                total = _mm512_add_epi32(total, _mm512_mullo_epi32(dot, lane_scales[k]));
+            }
+            sums[i] = _mm512_fmadd_ps(
+                _mm512_cvtepi32_ps(total),
+                _mm512_set1_ps(d * a.scale),
+                sums[i],
+            );
+            // SAFETY: `sums16` is 16 × i16, 32 bytes.
+            let block_sums = unsafe { _mm256_loadu_si256(a.sums16.as_ptr() as *const _) };
+            let weighted = _mm256_madd_epi16(scale_words, block_sums);
+            offsets[i] = _mm256_fmadd_ps(
+                _mm256_cvtepi32_ps(weighted),
+                _mm256_set1_ps(32.0 * d * a.scale),
+                offsets[i],
+            );
+        }
+    }
+    for i in 0..M {
+        let mut lanes = [0f32; 8];
+        // SAFETY: `lanes` is 8 × f32.
+        unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), offsets[i]) };
+        dots[i] = _mm512_reduce_add_ps(sums[i]) - lanes.iter().sum::<f32>();
+    }
+}
+
+#[target_feature(enable = "f16c")]
+fn f16_to_f32(h: u16) -> f32 {
+    _mm_cvtss_f32(_mm_cvtph_ps(_mm_cvtsi32_si128(h as i32)))
+}
