@@ -12,6 +12,7 @@ use candle_core::{DType, Device, IndexOp, Module, Result, Tensor};
 use candle_nn::Embedding;
 
 use crate::catalogue::Architecture;
+use crate::decode_attention::decode_attention;
 use crate::matvec::Linear;
 use crate::output::{BLOCK_ROWS, OutputProjection};
 
@@ -303,7 +304,10 @@ impl Decoder {
         let k = self.rope(&project(&l.wk, &l.bk, self.n_kv_head)?, cos, sin)?;
         let v = project(&l.wv, &l.bv, self.n_kv_head)?;
         let (k, v) = append_kv(kv, &k, &v, pos, self.window)?;
-        let y = grouped_attention(&q, &k, &v, mask, self.n_kv_head)?;
+        let y = match decode_attention(&q, &k, &v)? {
+            Some(y) => y,
+            None => grouped_attention(&q, &k, &v, mask, self.n_kv_head)?,
+        };
         l.wo.forward(&y)
     }
 
@@ -323,7 +327,7 @@ impl Decoder {
 /// `repeat_kv`, which at 2,000 positions copied about 700 MB per generated token): query head h
 /// reads key/value head h / n_rep, and the n_rep query heads of one key/value head are adjacent,
 /// so they are viewed as n_rep × seq rows of it.
-fn grouped_attention(
+pub(crate) fn grouped_attention(
     q: &Tensor,
     k: &Tensor,
     v: &Tensor,
@@ -391,7 +395,7 @@ impl RmsNorm {
 /// The additive causal mask of `seq` new positions after `past` cached ones (1 × 1 × seq ×
 /// (past + seq)): 0 where new position i may look (every cached one, and new ones up to
 /// itself), minus infinity where it would see a later token.
-fn causal_mask(seq: usize, past: usize, device: &Device) -> Result<Tensor> {
+pub(crate) fn causal_mask(seq: usize, past: usize, device: &Device) -> Result<Tensor> {
     let total = past + seq;
     let mask: Vec<f32> = (0..seq)
         .flat_map(|i| {

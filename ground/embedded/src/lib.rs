@@ -29,6 +29,7 @@
 
 mod byte_view;
 pub mod catalogue;
+mod decode_attention;
 mod decoder;
 mod engine;
 pub mod fetch;
