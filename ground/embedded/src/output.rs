@@ -8,8 +8,12 @@
 //! blocks their allowed tokens fall in. Free-text steps, which allow nearly everything, use the
 //! whole matrix in one product.
 
+use std::sync::Arc;
+
 use candle_core::quantized::{QMatMul, QTensor, ggml_file::qtensor_from_ggml};
 use candle_core::{DType, Module, Result, Tensor};
+
+use crate::matvec::DecodeMatrix;
 
 /// Rows per block: small enough that a few allowed tokens cost a few hundredths of the matrix,
 /// large enough that the per-product overhead stays small beside the product.
@@ -20,7 +24,10 @@ const BLOCKS_UP_TO_ONE_IN: usize = 4;
 
 pub struct OutputProjection {
     whole: QMatMul,
-    /// The same rows, `block_rows` at a time, in order.
+    /// The matrix for [`crate::matvec`]'s products, which take any range of rows, when the CPU
+    /// has their kernels; then `blocks` is empty.
+    decode: Option<DecodeMatrix>,
+    /// The same rows, `block_rows` at a time, in order (candle's products of a block).
     blocks: Vec<QMatMul>,
     block_rows: usize,
     rows: usize,
@@ -28,7 +35,8 @@ pub struct OutputProjection {
 
 impl OutputProjection {
     /// Splits `weight` (rows × width, as stored in the GGUF) into blocks of `block_rows` rows.
-    /// The blocks are copies (the matrix is held twice: 190 MB more for Qwen2.5-Coder-1.5B).
+    /// Without [`crate::matvec`]'s kernels the blocks are copies for candle's products (the
+    /// matrix is held twice: 190 MB more for Qwen2.5-Coder-1.5B); with them, ranges of rows.
     pub fn new(weight: QTensor, block_rows: usize) -> Result<OutputProjection> {
         let (rows, width) = weight.shape().dims2()?;
         let dtype = weight.dtype();
@@ -39,7 +47,11 @@ impl OutputProjection {
             );
         }
         let row_bytes = width / dtype.block_size() * dtype.type_size();
-        let blocks = {
+        let weight = Arc::new(weight);
+        let decode = DecodeMatrix::new(&weight);
+        let blocks = if decode.is_some() {
+            Vec::new()
+        } else {
             let data = weight.data()?;
             if data.len() != rows * row_bytes {
                 candle_core::bail!(
@@ -57,7 +69,8 @@ impl OutputProjection {
                 .collect::<Result<Vec<_>>>()?
         };
         Ok(OutputProjection {
-            whole: QMatMul::from_qtensor(weight)?,
+            whole: QMatMul::from_arc(weight)?,
+            decode,
             blocks,
             block_rows,
             rows,
@@ -68,23 +81,43 @@ impl OutputProjection {
     /// holding those rows, every other row `-inf`, when those blocks are few enough; otherwise
     /// (and without `only`) every row. Rows in `only` beyond the matrix are ignored.
     pub fn logits(&self, hidden: &Tensor, only: Option<&[usize]>) -> Result<Vec<f32>> {
+        let input = match &self.decode {
+            Some(_) => hidden.flatten_all()?.to_vec1::<f32>()?,
+            None => Vec::new(),
+        };
         if let Some(only) = only {
-            let mut wanted = vec![false; self.blocks.len()];
+            let mut wanted = vec![false; self.rows.div_ceil(self.block_rows)];
             for &row in only.iter().filter(|r| **r < self.rows) {
                 wanted[row / self.block_rows] = true;
             }
             let n_wanted = wanted.iter().filter(|w| **w).count();
             if n_wanted * self.block_rows * BLOCKS_UP_TO_ONE_IN <= self.rows {
                 let mut logits = vec![f32::NEG_INFINITY; self.rows];
-                for (i, block) in self.blocks.iter().enumerate().filter(|(i, _)| wanted[*i]) {
-                    let part = row_of(block.forward(hidden)?)?;
+                for i in (0..wanted.len()).filter(|i| wanted[*i]) {
                     let start = i * self.block_rows;
-                    logits[start..start + part.len()].copy_from_slice(&part);
+                    let end = (start + self.block_rows).min(self.rows);
+                    match (&self.decode, self.blocks.get(i)) {
+                        (Some(matrix), _) => {
+                            matrix.product(&input, start..end, &mut logits[start..end])?
+                        }
+                        (None, Some(block)) => {
+                            let part = row_of(block.forward(hidden)?)?;
+                            logits[start..start + part.len()].copy_from_slice(&part);
+                        }
+                        (None, None) => candle_core::bail!("no block {i} of the output matrix"),
+                    }
                 }
                 return Ok(logits);
             }
         }
-        row_of(self.whole.forward(hidden)?)
+        match &self.decode {
+            Some(matrix) => {
+                let mut logits = vec![0f32; self.rows];
+                matrix.product(&input, 0..self.rows, &mut logits)?;
+                Ok(logits)
+            }
+            None => row_of(self.whole.forward(hidden)?),
+        }
     }
 }
 
