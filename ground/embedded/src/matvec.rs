@@ -259,7 +259,7 @@ impl OutputRows {
 }
 
 /// The dot products of one weight row (its blocks' bytes) with `m` activation rows
-/// (`activations`: `m` rows of the same number of blocks).
+/// (`activations`: `m` rows of the same number of blocks). Sizes are checked: a mismatch panics.
 fn row_products(
     format: Format,
     row: &[u8],
@@ -267,22 +267,117 @@ fn row_products(
     m: usize,
     dots: &mut [f32; MAX_ROWS],
 ) {
+    let blocks = row.len() / format.block_bytes();
+    assert!(
+        (1..=MAX_ROWS).contains(&m)
+            && row.len() == blocks * format.block_bytes()
+            && activations.len() == m * blocks,
+        "a {format:?} row of {} bytes against {} activation blocks in {m} rows",
+        row.len(),
+        activations.len()
+    );
     #[cfg(target_arch = "x86_64")]
-    {
-        // SAFETY: `enabled()` (checked by `DecodeMatrix::new`, the only way here) found the
-        // kernels' CPU features; the kernels check the slices' sizes.
-        unsafe {
-            match format {
-                Format::Q4K => q4k::row_products(row, activations, m, dots),
-                Format::Q6K => q6k::row_products(row, activations, m, dots),
-            }
-        }
+    match format {
+        Format::Q4K => rows_of::<Q4kKernel>(m, row, activations, blocks, dots),
+        Format::Q6K => rows_of::<Q6kKernel>(m, row, activations, blocks, dots),
     }
     #[cfg(not(target_arch = "x86_64"))]
     {
-        let _ = (format, row, activations, m, dots);
+        let _ = (row, activations, blocks, dots);
         unreachable!("DecodeMatrix::new gives no matrix off x86-64");
     }
+}
+
+/// A kernel for `M` activation rows at a time, `M` fixed when compiled.
+#[cfg(target_arch = "x86_64")]
+trait Kernel {
+    /// # Safety
+    /// The CPU has the kernels' features (AVX-512 F, BW and VNNI, FMA, F16C).
+    unsafe fn rows<const M: usize>(
+        row: &[u8],
+        activations: &[ActivationBlock],
+        blocks: usize,
+        dots: &mut [f32; MAX_ROWS],
+    );
+}
+
+#[cfg(target_arch = "x86_64")]
+struct Q4kKernel;
+#[cfg(target_arch = "x86_64")]
+struct Q6kKernel;
+
+#[cfg(target_arch = "x86_64")]
+impl Kernel for Q4kKernel {
+    unsafe fn rows<const M: usize>(
+        row: &[u8],
+        activations: &[ActivationBlock],
+        blocks: usize,
+        dots: &mut [f32; MAX_ROWS],
+    ) {
+        // SAFETY: the features are the caller's promise.
+        unsafe { q4k::rows_of::<M>(row, activations, blocks, dots) }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+impl Kernel for Q6kKernel {
+    unsafe fn rows<const M: usize>(
+        row: &[u8],
+        activations: &[ActivationBlock],
+        blocks: usize,
+        dots: &mut [f32; MAX_ROWS],
+    ) {
+        // SAFETY: the features are the caller's promise.
+        unsafe { q6k::rows_of::<M>(row, activations, blocks, dots) }
+    }
+}
+
+/// `K`'s kernel for the `m` (1..=[`MAX_ROWS`]) known only at run time.
+#[cfg(target_arch = "x86_64")]
+fn rows_of<K: Kernel>(
+    m: usize,
+    row: &[u8],
+    activations: &[ActivationBlock],
+    blocks: usize,
+    dots: &mut [f32; MAX_ROWS],
+) {
+    // SAFETY: `enabled()` (checked by `DecodeMatrix::new`, the only way here) found the
+    // kernels' CPU features.
+    unsafe {
+        match m {
+            1 => K::rows::<1>(row, activations, blocks, dots),
+            2 => K::rows::<2>(row, activations, blocks, dots),
+            3 => K::rows::<3>(row, activations, blocks, dots),
+            4 => K::rows::<4>(row, activations, blocks, dots),
+            5 => K::rows::<5>(row, activations, blocks, dots),
+            6 => K::rows::<6>(row, activations, blocks, dots),
+            7 => K::rows::<7>(row, activations, blocks, dots),
+            _ => K::rows::<8>(row, activations, blocks, dots),
+        }
+    }
+}
+
+/// A block's integer dot product with its sub-block scales: the four 64-value vectors of
+/// unsigned weights against the activation's values in the same order (`vpdpbusd`: 16 sums of
+/// four products each), each lane times its sub-block's scale, the four added.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+#[inline]
+fn scaled_block_dot(
+    weights: &[std::arch::x86_64::__m512i; 4],
+    lane_scales: &[std::arch::x86_64::__m512i; 4],
+    values: &[i8; BLOCK_VALUES],
+) -> std::arch::x86_64::__m512i {
+    use std::arch::x86_64::*;
+    let zero = _mm512_setzero_si512();
+    let mut total = zero;
+    for (k, x) in values.as_chunks::<64>().0.iter().enumerate() {
+        // SAFETY: `x` is 64 bytes.
+        let xs = unsafe { _mm512_loadu_si512(x.as_ptr() as *const _) };
+        let dot = _mm512_dpbusd_epi32(zero, weights[k], xs);
+        total = _mm512_add_epi32(total, _mm512_mullo_epi32(dot, lane_scales[k]));
+    }
+    total
 }
 
 /// Whether this product runs here: the CPU's features, and not turned off.

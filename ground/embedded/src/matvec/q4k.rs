@@ -10,7 +10,7 @@
 
 use std::arch::x86_64::*;
 
-use super::{ActivationBlock, Format, MAX_ROWS};
+use super::{ActivationBlock, Format, MAX_ROWS, scaled_block_dot};
 
 const BLOCK_BYTES: usize = Format::Q4K.block_bytes();
 
@@ -19,42 +19,6 @@ const D_AT: usize = 0;
 const SCALES_AT: usize = 4;
 const VALUES_AT: usize = 16;
 
-/// The dot products of one weight row with `m` activation rows.
-///
-/// # Safety
-/// The CPU has AVX-512 F, BW and VNNI, FMA and F16C. `row` holds whole blocks and
-/// `activations` `m` rows of as many blocks (1 ≤ `m` ≤ [`MAX_ROWS`]); both are checked here and
-/// a mismatch panics rather than reading out of bounds.
-pub unsafe fn row_products(
-    row: &[u8],
-    activations: &[ActivationBlock],
-    m: usize,
-    dots: &mut [f32; MAX_ROWS],
-) {
-    let blocks = row.len() / BLOCK_BYTES;
-    assert!(
-        (1..=MAX_ROWS).contains(&m)
-            && row.len() == blocks * BLOCK_BYTES
-            && activations.len() == m * blocks,
-        "a Q4_K row of {} bytes against {} activation blocks in {m} rows",
-        row.len(),
-        activations.len()
-    );
-    // SAFETY: the features are the caller's promise; the sizes were checked just above.
-    unsafe {
-        match m {
-            1 => rows_of::<1>(row, activations, blocks, dots),
-            2 => rows_of::<2>(row, activations, blocks, dots),
-            3 => rows_of::<3>(row, activations, blocks, dots),
-            4 => rows_of::<4>(row, activations, blocks, dots),
-            5 => rows_of::<5>(row, activations, blocks, dots),
-            6 => rows_of::<6>(row, activations, blocks, dots),
-            7 => rows_of::<7>(row, activations, blocks, dots),
-            _ => rows_of::<8>(row, activations, blocks, dots),
-        }
-    }
-}
-
 /// Spreads two sub-block scales (byte indices `a` and `b`) over 8 lanes each.
 #[target_feature(enable = "avx512f")]
 fn spread(scale_bytes: __m128i, a: i8, b: i8) -> __m512i {
@@ -62,9 +26,10 @@ fn spread(scale_bytes: __m128i, a: i8, b: i8) -> __m512i {
     _mm512_cvtepu8_epi32(_mm_shuffle_epi8(scale_bytes, order))
 }
 
-/// `row_products` for `M` rows; `row` is `blocks` blocks, `activations` `M` rows of `blocks`.
+/// The dot products of one weight row (`row`: whole Q4_K blocks, `blocks` of them) with `M`
+/// activation rows (`activations`: `M` rows of `blocks`), into `dots[..M]`.
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni,fma,f16c")]
-fn rows_of<const M: usize>(
+pub(super) fn rows_of<const M: usize>(
     row: &[u8],
     activations: &[ActivationBlock],
     blocks: usize,
@@ -113,15 +78,7 @@ fn rows_of<const M: usize>(
         let d_min = _mm_cvtss_f32(_mm_shuffle_ps(d_and_min, d_and_min, 1));
         for i in 0..M {
             let a = &activations[i * blocks + b];
-            let x = a.q4k_order.as_ptr();
-            let zero = _mm512_setzero_si512();
-            let mut total = zero;
-            for k in 0..4 {
-                // SAFETY: `q4k_order` is 256 bytes, 64-byte aligned: four aligned 64-byte loads.
-                let xs = unsafe { _mm512_load_si512(x.add(64 * k) as *const _) };
-                let dot = _mm512_dpbusd_epi32(zero, weights[k], xs);
-                total = _mm512_add_epi32(total, _mm512_mullo_epi32(dot, lane_scales[k]));
-            }
+            let total = scaled_block_dot(&weights, &lane_scales, &a.q4k_order);
             sums[i] = _mm512_fmadd_ps(
                 _mm512_cvtepi32_ps(total),
                 _mm512_set1_ps(d * a.scale),

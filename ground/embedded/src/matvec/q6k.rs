@@ -11,7 +11,7 @@
 
 use std::arch::x86_64::*;
 
-use super::{ActivationBlock, Format, MAX_ROWS};
+use super::{ActivationBlock, Format, MAX_ROWS, scaled_block_dot};
 
 const BLOCK_BYTES: usize = Format::Q6K.block_bytes();
 /// Offsets inside a block.
@@ -19,41 +19,6 @@ const QL_AT: usize = 0;
 const QH_AT: usize = 128;
 const SCALES_AT: usize = 192;
 const D_AT: usize = 208;
-
-/// The dot products of one weight row with `m` activation rows.
-///
-/// # Safety
-/// The CPU has AVX-512 F, BW and VNNI, FMA and F16C. Sizes are checked here: `row` holds whole
-/// blocks and `activations` `m` rows of as many blocks (1 ≤ `m` ≤ [`MAX_ROWS`]), else a panic.
-pub unsafe fn row_products(
-    row: &[u8],
-    activations: &[ActivationBlock],
-    m: usize,
-    dots: &mut [f32; MAX_ROWS],
-) {
-    let blocks = row.len() / BLOCK_BYTES;
-    assert!(
-        (1..=MAX_ROWS).contains(&m)
-            && row.len() == blocks * BLOCK_BYTES
-            && activations.len() == m * blocks,
-        "a Q6_K row of {} bytes against {} activation blocks in {m} rows",
-        row.len(),
-        activations.len()
-    );
-    // SAFETY: the features are the caller's promise; the sizes were checked just above.
-    unsafe {
-        match m {
-            1 => rows_of::<1>(row, activations, blocks, dots),
-            2 => rows_of::<2>(row, activations, blocks, dots),
-            3 => rows_of::<3>(row, activations, blocks, dots),
-            4 => rows_of::<4>(row, activations, blocks, dots),
-            5 => rows_of::<5>(row, activations, blocks, dots),
-            6 => rows_of::<6>(row, activations, blocks, dots),
-            7 => rows_of::<7>(row, activations, blocks, dots),
-            _ => rows_of::<8>(row, activations, blocks, dots),
-        }
-    }
-}
 
 /// Spreads four of the 16 scales (from `first`) over four lanes each, sign-extended.
 #[target_feature(enable = "avx512f")]
@@ -63,9 +28,10 @@ fn spread(scales: __m128i, first: i8) -> __m512i {
     _mm512_cvtepi8_epi32(_mm_shuffle_epi8(scales, order))
 }
 
-/// `row_products` for `M` rows; `row` is `blocks` blocks, `activations` `M` rows of `blocks`.
+/// The dot products of one weight row (`row`: whole Q6_K blocks, `blocks` of them) with `M`
+/// activation rows (`activations`: `M` rows of `blocks`), into `dots[..M]`.
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni,fma,f16c")]
-fn rows_of<const M: usize>(
+pub(super) fn rows_of<const M: usize>(
     row: &[u8],
     activations: &[ActivationBlock],
     blocks: usize,
@@ -121,15 +87,7 @@ fn rows_of<const M: usize>(
         let scale_words = _mm256_cvtepi8_epi16(scales);
         for i in 0..M {
             let a = &activations[i * blocks + b];
-            let x = a.natural.as_ptr();
-            let zero = _mm512_setzero_si512();
-            let mut total = zero;
-            for k in 0..4 {
-                // SAFETY: `natural` is 256 bytes, 64-byte aligned: four aligned 64-byte loads.
-                let xs = unsafe { _mm512_load_si512(x.add(64 * k) as *const _) };
-                let dot = _mm512_dpbusd_epi32(zero, weights[k], xs);
-                total = _mm512_add_epi32(total, _mm512_mullo_epi32(dot, lane_scales[k]));
-            }
+            let total = scaled_block_dot(&weights, &lane_scales, &a.natural);
             sums[i] = _mm512_fmadd_ps(
                 _mm512_cvtepi32_ps(total),
                 _mm512_set1_ps(d * a.scale),
