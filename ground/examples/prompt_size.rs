@@ -5,7 +5,7 @@
 use tacos_embedded::{EmbeddedBackend, EmbeddedOptions};
 use tacos_ground::mission::driver::coordinator_messages;
 use tacos_llm::{ChatMessage, ChatRequest};
-use tacos_prompts::render::{self, DroneLine, TaskStatus};
+use tacos_prompts::render::{self, DroneLine, TaskProgress, TaskStatus};
 use tacos_prompts::{ActionName, Call, texts};
 use tacos_shared::DroneMode;
 use tacos_shared::scenario::Scenario;
@@ -22,7 +22,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 mode: DroneMode::Flying,
                 position: d.home + tacos_shared::Vec3::new(0.0, 0.0, 10.0),
                 speed: 0.0,
-                action: Some(format!("T1 {} arm_takeoff()", d.id)),
+                action: Some("T1 arm_takeoff()".into()),
                 state: Some("done".into()),
             })
             .collect();
@@ -56,10 +56,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             ChatMessage::system(texts::SUPERVISOR),
             ChatMessage::user(render::supervisor_request(
                 Some("Search every car, one drone per car."),
-                &render::plan(&plan),
+                &plan
+                    .iter()
+                    .map(|(call, status)| TaskProgress {
+                        call: call.clone(),
+                        status: status.clone(),
+                        failures: 0,
+                    })
+                    .collect::<Vec<_>>(),
                 &swarm,
                 &world,
-                &[],
             )),
         ];
         let count = |messages: Vec<ChatMessage>| {

@@ -244,29 +244,78 @@ pub fn named_in(instruction: &str, names: &[String]) -> Vec<String> {
     out
 }
 
+/// One task of the plan in force as the Supervisor sees it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TaskProgress {
+    pub call: Call,
+    pub status: TaskStatus,
+    /// Times it has failed so far (a failed task may be issued again).
+    pub failures: u32,
+}
+
 /// The Supervisor's user message. `reasoning` is `None` in the `wor` ablation.
+///
+/// What changes from cycle to cycle comes last: the plan's calls (fixed while the plan holds),
+/// then the swarm, the targets and events, and the Supervisor's memory of the plan: where each
+/// task it issued stands, and which it has not issued yet. With the statuses on the plan's
+/// lines, and the memory a log of "issued …" and outcome lines beside them, every cycle
+/// recomputed the plan and a memory that grew by two lines a task (the models bench's later
+/// cycle computed 301 tokens of 1,803 on a CPU, 5 of its 7.5 s).
 pub fn supervisor_request(
     reasoning: Option<&str>,
-    plan_text: &str,
+    tasks: &[TaskProgress],
     swarm_text: &str,
     world: &WorldText,
-    memory: &[String],
 ) -> String {
-    // The map first (see `WorldText::map`), then the rest in the order it had.
+    // The map first (see `WorldText::map`).
     let mut out = format!("## World\n{}\n", world.map);
     if let Some(r) = reasoning {
         let _ = write!(out, "## Coordinator's reasoning\n{r}\n\n");
     }
+    out.push_str("## Plan\n");
+    if tasks.is_empty() {
+        out.push_str("(none)\n");
+    }
+    for t in tasks {
+        let _ = writeln!(out, "- {}", t.call);
+    }
     let _ = write!(
         out,
-        "## Plan\n{plan_text}\n## Swarm state\n{swarm_text}\n## Targets and events\n{}\n## Your memory for this plan\n",
-        world.live
+        "## Swarm state\n{swarm_text}\n## Targets and events\n{}\n## Your memory for this plan\n{}",
+        world.live,
+        plan_memory(tasks)
     );
-    if memory.is_empty() {
-        out.push_str("(nothing issued yet)\n");
+    out
+}
+
+/// The Supervisor's memory of a plan: a line for each task it issued, where it stands (and how
+/// often it failed before), then the tasks not issued yet.
+pub fn plan_memory(tasks: &[TaskProgress]) -> String {
+    let mut out = String::new();
+    let mut waiting: Vec<&str> = Vec::new();
+    for t in tasks {
+        if t.status == TaskStatus::NotStarted {
+            waiting.push(&t.call.task);
+            continue;
+        }
+        let _ = write!(out, "- {}: {}", t.call.task, t.status.label());
+        match (&t.status, t.failures) {
+            (_, 0) => {}
+            (TaskStatus::Failed(_), 1) => {}
+            (TaskStatus::Failed(_), n) => {
+                let _ = write!(out, " ({n} times)");
+            }
+            (_, 1) => out.push_str(", after 1 failure"),
+            (_, n) => {
+                let _ = write!(out, ", after {n} failures");
+            }
+        }
+        out.push('\n');
     }
-    for m in memory {
-        let _ = writeln!(out, "- {m}");
+    if waiting.is_empty() {
+        out.push_str("- every task issued\n");
+    } else {
+        let _ = writeln!(out, "- not issued yet: {}", waiting.join(", "));
     }
     out
 }
@@ -342,9 +391,22 @@ mod tests {
         );
         let shared = "## World\n".len() + before.map.len();
 
-        let a = supervisor_request(Some("r"), "- T1: not started\n", &idle, &before, &[]);
-        let b = supervisor_request(Some("r"), "- T1: running\n", &flying, &after, &[]);
-        assert!(common(&a, &b) > shared, "{a}\n---\n{b}");
+        let task = |status| TaskProgress {
+            call: Call {
+                task: "T1".into(),
+                drone: "alfa".into(),
+                action: crate::ActionName::ArmTakeoff,
+                target: "none".into(),
+                xyz: None,
+            },
+            status,
+            failures: 0,
+        };
+        let a = supervisor_request(Some("r"), &[task(TaskStatus::NotStarted)], &idle, &before);
+        let b = supervisor_request(Some("r"), &[task(TaskStatus::Running)], &flying, &after);
+        // The plan's calls too: the statuses are in the memory, after the swarm.
+        let through_plan = a.find("## Swarm state").expect("a swarm section");
+        assert!(common(&a, &b) >= through_plan, "{a}\n---\n{b}");
 
         let a = coordinator_request(&idle, &before, "(none)\n", "h\n", "take off", &[]);
         let b = coordinator_request(&flying, &after, "(none)\n", "h\nmore\n", "land", &[]);
@@ -371,6 +433,46 @@ mod tests {
         };
         let text = coordinator_request("s", &w, "p", "h", "i", &[]);
         assert!(text.ends_with("## Named in the instruction\n(none)\n"));
+    }
+
+    #[test]
+    fn the_memory_says_where_each_issued_task_stands() {
+        let call = |task: &str, drone: &str| Call {
+            task: task.into(),
+            drone: drone.into(),
+            action: crate::ActionName::Goto,
+            target: "car_1".into(),
+            xyz: None,
+        };
+        let tasks = [
+            (call("T1", "alfa"), TaskStatus::Done, 0),
+            (
+                call("T2", "bravo"),
+                TaskStatus::Failed("unreachable".into()),
+                2,
+            ),
+            (call("T3", "charlie"), TaskStatus::Running, 1),
+            (call("T4", "delta"), TaskStatus::NotStarted, 0),
+            (call("T5", "echo"), TaskStatus::NotStarted, 0),
+        ]
+        .map(|(call, status, failures)| TaskProgress {
+            call,
+            status,
+            failures,
+        });
+        assert_eq!(
+            plan_memory(&tasks),
+            "- T1: done\n- T2: failed: unreachable (2 times)\n- T3: running, after 1 failure\n\
+             - not issued yet: T4, T5\n"
+        );
+        assert!(plan_memory(&tasks[..3]).ends_with("- every task issued\n"));
+        let city = Scenario::builtin("city").expect("city");
+        let text = supervisor_request(None, &tasks, "- alfa: …\n", &world(&city.world, &[], &[]));
+        assert!(
+            text.contains("## Plan\n- T1 alfa goto(car_1)\n- T2 bravo goto(car_1)\n"),
+            "{text}"
+        );
+        assert!(!text.contains("reasoning"), "{text}");
     }
 
     #[test]

@@ -7,7 +7,7 @@ use serde_json::Value;
 use tacos_ground::mission::{MissionConfig, coordinator_messages, grounding, supervisor_messages};
 use tacos_llm::{ChatRequest, ResponseSchema};
 use tacos_prompts::offer::startable_schema;
-use tacos_prompts::render::{self, DroneLine, HistoryEntry, TaskStatus};
+use tacos_prompts::render::{self, DroneLine, HistoryEntry, TaskProgress, TaskStatus};
 use tacos_prompts::schema::{self, Output};
 use tacos_prompts::{ActionName, Call};
 use tacos_shared::scenario::Scenario;
@@ -125,17 +125,24 @@ pub fn mission_probes() -> anyhow::Result<Vec<Probe>> {
         .map(|(i, id)| take_off(i + 1, id))
         .collect();
     // Cycle 1: nothing started, every take-off startable (and one must start).
+    let progress = |running: usize| -> Vec<TaskProgress> {
+        (plan.iter().enumerate())
+            .map(|(i, c)| TaskProgress {
+                call: c.clone(),
+                status: if i < running {
+                    TaskStatus::Running
+                } else {
+                    TaskStatus::NotStarted
+                },
+                failures: 0,
+            })
+            .collect()
+    };
     let first = render::supervisor_request(
         Some(reasoning),
-        &render::plan(
-            &plan
-                .iter()
-                .map(|c| (c.clone(), TaskStatus::NotStarted))
-                .collect::<Vec<_>>(),
-        ),
+        &progress(0),
         &render::swarm(&on_ground),
         &world,
-        &[],
     );
     // A later cycle: the first three took off (climbing), the other three startable.
     let running = 3;
@@ -149,7 +156,8 @@ pub fn mission_probes() -> anyhow::Result<Vec<Probe>> {
                     mode: DroneMode::Flying,
                     position: d.position + Vec3::new(0.0, 0.0, 4.0),
                     speed: 1.5,
-                    action: Some(call.to_string()),
+                    // As the engine shows a drone's action: its task and the action.
+                    action: Some(format!("{} arm_takeoff()", call.task)),
                     state: Some("running 40%".into()),
                     ..d.clone()
                 }
@@ -160,26 +168,9 @@ pub fn mission_probes() -> anyhow::Result<Vec<Probe>> {
         .collect();
     let later = render::supervisor_request(
         Some(reasoning),
-        &render::plan(
-            &plan
-                .iter()
-                .enumerate()
-                .map(|(i, c)| {
-                    let status = if i < running {
-                        TaskStatus::Running
-                    } else {
-                        TaskStatus::NotStarted
-                    };
-                    (c.clone(), status)
-                })
-                .collect::<Vec<_>>(),
-        ),
+        &progress(running),
         &render::swarm(&climbing),
         &world,
-        &plan[..running]
-            .iter()
-            .map(|c| format!("issued {c}"))
-            .collect::<Vec<_>>(),
     );
     Ok(vec![
         Probe {

@@ -25,13 +25,29 @@ pub fn section<'a>(text: &'a str, title: &str) -> &'a str {
 pub type PlanLine = (String, String, String, String, String);
 
 /// The lines of the "Plan" (Supervisor) and "Pending plan" (Coordinator) sections as (task,
-/// drone, action, target, status); an action without argument has target "none".
+/// drone, action, target, status); an action without argument has target "none". A pending
+/// plan's line holds its status; a Supervisor's plan line is the call alone, and the status
+/// is in "Your memory for this plan" (`- T1: running, after 1 failure`; a task not listed
+/// there is not started).
 pub fn plan_lines(text: &str) -> Vec<PlanLine> {
+    let memory = section(text, "Your memory for this plan");
+    let status_of = |task: &str| {
+        memory
+            .lines()
+            .find_map(|l| l.strip_prefix(&format!("- {task}: ")))
+            // "running, after 1 failure": the status alone.
+            .map_or("not started", |s| s.split(", after ").next().unwrap_or(s))
+            .to_owned()
+    };
     section(text, "Plan")
         .lines()
         .chain(section(text, "Pending plan").lines())
         .filter_map(|l| {
-            let (call, status) = l.strip_prefix("- ")?.rsplit_once("): ")?;
+            let line = l.strip_prefix("- ")?;
+            let (call, status) = match line.rsplit_once("): ") {
+                Some((call, status)) => (call, Some(status.to_owned())),
+                None => (line.strip_suffix(')')?, None),
+            };
             let mut words = call.splitn(3, ' ');
             let (task, drone, rest) = (words.next()?, words.next()?, words.next()?);
             let (action, target) = rest.split_once('(')?;
@@ -41,7 +57,7 @@ pub fn plan_lines(text: &str) -> Vec<PlanLine> {
                 drone.into(),
                 action.into(),
                 target.into(),
-                status.into(),
+                status.unwrap_or_else(|| status_of(task)),
             ))
         })
         .collect()

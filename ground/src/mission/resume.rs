@@ -1,7 +1,7 @@
 //! What a mission remembers, in the form it is logged, and its rebuilding from a mission log
 //! after the ground station restarted: the Coordinator's history, the world events taken in,
-//! and the plan in force (P̂) with each task's state, the action it was sent as and the
-//! Supervisor's memory. Pure: records in, memory out.
+//! and the plan in force (P̂) with each task's state, the action it was sent as and how often
+//! it failed (the Supervisor's memory of the plan). Pure: records in, memory out.
 //!
 //! The engine writes a typed record whenever this memory changes ([`Record::History`],
 //! [`Record::WorldEvent`], [`Record::PlanAdopted`], the sends and outcomes of its tasks, the
@@ -11,7 +11,7 @@
 use super::log::{Line, Record, last_mission};
 use serde::{Deserialize, Serialize};
 use tacos_prompts::Call;
-use tacos_prompts::render::{HistoryEntry, TaskStatus};
+use tacos_prompts::render::{HistoryEntry, TaskProgress, TaskStatus};
 use tacos_shared::DroneId;
 
 /// The format of the mission log written now. 1: a mission can be resumed from it (the records
@@ -29,13 +29,22 @@ pub struct PlanTask {
     pub failures: u32,
 }
 
+impl PlanTask {
+    /// Where it stands, as the Supervisor's prompt shows it.
+    pub fn progress(&self) -> TaskProgress {
+        TaskProgress {
+            call: self.call.clone(),
+            status: self.status.clone(),
+            failures: self.failures,
+        }
+    }
+}
+
 /// The plan in force, as it can be saved.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SavedPlan {
     pub reasoning: String,
     pub tasks: Vec<PlanTask>,
-    /// The Supervisor's memory for this plan.
-    pub memory: Vec<String>,
     /// Supervisor cycles run for it.
     pub cycles: u32,
 }
@@ -124,7 +133,6 @@ impl MissionMemory {
                 self.plan = Some(SavedPlan {
                     reasoning: reasoning.clone(),
                     tasks: tasks.clone(),
-                    memory: Vec::new(),
                     cycles: 0,
                 });
             }
@@ -142,11 +150,11 @@ impl MissionMemory {
                 drone,
                 task: Some(_),
                 seq,
-                outcome,
                 failure,
+                ..
             } => {
                 if let Some(plan) = self.plan.as_mut() {
-                    plan.finished(drone, *seq, outcome, failure.as_deref());
+                    plan.finished(drone, *seq, failure.as_deref());
                 }
             }
             Record::SupervisorCycle { .. } => {
@@ -171,11 +179,10 @@ impl SavedPlan {
         t.call.drone = drone.to_string();
         t.status = TaskStatus::Running;
         t.sent = Some((drone, seq));
-        self.memory.push(format!("issued {}", t.call));
     }
 
     /// The action `seq` of `drone` ended: done, or failed for `failure`.
-    fn finished(&mut self, drone: &str, seq: u64, outcome: &str, failure: Option<&str>) {
+    fn finished(&mut self, drone: &str, seq: u64, failure: Option<&str>) {
         let Some(t) = self.tasks.iter_mut().find(|t| {
             t.sent
                 .as_ref()
@@ -190,7 +197,6 @@ impl SavedPlan {
             }
             None => TaskStatus::Done,
         };
-        self.memory.push(format!("{}: {outcome}", t.call));
     }
 }
 

@@ -54,7 +54,6 @@ pub(crate) fn adopt(book: &mut PlanBook, reasoning: String, calls: Vec<Call>) ->
     book.plan = Some(ActivePlan {
         reasoning,
         tasks,
-        memory: Vec::new(),
         cycles: 0,
         stuck_since: None,
     });
@@ -158,7 +157,6 @@ mod tests {
                     sent: Some((drone.clone(), 9)),
                     failures: 1,
                 }],
-                memory: vec!["T0 done".into()],
                 cycles: 4,
                 stuck_since: None,
             }),
@@ -168,7 +166,7 @@ mod tests {
         let calls = vec![goto("T7", "alfa", "car_3"), goto("T8", "bravo", "car_4")];
         let effects = adopt(&mut book, "new".into(), calls.clone());
         let plan = book.plan.expect("adopted");
-        assert_eq!((plan.cycles, plan.memory.len()), (0, 0));
+        assert_eq!(plan.cycles, 0);
         assert_eq!(
             plan.tasks[0],
             PlanTask {

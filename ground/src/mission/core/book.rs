@@ -11,8 +11,6 @@ use tacos_shared::DroneId;
 pub(crate) struct ActivePlan {
     pub(crate) reasoning: String,
     pub(crate) tasks: Vec<PlanTask>,
-    /// The Supervisor's memory for this plan; cleared with it.
-    pub(crate) memory: Vec<String>,
     pub(crate) cycles: u32,
     /// Since when nothing of the plan has been running and nothing could start.
     pub(crate) stuck_since: Option<Instant>,
@@ -24,17 +22,15 @@ impl ActivePlan {
         ActivePlan {
             reasoning: saved.reasoning,
             tasks: saved.tasks,
-            memory: saved.memory,
             cycles: saved.cycles,
             stuck_since: None,
         }
     }
 
     /// `call` went to `drone` as its action `seq`: its task runs (a call the plan does not
-    /// hold, e.g. under a task id of the Supervisor's own, is added), and the Supervisor's
-    /// memory says so.
+    /// hold, e.g. under a task id of the Supervisor's own, is added). The Supervisor's memory
+    /// of the plan is its tasks' statuses (`render::plan_memory`).
     pub(crate) fn issued(&mut self, call: Call, drone: DroneId, seq: u64) {
-        self.memory.push(format!("issued {call}"));
         let sent = Some((drone, seq));
         match self.tasks.iter_mut().find(|t| t.call.task == call.task) {
             Some(t) => {

@@ -8,6 +8,7 @@ use super::prompt_view::{plan_lines, trackable};
 use super::snapshot::Snapshot;
 use super::start::{Start, startable};
 use crate::mission::config::Mode;
+use crate::mission::resume::PlanTask;
 use crate::safety::SafetyGate;
 use tacos_llm::ChatMessage;
 use tacos_prompts::offer::{callable_schema, startable_schema};
@@ -47,14 +48,14 @@ pub(crate) fn supervisor_ask(
         return None;
     }
     let reasoning = (mode == Mode::Tacos).then_some(plan.reasoning.as_str());
-    let tasks = plan_lines(book);
+    let progress: Vec<_> = plan.tasks.iter().map(PlanTask::progress).collect();
     let user = render::supervisor_request(
         reasoning,
-        &render::plan(&tasks),
+        &progress,
         &render::swarm(&snap.drone_lines(scenario)),
         &snap.world_text(scenario, events),
-        &plan.memory,
     );
+    let tasks = plan_lines(book);
     Some(CycleRequest {
         messages: supervisor_messages(user),
         schema: startable_schema(&startable),

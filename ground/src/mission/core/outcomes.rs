@@ -141,18 +141,14 @@ pub(crate) fn poll(book: &mut PlanBook, snap: &Snapshot, rules: &Rules<'_>) -> (
             outcome: f.outcome.clone(),
             failed: f.failed,
         }));
-        let line = format!("{}: {}", f.action, f.outcome);
-        match rules.mode {
-            Mode::Mnl => {
-                book.mnl.executed.push(line);
-                if f.failed || f.outcome != "done" {
-                    book.mnl.claimed_done = false;
-                }
-            }
-            _ => {
-                if let Some(plan) = book.plan.as_mut() {
-                    plan.memory.push(line);
-                }
+        // The monolithic model's history of executed actions; the Supervisor's memory of a
+        // plan is its tasks' statuses, set above.
+        if rules.mode == Mode::Mnl {
+            book.mnl
+                .executed
+                .push(format!("{}: {}", f.action, f.outcome));
+            if f.failed || f.outcome != "done" {
+                book.mnl.claimed_done = false;
             }
         }
     }

@@ -62,7 +62,6 @@ pub(super) fn chase() -> (PlanBook, Snapshot) {
                     ("alfa", 2),
                 ),
             ],
-            memory: Vec::new(),
             cycles: 3,
             stuck_since: None,
         }),

@@ -86,7 +86,6 @@ fn book(tasks: Vec<PlanTask>) -> PlanBook {
         plan: Some(ActivePlan {
             reasoning: "test".into(),
             tasks,
-            memory: Vec::new(),
             cycles: 2,
             stuck_since: None,
         }),
@@ -496,7 +495,6 @@ fn a_plan_ended_otherwise_than_complete_says_how() {
     let plan = ActivePlan {
         reasoning: String::new(),
         tasks: Vec::new(),
-        memory: Vec::new(),
         cycles: 1,
         stuck_since: None,
     };

@@ -160,16 +160,11 @@ fn a_plan_killed_mid_flight_comes_back_with_each_task_where_it_stood() {
             ("T3", &TaskStatus::Running, Some(103), 1),
         ]
     );
+    // The Supervisor's memory of the plan, as its prompt shows it.
+    let progress: Vec<_> = plan.tasks.iter().map(PlanTask::progress).collect();
     assert_eq!(
-        plan.memory,
-        vec![
-            "issued T1 alfa arm_takeoff()",
-            "issued T3 bravo goto(large_park_north)",
-            "T1 alfa arm_takeoff(): done",
-            "T3 bravo goto(large_park_north): failed: bravo is on the ground",
-            "issued T2 alfa goto(villa)",
-            "issued T3 bravo goto(large_park_north)",
-        ]
+        tacos_prompts::render::plan_memory(&progress),
+        "- T1: done\n- T2: running\n- T3: running, after 1 failure\n- every task issued\n"
     );
 }
 
