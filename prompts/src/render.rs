@@ -260,7 +260,8 @@ pub struct TaskProgress {
 /// task it issued stands, and which it has not issued yet. With the statuses on the plan's
 /// lines, and the memory a log of "issued …" and outcome lines beside them, every cycle
 /// recomputed the plan and a memory that grew by two lines a task (the models bench's later
-/// cycle computed 301 tokens of 1,803 on a CPU, 5 of its 7.5 s).
+/// cycle computes 230 tokens of 1,860 this way, 301 of 1,814 before: 2.7 s of prefill on a
+/// 2-core Xeon instead of 3.8).
 pub fn supervisor_request(
     reasoning: Option<&str>,
     tasks: &[TaskProgress],
