@@ -3,7 +3,9 @@
 //! reads a pilot line before writing it into a mission script.
 //! Run: `cargo run -p tacos-ground --example coordinator_probe -- lab "alfa, check small_park"`
 //! (`PROBE_ON_THE_GROUND=1` for a swarm that has not taken off, `PROBE_OFFER_REFUSAL=1` for the
-//! prompt and schema that let a reply decline, as with `--aids none`).
+//! prompt and schema that let a reply decline, as with `--aids none`; `PROBE_TEMPERATURE=0.7`
+//! to sample as `tacos-ground eval` does, each instruction with its own seed: repeat one to see
+//! several samples).
 
 use tacos_embedded::{EmbeddedBackend, EmbeddedOptions};
 use tacos_ground::mission::driver::coordinator_messages;
@@ -22,6 +24,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     // `PROBE_ON_THE_GROUND=1`: every drone idle at its home instead of flying above it.
     let grounded = std::env::var_os("PROBE_ON_THE_GROUND").is_some();
     let offer_refusal = std::env::var_os("PROBE_OFFER_REFUSAL").is_some();
+    let temperature: f32 = match std::env::var("PROBE_TEMPERATURE") {
+        Ok(t) => t.parse()?,
+        Err(_) => 0.0,
+    };
     let drones: Vec<DroneLine> = scenario
         .drones
         .iter()
@@ -65,11 +71,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?;
-    for instruction in args {
+    for (n, instruction) in args.enumerate() {
         let history = render::history(&[HistoryEntry::Pilot(instruction.clone())]);
-        let named = render::named_in(
+        let named = render::named_with_kinds(
             &instruction,
             &ids.iter().chain(&places).cloned().collect::<Vec<_>>(),
+            &render::landmark_kinds(&scenario.world),
         );
         // As the engine limits it: the places the instruction names, if it names any.
         let scope = grounding::places_in_scope(&places, &named, &[]);
@@ -105,8 +112,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 },
             }),
             max_tokens: schema::token_budget(Output::Coordinator, ids.len()),
-            temperature: 0.0,
-            seed: Some(7),
+            temperature,
+            seed: Some(7 + n as u64),
             reasoning_effort: None,
         };
         let reply = runtime.block_on(model.chat(&request))?;

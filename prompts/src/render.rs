@@ -230,18 +230,57 @@ pub fn named_section(named: &[String]) -> String {
 /// any case, in the order given: the entities a plan must be about, spelled as the API wants
 /// them (a small model copies a name from a short list more reliably than from the prose).
 pub fn named_in(instruction: &str, names: &[String]) -> Vec<String> {
+    named_with_kinds(instruction, names, &[])
+}
+
+/// [`named_in`], where a landmark kind the instruction says as a word, singular or plural
+/// ("one of the cars", "a villa"), names every landmark of that kind among `names`;
+/// `landmarks` pairs each landmark's name with its kind. "Find the suspect hiding in one of the
+/// cars" is about `car_1` … `car_15`: listed, the 1.5B model's search covers them, and the
+/// place scope keeps the plan on them (it chased the van, a moving target, instead).
+pub fn named_with_kinds(
+    instruction: &str,
+    names: &[String],
+    landmarks: &[(String, String)],
+) -> Vec<String> {
     let words: Vec<String> = instruction
         .split(|c: char| !(c.is_alphanumeric() || c == '_'))
         .filter(|w| !w.is_empty())
         .map(str::to_lowercase)
         .collect();
+    let kind_said = |kind: &str| words.iter().any(|w| says_kind(w, kind));
+    let of_said_kind = |name: &String| {
+        landmarks
+            .iter()
+            .any(|(n, kind)| n == name && kind_said(kind))
+    };
     let mut out: Vec<String> = Vec::new();
     for name in names {
-        if words.iter().any(|w| *w == name.to_lowercase()) && !out.contains(name) {
+        let said = words.iter().any(|w| *w == name.to_lowercase()) || of_said_kind(name);
+        if said && !out.contains(name) {
             out.push(name.clone());
         }
     }
     out
+}
+
+/// Whether `word` (lower case) is `kind` or its English plural: car/cars, bus/buses, city/cities.
+fn says_kind(word: &str, kind: &str) -> bool {
+    let kind = kind.to_lowercase();
+    let plural_ies = kind
+        .strip_suffix('y')
+        .is_some_and(|stem| word.strip_suffix("ies") == Some(stem));
+    word == kind
+        || word.strip_suffix('s') == Some(kind.as_str())
+        || word.strip_suffix("es") == Some(kind.as_str())
+        || plural_ies
+}
+
+/// Each landmark of `world` with its kind, for [`named_with_kinds`].
+pub fn landmark_kinds(world: &World) -> Vec<(String, String)> {
+    (world.landmarks.iter())
+        .map(|l| (l.name.clone(), l.kind.as_str().to_owned()))
+        .collect()
 }
 
 /// One task of the plan in force as the Supervisor sees it.
@@ -428,6 +467,21 @@ mod tests {
             ["alfa", "car_12", "small_park"]
         );
         assert!(named_in("all drones take off", &names).is_empty());
+        let kinds: Vec<(String, String)> =
+            [("car_1", "car"), ("car_12", "car"), ("small_park", "park")]
+                .map(|(n, k)| (n.to_owned(), k.to_owned()))
+                .to_vec();
+        // A kind said as a word names every landmark of it; inside a name it says nothing.
+        assert_eq!(
+            named_with_kinds("Find the suspect in one of the Cars, alfa", &names, &kinds),
+            ["alfa", "car_1", "car_12"]
+        );
+        assert_eq!(
+            named_with_kinds("check the car and small_park", &names, &kinds),
+            ["car_1", "car_12", "small_park"]
+        );
+        assert!(named_with_kinds("fly over the parking, carefully", &names, &kinds).is_empty());
+        assert!(says_kind("cities", "city") && says_kind("buses", "bus"));
         let w = WorldText {
             map: "m".into(),
             live: "l".into(),

@@ -89,7 +89,8 @@ pub fn mission_probes() -> anyhow::Result<Vec<Probe>> {
         .collect();
     let names: Vec<String> = ids.iter().chain(&places).cloned().collect();
     let coordinator = |instruction: &str| {
-        let named = render::named_in(instruction, &names);
+        let named =
+            render::named_with_kinds(instruction, &names, &render::landmark_kinds(&city.world));
         let scope = grounding::places_in_scope(&places, &named, &[]);
         let messages = coordinator_messages(
             render::coordinator_request(

@@ -70,7 +70,8 @@ pub(crate) fn coordinator_ask(
         .collect();
     let (drones, places) = snap.enums(scenario);
     let names: Vec<String> = drones.iter().chain(&places).cloned().collect();
-    let named = render::named_in(instruction, &names);
+    let kinds = render::landmark_kinds(&scenario.world);
+    let named = render::named_with_kinds(instruction, &names, &kinds);
     let named_places: Vec<String> = named
         .iter()
         .filter(|n| places.contains(n))
@@ -198,7 +199,8 @@ pub fn coordinator_fixed_messages(offer_refusal: bool) -> Vec<ChatMessage> {
             continue;
         }
         // "Named in the instruction" as a real request shows it: the example plan's drones and
-        // places that its instruction names.
+        // places that its instruction names, by name or by kind (an example's landmarks are
+        // named `<kind>_<n>`).
         let names: Vec<String> = CoordinatorReply::parse(&example.reply.to_string())
             .map(|r| {
                 r.plan
@@ -208,7 +210,11 @@ pub fn coordinator_fixed_messages(offer_refusal: bool) -> Vec<ChatMessage> {
                     .collect()
             })
             .unwrap_or_default();
-        let named = render::named_section(&render::named_in(&example.instruction, &names));
+        let kinds: Vec<(String, String)> = (names.iter())
+            .filter_map(|n| Some((n.clone(), n.rsplit_once('_')?.0.to_owned())))
+            .collect();
+        let named = render::named_with_kinds(&example.instruction, &names, &kinds);
+        let named = render::named_section(&named);
         messages.push(ChatMessage::user(format!(
             "## Context\n{}\n## Instruction\n{}\n{named}",
             example.context, example.instruction
