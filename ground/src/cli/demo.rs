@@ -58,7 +58,8 @@ pub struct DemoArgs {
     /// default), `none` (the engine's principled rules only), or a comma-separated list of
     /// aids to turn on, `-name` turning one off after a preset (`small,-implied-takeoffs`).
     /// Aids: place-scope, follow-words, repair-grammar, implied-takeoffs, plan-length-cap,
-    /// compact-repair-echo, keep-partial-plan, plan-only, whole-swarm. The mission log records
+    /// compact-repair-echo, keep-partial-plan, plan-only, whole-swarm, replan-keeps-pending.
+    /// The mission log records
     /// which were on and
     /// each time one fired.
     #[arg(long, default_value = "small")]

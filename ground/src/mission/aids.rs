@@ -7,7 +7,7 @@
 //! it. Where an aid stands in for a principled rule, the rule is what runs when it is off (an
 //! implied take-off off: the Coordinator's plan is refused, naming the missing take-off).
 //!
-//! The first four and `whole-swarm` act on the Coordinator only, so `mnl` never meets them; compare the modes with
+//! The first four, `whole-swarm` and `replan-keeps-pending` act on the Coordinator only, so `mnl` never meets them; compare the modes with
 //! the same preset and say which.
 
 use serde::{Deserialize, Serialize};
@@ -50,10 +50,17 @@ pub enum Aid {
     /// plan that leaves some out goes back naming them (`whole_swarm`). Off: the plan is taken
     /// as the model wrote it.
     WholeSwarm,
+    /// An automatic replan (a drone lost or joined) keeps the pending tasks of the drones still
+    /// available that its plan leaves out, before the plan's own calls
+    /// (`adopt::with_pending_kept`): nobody cancelled them, and the 1.5B default, asked to hand
+    /// on a lost drone's searches, planned those alone and dropped the other drones' (the two
+    /// failures of ten Task 1 runs once the cars were named). Off: the plan is taken as the
+    /// model wrote it.
+    ReplanKeepsPending,
 }
 
 impl Aid {
-    pub const ALL: [Aid; 9] = [
+    pub const ALL: [Aid; 10] = [
         Aid::PlaceScope,
         Aid::FollowWords,
         Aid::RepairGrammar,
@@ -63,6 +70,7 @@ impl Aid {
         Aid::KeepPartialPlan,
         Aid::PlanOnly,
         Aid::WholeSwarm,
+        Aid::ReplanKeepsPending,
     ];
 
     /// The name on the command line and in the log.
@@ -77,6 +85,7 @@ impl Aid {
             Aid::KeepPartialPlan => "keep-partial-plan",
             Aid::PlanOnly => "plan-only",
             Aid::WholeSwarm => "whole-swarm",
+            Aid::ReplanKeepsPending => "replan-keeps-pending",
         }
     }
 

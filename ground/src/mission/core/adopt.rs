@@ -120,9 +120,87 @@ pub(crate) fn without_repeated_work(calls: Vec<Call>) -> (Vec<Call>, Vec<Call>) 
     (kept, dropped)
 }
 
+/// An automatic replan's `calls` after the `pending` tasks (of the plan in force, not done and
+/// not failed) whose drone is among `available` and whose work the new plan does not already
+/// give out: the same call for the same drone, or a goto or start_tracking of the same place or
+/// point by any drone (the replan moved it). Returns the plan, kept tasks first, and the tasks
+/// kept (`replan-keeps-pending`). Task ids are the tasks' keys, so each keeps its own and a new
+/// call whose id a kept task holds gets the next free one: the model's ids stay as it wrote them.
+pub(crate) fn with_pending_kept(
+    calls: Vec<Call>,
+    pending: &[Call],
+    available: &[String],
+) -> (Vec<Call>, Vec<Call>) {
+    let given_out = |old: &Call| {
+        calls.iter().any(|new| {
+            let moved = matches!(old.action, ActionName::Goto | ActionName::StartTracking)
+                && new.action == old.action
+                && new.target == old.target
+                && new.xyz == old.xyz;
+            moved || same_work(new) == same_work(old)
+        })
+    };
+    let kept: Vec<Call> = (pending.iter())
+        .filter(|old| available.contains(&old.drone) && !given_out(old))
+        .cloned()
+        .collect();
+    let number = |c: &Call| c.task.strip_prefix('T').and_then(|n| n.parse::<u32>().ok());
+    let mut next = kept
+        .iter()
+        .chain(&calls)
+        .filter_map(number)
+        .max()
+        .unwrap_or(0)
+        + 1;
+    let mut plan = kept.clone();
+    for mut call in calls {
+        if plan.iter().any(|c| c.task == call.task) {
+            call.task = format!("T{next}");
+            next += 1;
+        }
+        plan.push(call);
+    }
+    (plan, kept)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_replan_keeps_the_pending_work_it_does_not_give_out() {
+        let call = Call::named;
+        let pending = vec![
+            call("T2", "bravo", ActionName::Goto, "car_2"),
+            call("T4", "bravo", ActionName::Goto, "car_4"),
+            call("T5", "charlie", ActionName::Goto, "car_5"),
+            call("T6", "delta", ActionName::Goto, "car_6"),
+        ];
+        // Alfa's car_1 and car_3 handed on; car_4 moved from bravo to charlie; delta is gone.
+        let replan = vec![
+            call("T1", "charlie", ActionName::Goto, "car_1"),
+            call("T2", "bravo", ActionName::Goto, "car_3"),
+            call("T3", "charlie", ActionName::Goto, "car_4"),
+        ];
+        let available = ["bravo".to_owned(), "charlie".to_owned()];
+        let (plan, kept) = with_pending_kept(replan, &pending, &available);
+        let text: Vec<String> = plan.iter().map(Call::to_string).collect();
+        assert_eq!(
+            text,
+            [
+                "T2 bravo goto(car_2)",
+                "T5 charlie goto(car_5)",
+                "T1 charlie goto(car_1)",
+                "T6 bravo goto(car_3)",
+                "T3 charlie goto(car_4)",
+            ]
+        );
+        assert_eq!(kept, [pending[0].clone(), pending[2].clone()]);
+        // A replan that gives everything out again keeps nothing.
+        let (plan, kept) = with_pending_kept(pending.clone(), &pending, &available);
+        assert!(kept.is_empty());
+        assert_eq!(plan.len(), 4);
+    }
 
     #[test]
     fn work_repeated_in_a_row_is_one_task() {

@@ -57,6 +57,7 @@ impl Core {
         match coordinator_ask(work, &context, &mut effects) {
             Ok(ask) => {
                 self.calls.started("coordinator");
+                self.replan_in_flight = matches!(work, Coordination::Replan(_));
                 effects.push(Effect::Ask(Ask::Coordinator(Box::new(ask))));
             }
             Err(e) => effects.push(Effect::Tell(MissionUpdate::Error(e.to_string()))),

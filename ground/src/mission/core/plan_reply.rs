@@ -2,7 +2,7 @@
 //! (nothing is sent, the plan in force stays); a plan has its repeats dropped, its forgotten
 //! take-offs added (`implied-takeoffs`), and is held for the pilot (`confirm on`) or adopted.
 
-use super::adopt::{adopt, with_implied_takeoffs, without_repeated_work};
+use super::adopt::{adopt, with_implied_takeoffs, with_pending_kept, without_repeated_work};
 use super::effect::Effect;
 use super::snapshot::Snapshot;
 use super::state::Core;
@@ -12,7 +12,8 @@ use crate::mission::approval::HeldPlan;
 use crate::mission::log::Record;
 use crate::mission::report::{EventTopic, MissionError, MissionUpdate};
 use crate::safety::SafetyGate;
-use tacos_prompts::render::HistoryEntry;
+use tacos_prompts::Call;
+use tacos_prompts::render::{HistoryEntry, TaskStatus};
 
 impl Core {
     /// The reply to `instruction` (`grounded`: the drones on the ground when it was asked).
@@ -63,6 +64,12 @@ impl Core {
             let text = format!("{call}: repeats {}'s previous task: dropped", call.drone);
             effects.extend(Effect::told(EventTopic::Note, text));
         }
+        let replan = std::mem::take(&mut self.replan_in_flight);
+        let calls = if replan && self.aids.is_on(Aid::ReplanKeepsPending) {
+            self.with_pending_kept(calls, snap, gate, effects)
+        } else {
+            calls
+        };
         let calls = if self.aids.is_on(Aid::ImpliedTakeoffs) {
             let (calls, fired) = with_implied_takeoffs(calls, &grounded);
             effects.extend(fired);
@@ -89,6 +96,35 @@ impl Core {
         }
         effects.extend(adopt(&mut self.book, reasoning, calls));
         Ok(())
+    }
+}
+
+impl Core {
+    /// An automatic replan's `calls` after the pending tasks of the available drones that it
+    /// leaves out (`adopt::with_pending_kept`); the aid's firing names them.
+    fn with_pending_kept(
+        &self,
+        calls: Vec<Call>,
+        snap: &Snapshot,
+        gate: &SafetyGate,
+        effects: &mut Vec<Effect>,
+    ) -> Vec<Call> {
+        let pending: Vec<Call> = (self.book.plan.iter())
+            .flat_map(|p| &p.tasks)
+            .filter(|t| matches!(t.status, TaskStatus::NotStarted | TaskStatus::Running))
+            .map(|t| t.call.clone())
+            .collect();
+        let available = snap.available_ids(gate.scenario());
+        let (plan, kept) = with_pending_kept(calls, &pending, &available);
+        if !kept.is_empty() {
+            let kept: Vec<String> = kept.iter().map(Call::to_string).collect();
+            let detail = format!(
+                "the replan left out pending work of drones still available, kept first: {}",
+                kept.join("; ")
+            );
+            effects.push(Effect::aid_fired(Aid::ReplanKeepsPending, detail));
+        }
+        plan
     }
 }
 

@@ -167,3 +167,95 @@ fn a_drone_px4_took_over_is_named_as_px4s_when_it_leaves() {
         ]
     );
 }
+
+/// The replan for a lost drone hands on its work alone; the work the other drones still had
+/// pending stays in the plan before it (`replan-keeps-pending`), alfa's running goto running.
+#[test]
+fn a_replan_that_hands_on_only_the_lost_work_keeps_the_rest() {
+    use super::calls::Coordination;
+    let (mut book, snap) = chase();
+    if let Some(plan) = book.plan.as_mut() {
+        plan.tasks.push(PlanTask {
+            call: Call::named("T3", "alfa", ActionName::Goto, "car_5"),
+            status: TaskStatus::NotStarted,
+            sent: None,
+            failures: 0,
+        });
+    }
+    let gate = super::cycle_reply_tests::gate();
+    let mut core = super::step_tests::core(Mode::Tacos);
+    core.book = book;
+    let effects = membership_changed(
+        &mut core.book,
+        &snap,
+        Mode::Tacos,
+        &SwarmChange::Left(id("bravo")),
+    );
+    let Some(Effect::Replan(why)) = effects.last().cloned() else {
+        panic!("no replan: {effects:?}");
+    };
+    core.step(
+        Input::Coordinate(Coordination::Replan(why.clone())),
+        &snap,
+        &gate,
+    );
+    let effects = core.step(
+        Input::CoordinatorReply {
+            instruction: why,
+            grounded: Vec::new(),
+            answer: Ok((
+                "Alfa takes over the chase.".into(),
+                vec![Call::named("T1", "alfa", ActionName::StartTracking, "van")],
+                None,
+            )),
+        },
+        &snap,
+        &gate,
+    );
+    let plan: Vec<(String, TaskStatus)> = (core.book.tasks())
+        .map(|t| (t.call.to_string(), t.status.clone()))
+        .collect();
+    assert_eq!(
+        plan,
+        [
+            ("T2 alfa goto(car_3)".to_owned(), TaskStatus::Running),
+            ("T3 alfa goto(car_5)".to_owned(), TaskStatus::NotStarted),
+            (
+                "T1 alfa start_tracking(van)".to_owned(),
+                TaskStatus::NotStarted
+            ),
+        ]
+    );
+    assert!(
+        effects.iter().any(|e| matches!(e,
+            Effect::Note(Record::AidFired { aid, .. }) if *aid == crate::mission::aids::Aid::ReplanKeepsPending)),
+        "{effects:?}"
+    );
+    // With the aid off, the plan is the model's alone.
+    let (book, snap) = chase();
+    let mut core = super::step_tests::core(Mode::Tacos);
+    core.aids = core
+        .aids
+        .with(crate::mission::aids::Aid::ReplanKeepsPending, false);
+    core.book = book;
+    core.step(
+        Input::Coordinate(Coordination::Replan("r".into())),
+        &snap,
+        &gate,
+    );
+    core.step(
+        Input::CoordinatorReply {
+            instruction: "r".into(),
+            grounded: Vec::new(),
+            answer: Ok((
+                "r".into(),
+                vec![Call::named("T1", "alfa", ActionName::Hold, "none")],
+                None,
+            )),
+        },
+        &snap,
+        &gate,
+    );
+    let plan: Vec<String> = core.book.tasks().map(|t| t.call.to_string()).collect();
+    assert_eq!(plan, ["T1 alfa hold()"]);
+}

@@ -54,6 +54,8 @@ pub(crate) struct Core {
     pub(super) last_cycle: Option<Instant>,
     /// The cycle whose call is in flight or whose calls are being sent (`cycle_reply`).
     pub(super) cycle: Option<CycleSends>,
+    /// The Coordinator's call in flight is an automatic replan (`replan-keeps-pending`).
+    pub(super) replan_in_flight: bool,
 }
 
 impl Core {
@@ -76,6 +78,7 @@ impl Core {
             present: BTreeSet::new(),
             last_cycle: None,
             cycle: None,
+            replan_in_flight: false,
         }
     }
 
