@@ -207,6 +207,19 @@ pub fn requiring(schema: &Value, required: &[RequiredCall]) -> Value {
     out
 }
 
+/// The Coordinator schema `schema` with a plan of at least one call. For a repair round after an
+/// empty plan where no refusal is offered: the 1.5B default, asked for "all drones take off"
+/// with six drones on the ground, answered "All drones are already idle, so no action is
+/// needed" with an empty plan, three times in a row, when told the plan was empty.
+pub fn non_empty(schema: &Value) -> Value {
+    let mut out = schema.clone();
+    if let Some(plan) = out.pointer_mut("/properties/plan") {
+        let min = plan["minItems"].as_u64().unwrap_or(0).max(1);
+        plan["minItems"] = Value::from(min);
+    }
+    out
+}
+
 /// The Coordinator schema `schema` with its plan exactly `calls`, in order: a tuple
 /// (`prefixItems` without `items`, `minItems` = `maxItems`). The form llama.cpp's server and
 /// llguidance agree on: llama.cpp's grammar converter reads `items` when a schema has both and

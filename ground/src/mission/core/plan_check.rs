@@ -178,6 +178,18 @@ impl PlanCheck {
                 ));
                 Some(schema::requiring(&self.schema, &required))
             }
+            // An empty plan where no refusal is offered: the repair round's grammar needs a
+            // call (`schema::non_empty`).
+            (None, true)
+                if reply.plan.is_empty()
+                    && self.schema.pointer("/properties/refusal").is_none() =>
+            {
+                aids_fired.push((
+                    Aid::RepairGrammar,
+                    "the repair round's grammar needs at least one call".to_owned(),
+                ));
+                Some(schema::non_empty(&self.schema))
+            }
             (None, true) => None,
         };
         rejections.extend(missing.iter().map(FollowAsked::missing_text));

@@ -75,6 +75,8 @@ fn an_empty_plan_needs_a_refusal_and_a_refusal_may_not_deny_a_place_the_pilot_na
     let j = c.judge(&reply(Vec::new()));
     assert_eq!(j.rejections.len(), 1);
     assert!(j.rejections[0].starts_with("the plan is empty"), "{j:?}");
+    // A refusal is offered: the grammar stays open for one.
+    assert_eq!(j.narrowed, None);
     c.named_places = strings(&["car_3"]);
     let mut declined = reply(Vec::new());
     declined.refusal = Some("car_3 is not on this map".into());
@@ -109,6 +111,20 @@ fn an_empty_plan_under_plan_only_is_not_told_of_a_refusal_and_a_whole_swarm_one_
         j.rejections,
         ["the plan is empty: list the calls the instruction needs"]
     );
+    // With no refusal offered, the repair round's grammar needs a call (`repair-grammar`).
+    let min = |j: &PlanJudgement| {
+        j.narrowed
+            .as_ref()?
+            .pointer("/properties/plan/minItems")?
+            .as_u64()
+    };
+    assert_eq!(min(&j), Some(1));
+    assert!(
+        j.aids_fired.iter().any(|(a, _)| *a == Aid::RepairGrammar),
+        "{j:?}"
+    );
+    c.aids = ModelAids::small().with(Aid::RepairGrammar, false);
+    assert_eq!(c.judge(&reply(Vec::new())).narrowed, None);
 }
 
 #[test]
