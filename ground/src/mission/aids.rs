@@ -26,7 +26,8 @@ pub enum Aid {
     /// A repair round after a missed follow-up opens the plan's grammar with the missing
     /// start_tracking (`prefixItems`, `schema::requiring`; llama.cpp's server ignores that
     /// prefix, see `schema::exactly`); after a plan of one action for the whole swarm that left
-    /// drones out (`whole-swarm`), the grammar is that action for each drone it would change.
+    /// drones out (`whole-swarm`), the grammar is that action for each drone it would change;
+    /// after an empty plan where no refusal is offered, it needs a call (`schema::non_empty`).
     RepairGrammar,
     /// A take-off is added before the first goto or start_tracking of a grounded drone whose
     /// plan never takes it off. Off: that call is refused, naming the missing take-off.
