@@ -73,12 +73,14 @@ impl LlmBackend for HeldMidReply {
             if !held {
                 return Ok(Self::reply(WAIT, start));
             }
+            // Held from before the partial reply is streamed: the engine may send alfa's call
+            // (and the test look at `holding`) before this task runs again.
+            self.holding.send_replace(true);
+            let released = self.release.notified();
             progress(Streamed {
                 reasoning: "",
                 content: FIRST_PART,
             });
-            let released = self.release.notified();
-            self.holding.send_replace(true);
             released.await;
             self.holding.send_replace(false);
             let whole = format!("{FIRST_PART}{REST}");
