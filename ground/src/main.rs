@@ -3,7 +3,9 @@
 
 use anyhow::Context;
 use clap::{Parser, Subcommand};
-use tacos_ground::cli::{DemoArgs, EvalArgs, FlyArgs, PlotArgs, ReplayArgs, SendArgs, SwarmArgs};
+use tacos_ground::cli::{
+    DemoArgs, EvalArgs, FlyArgs, LlmArgs, PlotArgs, ReplayArgs, SendArgs, SwarmArgs,
+};
 
 #[derive(Debug, Parser)]
 #[command(version, about = "TACOS ground station: fly a PX4 swarm")]
@@ -36,6 +38,18 @@ enum Cmd {
     Plot(PlotArgs),
 }
 
+impl Cmd {
+    /// The language-model arguments of the subcommands that run the model.
+    fn llm(&self) -> Option<&LlmArgs> {
+        match self {
+            Cmd::Demo(args) => Some(&args.llm),
+            Cmd::Fly(args) => Some(&args.llm),
+            Cmd::Eval(args) => Some(&args.llm),
+            Cmd::Swarm(_) | Cmd::Send(_) | Cmd::Replay(_) | Cmd::Plot(_) => None,
+        }
+    }
+}
+
 fn main() -> std::process::ExitCode {
     match run() {
         Ok(()) => std::process::ExitCode::SUCCESS,
@@ -48,9 +62,14 @@ fn main() -> std::process::ExitCode {
 }
 
 fn run() -> anyhow::Result<()> {
-    // candle's quantized kernels spin a thread pool per matrix product; on a small companion or
-    // a loaded 2-core machine one thread is several times faster. Set before any thread starts.
-    if std::env::var_os("CANDLE_NUM_THREADS").is_none() {
+    let cli = Cli::parse();
+    // candle reads its thread count once, when its pool starts: set before any thread starts.
+    if std::env::var_os("CANDLE_NUM_THREADS").is_none()
+        && cli
+            .command
+            .llm()
+            .is_some_and(LlmArgs::wants_one_candle_thread)
+    {
         // SAFETY: nothing else runs yet: no threads have been started in this process.
         unsafe { std::env::set_var("CANDLE_NUM_THREADS", "1") };
     }
@@ -60,7 +79,6 @@ fn run() -> anyhow::Result<()> {
         )
         .with_writer(std::io::stderr)
         .init();
-    let cli = Cli::parse();
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()

@@ -18,6 +18,7 @@ pub use swarm::SwarmArgs;
 use anyhow::Context;
 use std::sync::Arc;
 use std::time::Duration;
+use tacos_embedded::catalogue::Architecture;
 use tacos_embedded::{EmbeddedBackend, EmbeddedModel, EmbeddedOptions};
 use tacos_llm::{LlmBackend, OpenAiBackend, OpenAiConfig};
 
@@ -48,6 +49,14 @@ fn embedded_model(text: &str) -> Result<EmbeddedModel, String> {
 }
 
 impl LlmArgs {
+    /// Whether the embedded model runs faster on one candle thread than on one per core, the
+    /// default: SmolLM2's weights are then held as Q8_0, whose kernel collapses multi-threaded
+    /// on cores the swarm keeps busy. Qwen's K-quant kernels gain from every core even beside a
+    /// simulated swarm (find-the-dog on the lab: 106 s on two threads, 151 s on one, Zen 4).
+    pub fn wants_one_candle_thread(&self) -> bool {
+        self.llm_url.is_none() && self.embedded_model.architecture() == Architecture::Llama
+    }
+
     /// The backend these arguments name; the API key comes from `TACOS_LLM_API_KEY` or
     /// `OPENAI_API_KEY`, never from the command line (where `ps` would show it).
     pub fn backend(&self) -> anyhow::Result<Arc<dyn LlmBackend>> {
@@ -92,7 +101,26 @@ pub(crate) async fn ctrl_c() {
 
 #[cfg(test)]
 mod tests {
-    use super::sim_speed;
+    use super::{LlmArgs, sim_speed};
+    use tacos_embedded::EmbeddedModel;
+
+    #[test]
+    fn only_the_embedded_smollm2_is_pinned_to_one_candle_thread() {
+        let args = |url: Option<&str>, model| LlmArgs {
+            llm_url: url.map(str::to_owned),
+            model: None,
+            llm_timeout: 120.0,
+            embedded_model: model,
+        };
+        assert!(args(None, EmbeddedModel::SmolLm2_135M).wants_one_candle_thread());
+        assert!(!args(None, EmbeddedModel::QwenCoder1_5B).wants_one_candle_thread());
+        assert!(!args(None, EmbeddedModel::QwenCoder0_5B).wants_one_candle_thread());
+        let served = args(
+            Some("http://127.0.0.1:8080/v1"),
+            EmbeddedModel::SmolLm2_135M,
+        );
+        assert!(!served.wants_one_candle_thread());
+    }
 
     #[test]
     fn the_simulation_speed_is_a_positive_number_up_to_twenty() {
