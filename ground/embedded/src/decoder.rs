@@ -76,6 +76,21 @@ impl KvCache {
         &self.tokens
     }
 
+    /// Each layer's key and value buffers (positions `..tokens().len()` filled).
+    pub fn layers(&self) -> &[Option<(Tensor, Tensor)>] {
+        &self.layers
+    }
+
+    /// A cache of these buffers holding `tokens` (read back from disk: `prompt_store`).
+    pub fn from_layers(layers: Vec<Option<(Tensor, Tensor)>>, tokens: Vec<u32>) -> KvCache {
+        KvCache { layers, tokens }
+    }
+
+    /// Forgets the positions from `n` on: the next tokens are written over them.
+    pub fn truncate(&mut self, n: usize) {
+        self.tokens.truncate(n);
+    }
+
     /// A cache of its own holding the first `n` tokens (all, when `n` is larger).
     pub fn prefix_copy(&self, n: usize) -> Result<KvCache> {
         let n = n.min(self.tokens.len());

