@@ -197,6 +197,12 @@ pub fn history(entries: &[HistoryEntry]) -> String {
 }
 
 /// The Coordinator's user message.
+/// How every request's user message opens: the map (see `WorldText::map`), the same on every call
+/// of a mission, so that a prompt cache holds it with the layer's fixed messages.
+pub fn request_opening(world: &WorldText) -> String {
+    format!("## World\n{}\n", world.map)
+}
+
 pub fn coordinator_request(
     swarm_text: &str,
     world: &WorldText,
@@ -208,8 +214,8 @@ pub fn coordinator_request(
     // The map first (see `WorldText::map`); the rest in the order it had, the history next to
     // the instruction (moved before the swarm, the 1.5B model's plans got worse: b612e8f).
     format!(
-        "## World\n{}\n## Swarm state\n{swarm_text}\n## Targets and events\n{}\n## Pending plan\n{pending}\n## History\n{history_text}\n## Instruction\n{instruction}\n{}\n",
-        world.map,
+        "{}## Swarm state\n{swarm_text}\n## Targets and events\n{}\n## Pending plan\n{pending}\n## History\n{history_text}\n## Instruction\n{instruction}\n{}\n",
+        request_opening(world),
         world.live,
         named_section(named)
     )
@@ -308,7 +314,7 @@ pub fn supervisor_request(
     world: &WorldText,
 ) -> String {
     // The map first (see `WorldText::map`).
-    let mut out = format!("## World\n{}\n", world.map);
+    let mut out = request_opening(world);
     if let Some(r) = reasoning {
         let _ = write!(out, "## Coordinator's reasoning\n{r}\n\n");
     }
@@ -368,7 +374,7 @@ pub fn monolithic_request(
     executed: &[String],
 ) -> String {
     // The map first (see `WorldText::map`), the rest in the order it had.
-    let mut out = format!("## World\n{}\n## Pilot's instructions\n", world.map);
+    let mut out = request_opening(world) + "## Pilot's instructions\n";
     for i in instructions {
         let _ = writeln!(out, "- {i}");
     }

@@ -12,6 +12,10 @@
 //! 5. decoding alone: a short prompt, no schema: copy a paragraph (about 70 tokens; a longer one
 //!    or counting sent SmolLM2 into a loop up to the token limit).
 //!
+//! Then, once per model, requests 1 and 3 of a restarted ground station (embedded only): a
+//! first process warms both layers' fixed beginnings up into an empty prompt store, a second
+//! reads them back (`models/restart.rs`).
+//!
 //! Requests 1–4 are built as the mission engine builds them (`coordinator_messages`,
 //! `supervisor_messages`, the schemas of `tacos_prompts`, `MissionConfig`'s token limits,
 //! temperature 0 and seed): the embedded model gets the schema as its grammar, llama.cpp as
@@ -40,11 +44,15 @@
 //!
 //! `cargo bench -p tacos-tests --bench models [-- --model qwen2.5-coder-1.5b|qwen2.5-coder-0.5b|smollm2-135m|all --threads 2 --runs 1 --repeat-penalty 1.0]`
 
+#[path = "models/host.rs"]
+mod host;
 #[path = "models/relay.rs"]
 mod relay;
+#[path = "models/restart.rs"]
+mod restart;
 
+use host::{command_output, load_average, machine};
 use relay::Relay;
-use std::process::Command;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
@@ -336,46 +344,6 @@ fn median(mut values: Vec<f64>) -> f64 {
     }
 }
 
-/// The output of a command, trimmed, or why there is none.
-fn command_output(program: &str, args: &[&str]) -> String {
-    match Command::new(program).args(args).output() {
-        Ok(out) if out.status.success() => String::from_utf8_lossy(&out.stdout).trim().to_owned(),
-        Ok(out) => format!(
-            "unknown (`{program} {}`: {}: {})",
-            args.join(" "),
-            out.status,
-            String::from_utf8_lossy(&out.stderr).trim()
-        ),
-        Err(e) => format!("unknown (`{program}`: {e})"),
-    }
-}
-
-fn machine() -> String {
-    let cpuinfo = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
-    let cpu = cpuinfo
-        .lines()
-        .find_map(|l| l.strip_prefix("model name")?.split_once(':'))
-        .map_or_else(|| "unknown CPU".to_owned(), |(_, v)| v.trim().to_owned());
-    let meminfo = std::fs::read_to_string("/proc/meminfo").unwrap_or_default();
-    let mem = meminfo
-        .lines()
-        .find_map(|l| l.strip_prefix("MemTotal:"))
-        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
-        .map_or_else(
-            || "memory unknown".to_owned(),
-            |kb| format!("{:.0} GiB", kb / 1024.0 / 1024.0),
-        );
-    format!("nproc {}, {cpu}, {mem}", command_output("nproc", &[]))
-}
-
-/// The 1, 5 and 15-minute load averages: the figures mean little when other work ran too.
-fn load_average() -> String {
-    std::fs::read_to_string("/proc/loadavg").map_or_else(
-        |e| format!("unknown ({e})"),
-        |l| l.split_whitespace().take(3).collect::<Vec<_>>().join(" "),
-    )
-}
-
 /// A figure of both backends; `faster_is_higher` for rates, not for latencies.
 struct Row {
     name: String,
@@ -461,6 +429,17 @@ fn bench_model(args: &Args, python: &std::path::Path, model: EmbeddedModel) -> a
             }
         }
     }
+
+    println!(
+        "-- a restarted ground station (its prompt store filled by a first process's warm-up)"
+    );
+    let restarted = restart::first_calls_after_a_restart(
+        model,
+        args.repeat_penalty,
+        &probes[COORDINATOR_COLD].request,
+        &probes[SUPERVISOR_COLD].request,
+        &tacos_tests::probes::city_request_opening()?,
+    )?;
 
     let med = |runs: &[RunResult], f: &dyn Fn(&RunResult) -> f64| {
         median(runs.iter().map(f).collect::<Vec<_>>())
@@ -548,28 +527,34 @@ fn bench_model(args: &Args, python: &std::path::Path, model: EmbeddedModel) -> a
         met(within == rows.len()),
         rows.len()
     );
-    for (goal_name, goal, cold, cached) in [
+    for (goal_name, goal, cold, cached, after_restart) in [
         (
             "Supervisor call",
             SUPERVISOR_GOAL,
             SUPERVISOR_COLD,
             SUPERVISOR_CACHED,
+            &restarted.supervisor,
         ),
         (
             "Coordinator call",
             COORDINATOR_GOAL,
             COORDINATOR_COLD,
             COORDINATOR_CACHED,
+            &restarted.coordinator,
         ),
     ] {
         let (c, w) = (&rows[first_latency + cold], &rows[first_latency + cached]);
+        let r = after_restart.latency.as_secs_f64();
         println!(
-            "goal: {goal_name} ≤ {} s (embedded): cold {:.2} s {}, cached {:.2} s {} (llama.cpp: cold {:.2} s, cached {:.2} s)",
+            "goal: {goal_name} ≤ {} s (embedded): cold {:.2} s {}, cached {:.2} s {}, cold after a restart {r:.2} s {} ({} of {} prompt tokens read back; one run) (llama.cpp: cold {:.2} s, cached {:.2} s)",
             goal.as_secs(),
             c.embedded,
             met(c.embedded <= goal.as_secs_f64()),
             w.embedded,
             met(w.embedded <= goal.as_secs_f64()),
+            met(r <= goal.as_secs_f64()),
+            after_restart.reused_tokens,
+            after_restart.prompt_tokens,
             c.llama,
             w.llama,
         );

@@ -51,6 +51,16 @@ fn take_off(task: usize, drone: &str) -> Call {
     }
 }
 
+/// How the probes' user messages open: the city's map.
+pub fn city_request_opening() -> anyhow::Result<String> {
+    let city = Scenario::builtin("city").context("the city scenario")?;
+    Ok(render::request_opening(&render::world(
+        &city.world,
+        &[],
+        &[],
+    )))
+}
+
 /// The four mission requests, built as the mission engine builds them for this state, then
 /// the decode probe.
 pub fn mission_probes() -> anyhow::Result<Vec<Probe>> {

@@ -47,18 +47,11 @@ impl PromptCaches {
     /// Coordinator's cache down to them.
     fn take_kept(&self, prompt: &[u32]) -> KvCache {
         let mut kept = self.kept.lock().unwrap_or_else(|p| p.into_inner());
-        let shared = |c: &KvCache| {
-            c.tokens()
-                .iter()
-                .zip(prompt)
-                .take_while(|(a, b)| a == b)
-                .count()
-        };
-        let best = (0..kept.len()).max_by_key(|i| shared(&kept[*i]));
+        let best = (0..kept.len()).max_by_key(|i| shared(kept[*i].tokens(), prompt));
         let Some(best) = best else {
             return KvCache::default();
         };
-        let n = shared(&kept[best]).min(prompt.len().saturating_sub(1));
+        let n = shared(kept[best].tokens(), prompt).min(prompt.len().saturating_sub(1));
         if n == 0 {
             return KvCache::default();
         }
@@ -68,30 +61,28 @@ impl PromptCaches {
         kept[best].prefix_copy(n).unwrap_or_default()
     }
 
-    /// The cache to start `prompt` from: a kept one ([`PromptCaches::take_kept`]), or the stored
-    /// beginning of `prompt` when that spares [`MIN_STORED_GAIN`] tokens more.
+    /// How many of `prompt`'s tokens [`PromptCaches::take_kept`] would start from.
+    fn kept_share(&self, prompt: &[u32]) -> usize {
+        let kept = self.kept.lock().unwrap_or_else(|p| p.into_inner());
+        let most = kept.iter().map(|c| shared(c.tokens(), prompt)).max();
+        most.unwrap_or(0).min(prompt.len().saturating_sub(1))
+    }
+
+    /// The cache to start `prompt` from: the stored beginning of `prompt` when that spares
+    /// [`MIN_STORED_GAIN`] tokens more than a kept one, else a kept one
+    /// ([`PromptCaches::take_kept`]).
     pub fn take(&self, prompt: &[u32], feed: Feed<'_>) -> KvCache {
-        let kept = self.take_kept(prompt);
-        let Some(store) = &self.store else {
-            return kept;
-        };
-        let stored = store.longest_prefix(prompt);
-        let usable = stored.min(prompt.len().saturating_sub(1));
-        if usable < kept.tokens().len() + MIN_STORED_GAIN {
-            return kept;
-        }
-        match stored_cache(store, prompt, stored, feed) {
-            Ok(cache) => {
-                if !kept.tokens().is_empty() {
-                    self.keep(kept);
+        if let Some(store) = &self.store {
+            let stored = store.longest_prefix(prompt);
+            let usable = stored.min(prompt.len().saturating_sub(1));
+            if usable >= self.kept_share(prompt) + MIN_STORED_GAIN {
+                match stored_cache(store, prompt, stored, feed) {
+                    Ok(cache) => return cache,
+                    Err(e) => tracing::warn!(error = %e, "a stored prompt beginning was not used"),
                 }
-                cache
-            }
-            Err(e) => {
-                tracing::warn!(error = %e, "a stored prompt beginning was not used");
-                kept
             }
         }
+        self.take_kept(prompt)
     }
 
     /// Writes `cache`'s first `n` tokens to the store, on a thread of its own, unless stored.
@@ -172,7 +163,7 @@ fn stored_cache(
     feed(&prompt[again..len], &mut cache)?;
     let difference = prompt_store::difference(&stored_last, &prompt_store::last_position(&cache)?);
     if difference > prompt_store::TOLERANCE {
-        store.forget_beginning(&prompt[..len]);
+        store.forget_shared(prompt, len);
         return Err(format!(
             "its last position computed again differs from the stored one by {difference:.2e} \
              of its largest value (another decoder or other weights): removed"
@@ -181,4 +172,9 @@ fn stored_cache(
     tracing::debug!(len, difference, "a stored prompt beginning read back");
     cache.truncate(len.min(prompt.len() - 1));
     Ok(cache)
+}
+
+/// How many tokens `a` and `b` begin with in common.
+fn shared(a: &[u32], b: &[u32]) -> usize {
+    a.iter().zip(b).take_while(|(x, y)| x == y).count()
 }

@@ -1,6 +1,7 @@
-//! The model in process: the [`Decoder`] on CPU, llguidance masking the logits, and the
-//! key/value caches of recent prompts kept so that a prompt sharing their beginning (the fixed
-//! part of every mission prompt) only computes what is new.
+//! The model in process: the [`Decoder`] on CPU, llguidance masking the logits, and a prompt
+//! started from the key/value cache that shares its beginning (`caches`: the fixed part of every
+//! mission prompt, kept from the call before or read back from disk), so that it only computes
+//! what is new.
 
 use std::fs::File;
 use std::io::{Cursor, Read, Seek};
@@ -12,14 +13,14 @@ use candle_core::quantized::{GgmlDType, QTensor, gguf_file};
 use candle_core::{Device, Tensor};
 use llguidance::api::TopLevelGrammar;
 use llguidance::{Matcher, ParserFactory};
-use tacos_llm::{ChatRequest, LlmError};
+use tacos_llm::{ChatRequest, LlmError, PromptBeginning};
 
 use crate::caches::PromptCaches;
 use crate::catalogue::{Architecture, EmbeddedModel};
 use crate::decoder::{Decoder, KvCache};
 use crate::prompt_store::PromptStore;
 use crate::sampling::{SplitMix64, penalise_repeats, sample, time_seed};
-use crate::template::chatml_segments;
+use crate::template::{chatml_segments, open_user_turn};
 use crate::tokenizer::ModelTokenizer;
 
 /// How the weights are held in memory. SmolLM2's file is Q4_1; candle's Q4_1 dot product is
@@ -236,8 +237,8 @@ impl Engine {
 
     /// Asks for `messages` (a prompts' fixed beginning) to be stored once a call has computed
     /// it: for a warm-up that gives way to a waiting call.
-    pub fn store_when_computed(&self, messages: &[tacos_llm::ChatMessage]) -> Result<(), LlmError> {
-        let tokens = self.beginning_tokens(messages)?;
+    pub fn store_when_computed(&self, beginning: &PromptBeginning) -> Result<(), LlmError> {
+        let tokens = self.beginning_tokens(beginning)?;
         self.caches.store_when_computed(tokens);
         Ok(())
     }
@@ -252,8 +253,8 @@ impl Engine {
 
     /// Computes the keys and values of `messages` (no generation prompt: the beginning of later
     /// prompts) and keeps them; returns how many tokens were computed.
-    pub fn warm_up(&self, messages: &[tacos_llm::ChatMessage]) -> Result<usize, LlmError> {
-        let tokens = self.beginning_tokens(messages)?;
+    pub fn warm_up(&self, beginning: &PromptBeginning) -> Result<usize, LlmError> {
+        let tokens = self.beginning_tokens(beginning)?;
         if tokens.is_empty() || tokens.len() >= self.decoder.window {
             return Ok(0);
         }
@@ -267,9 +268,17 @@ impl Engine {
         Ok(tokens.len() - start)
     }
 
-    /// The tokens of `messages` as the beginning of later prompts (no generation prompt).
-    fn beginning_tokens(&self, messages: &[tacos_llm::ChatMessage]) -> Result<Vec<u32>, LlmError> {
-        let segments = chatml_segments(messages, false, self.model.default_system_prompt());
+    /// The tokens of `beginning` as later prompts begin: its messages, then the user turn opened
+    /// with its opening (no generation prompt).
+    fn beginning_tokens(&self, beginning: &PromptBeginning) -> Result<Vec<u32>, LlmError> {
+        let mut segments = chatml_segments(
+            &beginning.messages,
+            false,
+            self.model.default_system_prompt(),
+        );
+        if !beginning.user_opening.is_empty() {
+            segments.extend(open_user_turn(&beginning.user_opening));
+        }
         self.tokenizer
             .encode_segments(&segments)
             .map_err(LlmError::Generation)

@@ -48,7 +48,8 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use tacos_llm::{
-    BoxFuture, ChatReply, ChatRequest, LlmBackend, LlmError, Progress, Streamed, Usage,
+    BoxFuture, ChatReply, ChatRequest, LlmBackend, LlmError, Progress, PromptBeginning, Streamed,
+    Usage,
 };
 
 pub use catalogue::{EmbeddedModel, ModelSpec};
@@ -430,21 +431,21 @@ impl LlmBackend for EmbeddedBackend {
     /// line comes at once: the Coordinator's call must not wait for the Supervisor's prefix).
     fn warm_up<'a>(
         &'a self,
-        messages: &'a [tacos_llm::ChatMessage],
+        beginning: &'a PromptBeginning,
     ) -> BoxFuture<'a, Result<(), LlmError>> {
         Box::pin(async move {
             let inner = self.inner.clone();
-            let messages = messages.to_vec();
+            let beginning = beginning.clone();
             let joined = tokio::task::spawn_blocking(move || {
                 let engine = inner.engine()?;
                 let _one_at_a_time = lock(&inner.gate);
                 if inner.waiting.load(Ordering::SeqCst) > 0 {
                     tracing::debug!("warm-up skipped: a call is waiting for the model");
                     // The call computes this beginning; stored once it has.
-                    return engine.store_when_computed(&messages);
+                    return engine.store_when_computed(&beginning);
                 }
                 let started = Instant::now();
-                let computed = engine.warm_up(&messages)?;
+                let computed = engine.warm_up(&beginning)?;
                 tracing::debug!(
                     computed,
                     ms = started.elapsed().as_millis() as u64,

@@ -131,38 +131,44 @@ impl PromptStore {
         })
     }
 
-    /// How many tokens of `prompt`'s beginning the longest stored entry holds (0: none).
+    /// How many tokens of `prompt`'s beginning the stored entry sharing most of it holds (0:
+    /// none). Shared, not whole: a beginning stored with the opening of a user turn may end in
+    /// a token that the whole turn, tokenized at once, spells otherwise.
     pub fn longest_prefix(&self, prompt: &[u32]) -> usize {
         lock(&self.index)
             .iter()
-            .filter(|s| prompt.starts_with(&s.tokens))
-            .map(|s| s.tokens.len())
+            .map(|s| shared(&s.tokens, prompt))
             .max()
             .unwrap_or(0)
     }
 
-    /// Whether exactly `tokens` is stored.
+    /// Whether an entry holds all of `tokens`.
     pub fn holds(&self, tokens: &[u32]) -> bool {
-        lock(&self.index).iter().any(|s| s.tokens == tokens)
+        lock(&self.index)
+            .iter()
+            .any(|s| s.tokens.starts_with(tokens))
     }
 
-    /// The stored entry of `len` tokens that begins `prompt`, read back (not yet checked against
-    /// the decoder). A file that cannot be read is removed with its entry.
+    /// The stored entry sharing `len` tokens with `prompt`'s beginning, read back and cut to
+    /// them (not yet checked against the decoder). A file that cannot be read is removed with
+    /// its entry.
     pub fn load(&self, prompt: &[u32], len: usize) -> Result<KvCache, String> {
         let (stem, tokens) = {
             let index = lock(&self.index);
             let found = index
                 .iter()
-                .find(|s| s.tokens.len() == len && prompt.starts_with(&s.tokens));
+                .find(|s| len > 0 && shared(&s.tokens, prompt) == len);
             match found {
                 Some(s) => (s.stem.clone(), s.tokens.clone()),
-                None => return Err(format!("no stored beginning of {len} tokens")),
+                None => return Err(format!("no stored beginning shares {len} tokens")),
             }
         };
         let read = || -> Result<KvCache, String> {
             let tensors = candle_core::safetensors::load(file(&stem, "safetensors"), &Device::Cpu)
                 .map_err(|e| e.to_string())?;
-            from_tensors(tensors, tokens)
+            let mut cache = from_tensors(tensors, tokens)?;
+            cache.truncate(len);
+            Ok(cache)
         };
         match read() {
             Ok(cache) => {
@@ -180,11 +186,12 @@ impl PromptStore {
         }
     }
 
-    /// Drops an entry (a stale or broken one) from the index and the disk.
-    pub fn forget_beginning(&self, tokens: &[u32]) {
+    /// Drops the entry sharing `len` tokens with `prompt` (a stale one) from the index and the
+    /// disk.
+    pub fn forget_shared(&self, prompt: &[u32], len: usize) {
         let stem = lock(&self.index)
             .iter()
-            .find(|s| s.tokens == tokens)
+            .find(|s| shared(&s.tokens, prompt) == len)
             .map(|s| s.stem.clone());
         if let Some(stem) = stem {
             self.forget(&stem);
@@ -214,6 +221,15 @@ impl PromptStore {
         write_atomically(&file(&stem, "tokens"), |tmp| {
             std::fs::write(tmp, &bytes).map_err(|e| e.to_string())
         })?;
+        // Entries the new one extends are of no more use.
+        let extended: Vec<PathBuf> = lock(&self.index)
+            .iter()
+            .filter(|s| tokens.starts_with(&s.tokens))
+            .map(|s| s.stem.clone())
+            .collect();
+        for stem in extended {
+            self.forget(&stem);
+        }
         lock(&self.index).push(Stored { stem, tokens });
         self.evict();
         Ok(())
@@ -235,6 +251,11 @@ impl PromptStore {
             remove_entry(&gone.stem);
         }
     }
+}
+
+/// How many tokens `a` and `b` begin with in common.
+fn shared(a: &[u32], b: &[u32]) -> usize {
+    a.iter().zip(b).take_while(|(x, y)| x == y).count()
 }
 
 fn remove_entry(stem: &Path) {
@@ -358,9 +379,13 @@ mod tests {
         store.save(&cache(vec![1, 2, 3], 0.5)).expect("save");
         let again = PromptStore::open(&d, "m2.5-1.5b").expect("reopen");
         assert_eq!(again.longest_prefix(&[1, 2, 3, 4, 5]), 3);
-        assert_eq!(again.longest_prefix(&[1, 2, 4]), 0);
+        assert_eq!(again.longest_prefix(&[7, 2, 3]), 0);
         let loaded = again.load(&[1, 2, 3, 4], 3).expect("load");
         assert_eq!(loaded.tokens(), &[1, 2, 3]);
+        // A prompt that parts from the entry before its end shares what it shares.
+        assert_eq!(again.longest_prefix(&[1, 2, 4]), 2);
+        assert_eq!(again.load(&[1, 2, 4], 2).expect("load").tokens(), &[1, 2]);
+        assert!(again.holds(&[1, 2]) && !again.holds(&[1, 2, 3, 4]));
         let original = last_position(&cache(vec![1, 2, 3], 0.5)).expect("positions");
         let read_back = last_position(&loaded).expect("positions");
         assert_eq!(difference(&original, &read_back), 0.0);
@@ -418,6 +443,18 @@ mod tests {
         assert_eq!(store.longest_prefix(&[999]), 1);
         let files = std::fs::read_dir(&d).expect("dir").count();
         assert_eq!(files, 2 * MAX_ENTRIES);
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
+    #[test]
+    fn an_entry_that_a_longer_one_extends_is_replaced() {
+        let d = dir("extend");
+        let store = PromptStore::open(&d, "m2.5-1.5b").expect("open");
+        store.save(&cache(vec![1, 2], 1.0)).expect("save");
+        store.save(&cache(vec![1, 2, 3, 4], 1.0)).expect("save");
+        assert_eq!(store.longest_prefix(&[1, 2, 3, 4, 5]), 4);
+        let files = std::fs::read_dir(&d).expect("dir").count();
+        assert_eq!(files, 2, "the shorter entry was kept");
         let _ = std::fs::remove_dir_all(&d);
     }
 }

@@ -43,6 +43,12 @@ fn push_turn(out: &mut Vec<Segment>, role: &str, content: &str) {
     out.push(Segment::Text("\n".to_string()));
 }
 
+/// A user turn opened with `opening` and left open: how a prompt whose next user message
+/// begins with `opening` continues.
+pub fn open_user_turn(opening: &str) -> [Segment; 2] {
+    [Segment::ImStart, Segment::Text(format!("user\n{opening}"))]
+}
+
 /// The prompt as segments, with the generation prompt `<|im_start|>assistant\n` at the end when
 /// `add_generation_prompt`.
 /// `default_system` is the model's own system prompt, added when the conversation has none.

@@ -6,7 +6,7 @@ use std::sync::OnceLock;
 
 use serde_json::{Value, json};
 use tacos_embedded::{EmbeddedBackend, EmbeddedModel, EmbeddedOptions};
-use tacos_llm::{ChatMessage, ChatRequest, LlmBackend, LlmError, ResponseSchema};
+use tacos_llm::{ChatMessage, ChatRequest, LlmBackend, LlmError, PromptBeginning, ResponseSchema};
 
 /// One loaded backend per model, shared by the tests of this file.
 fn backend_of(model: EmbeddedModel) -> &'static EmbeddedBackend {
@@ -356,11 +356,15 @@ async fn a_warm_up_serves_the_next_call() {
         ChatMessage::user("Take off with alfa."),
         ChatMessage::assistant("{\"reasoning\": \"alfa only\", \"plan\": []}"),
     ];
-    b.warm_up(&fixed).await.expect("warm-up");
+    let beginning = |messages: &[ChatMessage]| PromptBeginning {
+        messages: messages.to_vec(),
+        user_opening: String::new(),
+    };
+    b.warm_up(&beginning(&fixed)).await.expect("warm-up");
     // Another layer's prefix, which shares only the first few tokens, must not cut the first
     // one's cache down to them.
     let other = [ChatMessage::system("You check drone plans. ".repeat(30))];
-    b.warm_up(&other).await.expect("second warm-up");
+    b.warm_up(&beginning(&other)).await.expect("second warm-up");
     req.messages = fixed.clone();
     req.messages.push(ChatMessage::user("Land bravo."));
     let fixed_tokens = b
@@ -411,10 +415,12 @@ async fn a_stored_beginning_serves_a_restarted_model_and_a_stale_one_is_dropped(
         })
     };
     let first = stored().await.expect("the load thread").expect("loads");
-    first
-        .warm_up(&request(300).messages[..1])
-        .await
-        .expect("warm-up");
+    // The system message, then the opening of the user's (as a mission's map opens it).
+    let beginning = PromptBeginning {
+        messages: request(300).messages[..1].to_vec(),
+        user_opening: "Take off with alfa".into(),
+    };
+    first.warm_up(&beginning).await.expect("warm-up");
     // Written on a thread of its own after the warm-up.
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs(30);
     while stored_entries(&dir).is_empty() {
@@ -429,7 +435,18 @@ async fn a_stored_beginning_serves_a_restarted_model_and_a_stale_one_is_dropped(
 
     let again = stored().await.expect("the load thread").expect("loads");
     let (reply, stats) = again.chat_blocking(&request(300)).expect("a call");
-    assert!(stats.reused_tokens > 32, "{stats:?}");
+    // The system turn (counted with a generation prompt, `<|im_start|>assistant\n`) and the
+    // user turn's opening (`<|im_start|>user\nTake off with alfa`, more tokens than that).
+    let system_tokens = again
+        .count_prompt_tokens(&ChatRequest {
+            messages: request(300).messages[..1].to_vec(),
+            ..request(300)
+        })
+        .expect("count");
+    assert!(
+        stats.reused_tokens > system_tokens,
+        "{system_tokens}: {stats:?}"
+    );
     let fresh = EmbeddedBackend::load(EmbeddedOptions {
         model,
         ..EmbeddedOptions::from_env()

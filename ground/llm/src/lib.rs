@@ -54,6 +54,15 @@ impl ChatMessage {
     }
 }
 
+/// What every later request of a kind begins with: whole messages (a layer's system prompt and
+/// few-shot turns), then the opening of the next user message that stays the same between
+/// calls (the map), possibly empty.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct PromptBeginning {
+    pub messages: Vec<ChatMessage>,
+    pub user_opening: String,
+}
+
 /// The JSON schema a reply must follow (OpenAI's `response_format: {type: json_schema}`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct ResponseSchema {
@@ -147,11 +156,14 @@ pub trait LlmBackend: Send + Sync {
     /// Backend and model, for the status bar and the mission log (e.g. `openai http://…/v1 gpt-oss:20b`).
     fn describe(&self) -> String;
 
-    /// Computes ahead of time what `messages` cost, so that a later request beginning with them
-    /// (a layer's system prompt and few-shot turns: the fixed part of every call) answers sooner.
-    /// Backends without a prompt cache of their own do nothing.
-    fn warm_up<'a>(&'a self, messages: &'a [ChatMessage]) -> BoxFuture<'a, Result<(), LlmError>> {
-        let _ = messages;
+    /// Computes ahead of time what `beginning` costs, so that a later request beginning with it
+    /// (the fixed part of every call of a layer) answers sooner. Backends without a prompt cache
+    /// of their own do nothing.
+    fn warm_up<'a>(
+        &'a self,
+        beginning: &'a PromptBeginning,
+    ) -> BoxFuture<'a, Result<(), LlmError>> {
+        let _ = beginning;
         Box::pin(async { Ok(()) })
     }
 }

@@ -34,7 +34,8 @@ use plan_state::snapshot_of;
 use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::Duration;
-use tacos_llm::LlmBackend;
+use tacos_llm::{LlmBackend, PromptBeginning};
+use tacos_prompts::render::WorldText;
 use tacos_shared::messages::TargetObservation;
 use tokio::sync::{mpsc, watch};
 
@@ -108,18 +109,24 @@ async fn log_positions(link: Arc<GroundLink>, log: Arc<MissionLog>) {
 }
 
 /// Has the backend compute the fixed beginning of the layers' prompts while the pilot types the
-/// first instruction: with the embedded model that part (~1,200 tokens of instructions and
-/// examples per layer) is what makes a first call slow. A failure only costs that head start.
-async fn warm_up(backend: Arc<dyn LlmBackend>, mode: Mode, aids: ModelAids) {
-    let prefixes = match mode {
+/// first instruction: each layer's instructions and examples (~800–1,350 tokens), then the map
+/// that opens every request (~900 on the city). With the embedded model that part is what makes
+/// a first call slow. A failure only costs that head start.
+async fn warm_up(backend: Arc<dyn LlmBackend>, mode: Mode, aids: ModelAids, world: WorldText) {
+    let messages = match mode {
         Mode::Tacos | Mode::Wor => vec![
             super::core::coordinator_fixed_messages(!aids.is_on(Aid::PlanOnly)),
             super::core::supervisor_fixed_messages(),
         ],
         Mode::Mnl => vec![super::core::monolithic_fixed_messages()],
     };
-    for messages in prefixes {
-        if let Err(e) = backend.warm_up(&messages).await {
+    let user_opening = tacos_prompts::render::request_opening(&world);
+    for messages in messages {
+        let beginning = PromptBeginning {
+            messages,
+            user_opening: user_opening.clone(),
+        };
+        if let Err(e) = backend.warm_up(&beginning).await {
             tracing::debug!(error = %e, "warming the model up failed");
             return;
         }
@@ -251,6 +258,7 @@ impl Mission {
             self.caller.backend.clone(),
             self.core.mode,
             self.core.aids,
+            tacos_prompts::render::world(&self.gate.scenario().world, &[], &[]),
         )));
         let mut tick = tokio::time::interval(Duration::from_millis(250));
         // After a busy spell, one tick, not a burst of the ones missed.

@@ -33,6 +33,7 @@ pub mod whole_swarm;
 
 pub use aids::{Aid, ModelAids};
 pub use config::{MissionConfig, Mode, ResumeFrom};
+pub use core::{coordinator_fixed_messages, supervisor_fixed_messages};
 pub use driver::{Mission, coordinator_messages, supervisor_messages};
 pub use handle::{MissionHandle, MissionTask};
 pub use input::{InputClosed, MissionInputs, PilotInput};
