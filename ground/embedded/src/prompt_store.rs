@@ -254,7 +254,7 @@ impl PromptStore {
 }
 
 /// How many tokens `a` and `b` begin with in common.
-fn shared(a: &[u32], b: &[u32]) -> usize {
+pub fn shared(a: &[u32], b: &[u32]) -> usize {
     a.iter().zip(b).take_while(|(x, y)| x == y).count()
 }
 

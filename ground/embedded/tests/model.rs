@@ -476,3 +476,56 @@ async fn a_stored_beginning_serves_a_restarted_model_and_a_stale_one_is_dropped(
     assert!(stored_entries(&dir).is_empty(), "the stale entry was kept");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// On Qwen (whose decoding steps run on `matvec`, rounding otherwise than the prompt's product),
+/// a beginning whose last token alone was computed (a call had computed the rest before the
+/// warm-up) is stored, read back by a model loaded afterwards and trusted: its check computes
+/// that position again as it was computed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_beginning_finished_by_one_decoding_step_is_read_back_on_qwen() {
+    let model = EmbeddedModel::QwenCoder1_5B;
+    let dir = std::env::temp_dir().join(format!("tacos-prompt-store-qwen-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let stored = || {
+        let dir = dir.clone();
+        tokio::task::spawn_blocking(move || {
+            EmbeddedBackend::load(EmbeddedOptions {
+                model,
+                prompt_store: Some(dir),
+                ..EmbeddedOptions::from_env()
+            })
+        })
+    };
+    let first = stored().await.expect("the load thread").expect("loads");
+    first.chat_blocking(&request(300)).expect("a first call");
+    let beginning = PromptBeginning {
+        messages: request(300).messages[..1].to_vec(),
+        user_opening: "Take off with alfa".into(),
+    };
+    first.warm_up(&beginning).await.expect("warm-up");
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    while stored_entries(&dir).is_empty() {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "nothing stored in {}",
+            dir.display()
+        );
+        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+    }
+    drop(first);
+
+    let again = stored().await.expect("the load thread").expect("loads");
+    let (_, stats) = again.chat_blocking(&request(300)).expect("a call");
+    let system_tokens = again
+        .count_prompt_tokens(&ChatRequest {
+            messages: request(300).messages[..1].to_vec(),
+            ..request(300)
+        })
+        .expect("count");
+    assert!(
+        stats.reused_tokens > system_tokens,
+        "{system_tokens}: {stats:?}"
+    );
+    assert_eq!(stored_entries(&dir).len(), 1, "the entry was dropped");
+    let _ = std::fs::remove_dir_all(&dir);
+}
