@@ -396,6 +396,53 @@ fn stored_entries(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
         .unwrap_or_default()
 }
 
+/// `model` loaded with its prompt store in `dir`, off the runtime's threads.
+async fn load_with_store(model: EmbeddedModel, dir: &std::path::Path) -> EmbeddedBackend {
+    let dir = dir.to_owned();
+    tokio::task::spawn_blocking(move || {
+        EmbeddedBackend::load(EmbeddedOptions {
+            model,
+            prompt_store: Some(dir),
+            ..EmbeddedOptions::from_env()
+        })
+    })
+    .await
+    .expect("the load thread")
+    .expect("loads")
+}
+
+/// The system message of [`request`], then the opening of its user message (as a mission's map
+/// opens every request).
+fn request_beginning() -> PromptBeginning {
+    PromptBeginning {
+        messages: request(300).messages[..1].to_vec(),
+        user_opening: "Take off with alfa".into(),
+    }
+}
+
+/// Waits for a whole entry in `dir`: the store writes on a thread of its own after the warm-up.
+async fn until_stored(dir: &std::path::Path) {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    while stored_entries(dir).is_empty() {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "nothing stored in {}",
+            dir.display()
+        );
+        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+    }
+}
+
+/// How many prompt tokens [`request`]'s system message is, with a generation prompt.
+fn system_tokens(backend: &EmbeddedBackend) -> u32 {
+    backend
+        .count_prompt_tokens(&ChatRequest {
+            messages: request(300).messages[..1].to_vec(),
+            ..request(300)
+        })
+        .expect("count")
+}
+
 /// A warm-up's beginning kept on disk serves a model loaded afterwards (a ground station
 /// started again), which then answers as a model that computed the whole prompt; a stored entry
 /// that this decoder does not compute again (other weights, another decoder) is removed unused.
@@ -404,45 +451,16 @@ async fn a_stored_beginning_serves_a_restarted_model_and_a_stale_one_is_dropped(
     let model = EmbeddedModel::SmolLm2_135M;
     let dir = std::env::temp_dir().join(format!("tacos-prompt-store-test-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
-    let stored = || {
-        let dir = dir.clone();
-        tokio::task::spawn_blocking(move || {
-            EmbeddedBackend::load(EmbeddedOptions {
-                model,
-                prompt_store: Some(dir),
-                ..EmbeddedOptions::from_env()
-            })
-        })
-    };
-    let first = stored().await.expect("the load thread").expect("loads");
-    // The system message, then the opening of the user's (as a mission's map opens it).
-    let beginning = PromptBeginning {
-        messages: request(300).messages[..1].to_vec(),
-        user_opening: "Take off with alfa".into(),
-    };
-    first.warm_up(&beginning).await.expect("warm-up");
-    // Written on a thread of its own after the warm-up.
-    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(30);
-    while stored_entries(&dir).is_empty() {
-        assert!(
-            std::time::Instant::now() < deadline,
-            "nothing stored in {}",
-            dir.display()
-        );
-        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
-    }
+    let first = load_with_store(model, &dir).await;
+    first.warm_up(&request_beginning()).await.expect("warm-up");
+    until_stored(&dir).await;
     drop(first);
 
-    let again = stored().await.expect("the load thread").expect("loads");
+    let again = load_with_store(model, &dir).await;
     let (reply, stats) = again.chat_blocking(&request(300)).expect("a call");
     // The system turn (counted with a generation prompt, `<|im_start|>assistant\n`) and the
     // user turn's opening (`<|im_start|>user\nTake off with alfa`, more tokens than that).
-    let system_tokens = again
-        .count_prompt_tokens(&ChatRequest {
-            messages: request(300).messages[..1].to_vec(),
-            ..request(300)
-        })
-        .expect("count");
+    let system_tokens = system_tokens(&again);
     assert!(
         stats.reused_tokens > system_tokens,
         "{system_tokens}: {stats:?}"
@@ -469,7 +487,7 @@ async fn a_stored_beginning_serves_a_restarted_model_and_a_stale_one_is_dropped(
         })
         .collect();
     candle_core::safetensors::save(&changed, &tensors_file).expect("written back");
-    let stale = stored().await.expect("the load thread").expect("loads");
+    let stale = load_with_store(model, &dir).await;
     let (reply, stats) = stale.chat_blocking(&request(300)).expect("a call");
     assert_eq!(stats.reused_tokens, 0, "the stale beginning was used");
     assert_eq!(reply.content, cold.content);
@@ -486,42 +504,15 @@ async fn a_beginning_finished_by_one_decoding_step_is_read_back_on_qwen() {
     let model = EmbeddedModel::QwenCoder1_5B;
     let dir = std::env::temp_dir().join(format!("tacos-prompt-store-qwen-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
-    let stored = || {
-        let dir = dir.clone();
-        tokio::task::spawn_blocking(move || {
-            EmbeddedBackend::load(EmbeddedOptions {
-                model,
-                prompt_store: Some(dir),
-                ..EmbeddedOptions::from_env()
-            })
-        })
-    };
-    let first = stored().await.expect("the load thread").expect("loads");
+    let first = load_with_store(model, &dir).await;
     first.chat_blocking(&request(300)).expect("a first call");
-    let beginning = PromptBeginning {
-        messages: request(300).messages[..1].to_vec(),
-        user_opening: "Take off with alfa".into(),
-    };
-    first.warm_up(&beginning).await.expect("warm-up");
-    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
-    while stored_entries(&dir).is_empty() {
-        assert!(
-            std::time::Instant::now() < deadline,
-            "nothing stored in {}",
-            dir.display()
-        );
-        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
-    }
+    first.warm_up(&request_beginning()).await.expect("warm-up");
+    until_stored(&dir).await;
     drop(first);
 
-    let again = stored().await.expect("the load thread").expect("loads");
+    let again = load_with_store(model, &dir).await;
     let (_, stats) = again.chat_blocking(&request(300)).expect("a call");
-    let system_tokens = again
-        .count_prompt_tokens(&ChatRequest {
-            messages: request(300).messages[..1].to_vec(),
-            ..request(300)
-        })
-        .expect("count");
+    let system_tokens = system_tokens(&again);
     assert!(
         stats.reused_tokens > system_tokens,
         "{system_tokens}: {stats:?}"
