@@ -196,13 +196,13 @@ pub fn history(entries: &[HistoryEntry]) -> String {
     out
 }
 
-/// The Coordinator's user message.
 /// How every request's user message opens: the map (see `WorldText::map`), the same on every call
 /// of a mission, so that a prompt cache holds it with the layer's fixed messages.
 pub fn request_opening(world: &WorldText) -> String {
     format!("## World\n{}\n", world.map)
 }
 
+/// The Coordinator's user message.
 pub fn coordinator_request(
     swarm_text: &str,
     world: &WorldText,

@@ -5,6 +5,7 @@
 use std::sync::{Arc, Mutex};
 
 use crate::decoder::KvCache;
+use crate::lock;
 use crate::prompt_store::{self, PromptStore, shared};
 
 /// How many key/value caches are kept in memory (each up to the window: ~115 MB for a
@@ -46,15 +47,10 @@ impl PromptCaches {
     /// the Supervisor's prompt, which shares a few tokens with the Coordinator's, does not cut the
     /// Coordinator's cache down to them.
     fn take_kept(&self, prompt: &[u32]) -> KvCache {
-        let mut kept = self.kept.lock().unwrap_or_else(|p| p.into_inner());
-        let best = (0..kept.len()).max_by_key(|i| shared(kept[*i].tokens(), prompt));
-        let Some(best) = best else {
+        let mut kept = lock(&self.kept);
+        let Some((best, n)) = best_kept(&kept, prompt) else {
             return KvCache::default();
         };
-        let n = shared(kept[best].tokens(), prompt).min(prompt.len().saturating_sub(1));
-        if n == 0 {
-            return KvCache::default();
-        }
         if n == kept[best].tokens().len() {
             return kept.remove(best);
         }
@@ -63,9 +59,7 @@ impl PromptCaches {
 
     /// How many of `prompt`'s tokens [`PromptCaches::take_kept`] would start from.
     fn kept_share(&self, prompt: &[u32]) -> usize {
-        let kept = self.kept.lock().unwrap_or_else(|p| p.into_inner());
-        let most = kept.iter().map(|c| shared(c.tokens(), prompt)).max();
-        most.unwrap_or(0).min(prompt.len().saturating_sub(1))
+        best_kept(&lock(&self.kept), prompt).map_or(0, |(_, n)| n)
     }
 
     /// The cache to start `prompt` from: the stored beginning of `prompt` when that spares
@@ -108,7 +102,7 @@ impl PromptCaches {
     /// Stores the beginnings asked for by [`PromptCaches::store_when_computed`] that `cache` holds.
     pub fn store_asked(&self, cache: &KvCache) {
         let held: Vec<usize> = {
-            let mut asked = self.to_store.lock().unwrap_or_else(|p| p.into_inner());
+            let mut asked = lock(&self.to_store);
             let (held, rest) = asked
                 .drain(..)
                 .partition(|b: &Vec<u32>| cache.tokens().starts_with(b));
@@ -120,14 +114,14 @@ impl PromptCaches {
         }
     }
 
-    /// Asks for `messages` (a prompts' fixed beginning) to be stored once a call has computed
-    /// it: a warm-up that gives way to a waiting call.
+    /// Asks for `tokens` (a prompts' fixed beginning) to be stored once a call has computed them:
+    /// a warm-up that gives way to a waiting call.
     pub fn store_when_computed(&self, tokens: Vec<u32>) {
         let Some(store) = &self.store else {
             return;
         };
         if !tokens.is_empty() && !store.holds(&tokens) {
-            let mut asked = self.to_store.lock().unwrap_or_else(|p| p.into_inner());
+            let mut asked = lock(&self.to_store);
             if !asked.contains(&tokens) {
                 asked.push(tokens);
             }
@@ -136,12 +130,23 @@ impl PromptCaches {
 
     /// Keeps `cache` as the most recent, dropping the oldest beyond [`KEPT_CACHES`].
     pub fn keep(&self, cache: KvCache) {
-        let mut kept = self.kept.lock().unwrap_or_else(|p| p.into_inner());
+        let mut kept = lock(&self.kept);
         kept.push(cache);
         while kept.len() > KEPT_CACHES {
             kept.remove(0);
         }
     }
+}
+
+/// The kept cache sharing most of `prompt`'s beginning and how many tokens of it to start from
+/// (never the whole prompt: its last token is fed again for its logits); `None` when none
+/// shares any.
+fn best_kept(kept: &[KvCache], prompt: &[u32]) -> Option<(usize, usize)> {
+    let (best, shared) = (kept.iter().enumerate())
+        .map(|(i, c)| (i, shared(c.tokens(), prompt)))
+        .max_by_key(|(_, n)| *n)?;
+    let n = shared.min(prompt.len().saturating_sub(1));
+    (n > 0).then_some((best, n))
 }
 
 /// The stored beginning of `prompt` it shares `len` tokens of, trusted once its last position,

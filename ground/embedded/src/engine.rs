@@ -235,7 +235,7 @@ impl Engine {
         self.caches.take(prompt, &feed)
     }
 
-    /// Asks for `messages` (a prompts' fixed beginning) to be stored once a call has computed
+    /// Asks for `beginning` (a prompts' fixed beginning) to be stored once a call has computed
     /// it: for a warm-up that gives way to a waiting call.
     pub fn store_when_computed(&self, beginning: &PromptBeginning) -> Result<(), LlmError> {
         let tokens = self.beginning_tokens(beginning)?;
@@ -251,8 +251,8 @@ impl Engine {
             .map_err(LlmError::Generation)
     }
 
-    /// Computes the keys and values of `messages` (no generation prompt: the beginning of later
-    /// prompts) and keeps them; returns how many tokens were computed.
+    /// Computes the keys and values of `beginning` (no generation prompt: the beginning of later
+    /// prompts), keeps them and stores them; returns how many tokens were computed.
     pub fn warm_up(&self, beginning: &PromptBeginning) -> Result<usize, LlmError> {
         let tokens = self.beginning_tokens(beginning)?;
         if tokens.is_empty() || tokens.len() >= self.decoder.window {

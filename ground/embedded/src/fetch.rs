@@ -77,13 +77,22 @@ fn model_dir_from(get: impl Fn(&str) -> Option<std::ffi::OsString>) -> Result<Pa
     if let Some(d) = non_empty("TACOS_MODEL_DIR") {
         return Ok(d);
     }
-    if let Some(d) = non_empty("XDG_CACHE_HOME") {
-        return Ok(d.join("tacos").join("models"));
-    }
-    if let Some(h) = non_empty("HOME") {
-        return Ok(h.join(".cache").join("tacos").join("models"));
-    }
-    Err(FetchError::NoCacheDir)
+    cache_dir_from(&get)
+        .map(|d| d.join("models"))
+        .ok_or(FetchError::NoCacheDir)
+}
+
+/// The project's cache directory, where what is fetched or computed once is kept:
+/// `$XDG_CACHE_HOME/tacos`, else `~/.cache/tacos`.
+pub fn cache_dir() -> Option<PathBuf> {
+    cache_dir_from(&|k| std::env::var_os(k))
+}
+
+fn cache_dir_from(get: &impl Fn(&str) -> Option<std::ffi::OsString>) -> Option<PathBuf> {
+    let non_empty = |k: &str| get(k).filter(|v| !v.is_empty()).map(PathBuf::from);
+    non_empty("XDG_CACHE_HOME")
+        .map(|d| d.join("tacos"))
+        .or_else(|| non_empty("HOME").map(|h| h.join(".cache").join("tacos")))
 }
 
 /// sha256 of a file, lower-case hex, and its size.
@@ -107,7 +116,8 @@ fn sha256_reader(r: &mut impl Read) -> io::Result<(String, u64)> {
     Ok((hex(&h.finalize()), n_total))
 }
 
-fn hex(bytes: &[u8]) -> String {
+/// Lower-case hex of `bytes`.
+pub(crate) fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 

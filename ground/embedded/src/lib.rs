@@ -89,14 +89,10 @@ pub struct EmbeddedOptions {
 /// Where the ground station keeps the prompts' fixed beginnings: `$TACOS_PROMPT_STORE` (`off`:
 /// nowhere), else `$XDG_CACHE_HOME/tacos/prompts`, else `~/.cache/tacos/prompts`.
 pub fn default_prompt_store() -> Option<PathBuf> {
-    let non_empty = |k: &str| std::env::var_os(k).filter(|v| !v.is_empty());
-    match non_empty("TACOS_PROMPT_STORE") {
+    match std::env::var_os("TACOS_PROMPT_STORE").filter(|v| !v.is_empty()) {
         Some(v) if v == "off" => None,
         Some(v) => Some(PathBuf::from(v)),
-        None => non_empty("XDG_CACHE_HOME")
-            .map(|d| PathBuf::from(d).join("tacos"))
-            .or_else(|| non_empty("HOME").map(|h| PathBuf::from(h).join(".cache").join("tacos")))
-            .map(|d| d.join("prompts")),
+        None => fetch::cache_dir().map(|d| d.join("prompts")),
     }
 }
 

@@ -20,6 +20,7 @@ use candle_core::{Device, Tensor};
 use sha2::{Digest, Sha256};
 
 use crate::decoder::KvCache;
+use crate::lock;
 
 /// Entries kept in the directory (Qwen2.5-Coder-1.5B: ~57 KB a token, so ~115 MB for a
 /// 2,000-token beginning; a mission uses two, the Coordinator's and the Supervisor's).
@@ -35,8 +36,8 @@ pub const TOLERANCE: f32 = 1e-3;
 
 /// One entry on disk.
 struct Stored {
-    /// Its files' path without the extension (the names hold dots: `qwen2.5-…`, so never
-    /// `Path::with_extension`).
+    /// Its files' path without the extension. The names hold dots (`qwen2.5-…`): an extension
+    /// is added with [`file`], never `Path::with_extension`, which would replace `.5-…`.
     stem: PathBuf,
     tokens: Vec<u32>,
 }
@@ -57,20 +58,12 @@ pub struct PromptStore {
     index: Mutex<Vec<Stored>>,
 }
 
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|p| p.into_inner())
-}
-
 fn tokens_hash(tokens: &[u32]) -> String {
     let mut h = Sha256::new();
     for t in tokens {
         h.update(t.to_le_bytes());
     }
-    h.finalize()
-        .iter()
-        .take(8)
-        .map(|b| format!("{b:02x}"))
-        .collect()
+    crate::fetch::hex(&h.finalize()[..8])
 }
 
 fn read_tokens(path: &Path) -> std::io::Result<Vec<u32>> {
