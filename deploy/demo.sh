@@ -5,4 +5,5 @@ set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
 cargo build --workspace --bins
-exec target/debug/tacos-ground demo "$@"
+# Where cargo put them: `CARGO_TARGET_DIR` when set (relative to this directory, as cargo takes it).
+exec "${CARGO_TARGET_DIR:-target}/debug/tacos-ground" demo "$@"
