@@ -71,6 +71,12 @@ impl Core {
             calls
         };
         let calls = if self.aids.is_on(Aid::ImpliedTakeoffs) {
+            // On the ground when asked and still now: a drone that has taken off while the
+            // model thought (a take-off of the plan before) needs none.
+            let now_grounded = snap.grounded_ids();
+            let grounded: Vec<String> = (grounded.into_iter())
+                .filter(|d| now_grounded.contains(d))
+                .collect();
             let (calls, fired) = with_implied_takeoffs(calls, &grounded);
             effects.extend(fired);
             calls

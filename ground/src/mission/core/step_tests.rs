@@ -448,3 +448,41 @@ fn a_cycle_starts_only_with_a_decision_to_make_and_a_plan_stuck_too_long_is_give
     core.calls.cycle_due(true);
     assert_eq!(core.next_call(later), None, "a call is in flight");
 }
+
+#[test]
+fn a_drone_that_took_off_while_the_coordinator_thought_gets_no_implied_take_off() {
+    let t0 = Instant::now();
+    let gate = gate();
+    let mut core = core(Mode::Tacos);
+    // Asked with alfa and bravo on the ground; bravo's take-off (of the plan before) has
+    // finished by the reply, alfa is still on the ground.
+    let mut snap = grounded(t0);
+    snap.swarm
+        .apply_status(test_status("bravo", DroneMode::Flying), t0);
+    let effects = core.step(
+        Input::CoordinatorReply {
+            instruction: "alfa and bravo, to car_2 and car_3".into(),
+            grounded: vec!["alfa".into(), "bravo".into()],
+            answer: Ok((
+                "Both go.".into(),
+                vec![
+                    Call::named("T1", "alfa", ActionName::Goto, "car_2"),
+                    Call::named("T2", "bravo", ActionName::Goto, "car_3"),
+                ],
+                None,
+            )),
+        },
+        &snap,
+        &gate,
+    );
+    let plan: Vec<String> = core.book.tasks().map(|t| t.call.to_string()).collect();
+    assert_eq!(
+        plan,
+        [
+            "T3 alfa arm_takeoff()",
+            "T1 alfa goto(car_2)",
+            "T2 bravo goto(car_3)"
+        ],
+        "{effects:?}"
+    );
+}
