@@ -7,7 +7,7 @@ use std::fmt;
 use std::time::Instant;
 use tacos_shared::action::{Action, mode_forbids};
 use tacos_shared::scenario::Scenario;
-use tacos_shared::{DroneId, DroneMode};
+use tacos_shared::{DroneId, DroneMode, Vec3};
 
 /// One reason an action may not be sent.
 #[derive(Debug, Clone, PartialEq)]
@@ -210,20 +210,10 @@ impl SafetyGate {
         }
         match action {
             Action::Goto { target } => {
-                let limits = &self.scenario.limits;
-                self.scenario
-                    .world
-                    .check_point(target, limits.drone_radius)
-                    .map_err(|e| Rejection::BadPoint {
-                        drone: id.clone(),
-                        why: e.to_string(),
-                    })?;
-                if target.z < limits.drone_radius * 2.0 {
-                    return Err(Rejection::BadPoint {
-                        drone: id.clone(),
-                        why: format!("altitude {:.1} m is too low for a goto: use land", target.z),
-                    });
-                }
+                goto_point_fault(&self.scenario, target).map_err(|why| Rejection::BadPoint {
+                    drone: id.clone(),
+                    why,
+                })?;
             }
             Action::StartTracking { target } if !self.targets.contains(target) => {
                 return Err(Rejection::UnknownTarget {
@@ -235,6 +225,24 @@ impl SafetyGate {
         }
         Ok(())
     }
+}
+
+/// Why a goto to `target` can never be flown on this map, whatever the drone's state: outside
+/// the flight area, inside an obstacle (with the drone's radius), or too low (a goto is not a
+/// landing). The gate's rule, also applied when a plan is made (`mission::core::checks`).
+pub fn goto_point_fault(scenario: &Scenario, target: &Vec3) -> Result<(), String> {
+    let limits = &scenario.limits;
+    scenario
+        .world
+        .check_point(target, limits.drone_radius)
+        .map_err(|e| e.to_string())?;
+    if target.z < limits.drone_radius * 2.0 {
+        return Err(format!(
+            "altitude {:.1} m is too low for a goto: use land",
+            target.z
+        ));
+    }
+    Ok(())
 }
 
 #[cfg(test)]

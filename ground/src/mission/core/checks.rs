@@ -22,10 +22,7 @@ pub(crate) fn check_static(
     }
     let action = resolve(call, scenario, visible, &[], None)?;
     if let Action::Goto { target } = action {
-        scenario
-            .world
-            .check_point(&target, scenario.limits.drone_radius)
-            .map_err(|e| e.to_string())?;
+        crate::safety::goto_point_fault(scenario, &target)?;
     }
     Ok(())
 }

@@ -290,3 +290,35 @@ fn a_plan_that_changes_nothing_is_in_doubt_with_why() {
     assert!(j.doubts.is_empty(), "{:?}", j.doubts);
     assert!(c.judge(&reply(Vec::new())).doubts.is_empty());
 }
+
+#[test]
+fn a_goto_that_can_never_be_flown_is_sent_back_with_the_gates_reason() {
+    let goto = |task: &str, z: f64| Call {
+        task: task.into(),
+        drone: "bravo".into(),
+        action: ActionName::Goto,
+        target: schema::NO_TARGET.into(),
+        xyz: Some([0.0, -100.0, z]),
+    };
+    // On the ground (a goto is not a landing), inside a skyscraper, outside the map: refused
+    // when the plan is made, not left waiting for a start the gate would refuse for ever.
+    let j = check(ModelAids::small()).judge(&reply(vec![take_off("T1", "bravo"), goto("T2", 0.0)]));
+    assert_eq!(
+        j.rejections,
+        ["T2 bravo goto(0.0, -100.0, 0.0): altitude 0.0 m is too low for a goto: use land"]
+    );
+    let inside = Call {
+        xyz: Some([-18.0, -18.0, 10.0]),
+        ..goto("T2", 10.0)
+    };
+    let outside = Call {
+        xyz: Some([0.0, 500.0, 10.0]),
+        ..goto("T3", 10.0)
+    };
+    let j = check(ModelAids::small()).judge(&reply(vec![take_off("T1", "bravo"), inside, outside]));
+    assert_eq!(j.rejections.len(), 2, "{:?}", j.rejections);
+    // Flyable: passes.
+    let j =
+        check(ModelAids::small()).judge(&reply(vec![take_off("T1", "bravo"), goto("T2", 10.0)]));
+    assert!(j.rejections.is_empty(), "{:?}", j.rejections);
+}
