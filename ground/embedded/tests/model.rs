@@ -433,14 +433,39 @@ async fn until_stored(dir: &std::path::Path) {
     }
 }
 
-/// How many prompt tokens [`request`]'s system message is, with a generation prompt.
-fn system_tokens(backend: &EmbeddedBackend) -> u32 {
+/// How many prompt tokens `system` alone is, with a generation prompt.
+fn system_tokens(backend: &EmbeddedBackend, system: &ChatMessage) -> u32 {
     backend
         .count_prompt_tokens(&ChatRequest {
-            messages: request(300).messages[..1].to_vec(),
+            messages: vec![system.clone()],
             ..request(300)
         })
         .expect("count")
+}
+
+/// An empty prompt-store directory of this test process, named `name`.
+fn store_dir(name: &str) -> std::path::PathBuf {
+    let dir =
+        std::env::temp_dir().join(format!("tacos-prompt-store-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    dir
+}
+
+/// A first model (a ground station before its restart) that answers `first_call`, if any, then
+/// warms `beginning` up into the store in `dir`; returns once the entry is written and the model
+/// gone.
+async fn fill_store(
+    model: EmbeddedModel,
+    dir: &std::path::Path,
+    first_call: Option<&ChatRequest>,
+    beginning: &PromptBeginning,
+) {
+    let first = load_with_store(model, dir).await;
+    if let Some(call) = first_call {
+        first.chat_blocking(call).expect("a first call");
+    }
+    first.warm_up(beginning).await.expect("warm-up");
+    until_stored(dir).await;
 }
 
 /// A warm-up's beginning kept on disk serves a model loaded afterwards (a ground station
@@ -449,18 +474,14 @@ fn system_tokens(backend: &EmbeddedBackend) -> u32 {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_stored_beginning_serves_a_restarted_model_and_a_stale_one_is_dropped() {
     let model = EmbeddedModel::SmolLm2_135M;
-    let dir = std::env::temp_dir().join(format!("tacos-prompt-store-test-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let first = load_with_store(model, &dir).await;
-    first.warm_up(&request_beginning()).await.expect("warm-up");
-    until_stored(&dir).await;
-    drop(first);
+    let dir = store_dir("test");
+    fill_store(model, &dir, None, &request_beginning()).await;
 
     let again = load_with_store(model, &dir).await;
     let (reply, stats) = again.chat_blocking(&request(300)).expect("a call");
     // The system turn (counted with a generation prompt, `<|im_start|>assistant\n`) and the
     // user turn's opening (`<|im_start|>user\nTake off with alfa`, more tokens than that).
-    let system_tokens = system_tokens(&again);
+    let system_tokens = system_tokens(&again, &request(300).messages[0]);
     assert!(
         stats.reused_tokens > system_tokens,
         "{system_tokens}: {stats:?}"
@@ -501,17 +522,12 @@ async fn a_stored_beginning_serves_a_restarted_model_and_a_stale_one_is_dropped(
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_beginning_finished_by_one_decoding_step_is_read_back_on_qwen() {
     let model = EmbeddedModel::QwenCoder1_5B;
-    let dir = std::env::temp_dir().join(format!("tacos-prompt-store-qwen-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let first = load_with_store(model, &dir).await;
-    first.chat_blocking(&request(300)).expect("a first call");
-    first.warm_up(&request_beginning()).await.expect("warm-up");
-    until_stored(&dir).await;
-    drop(first);
+    let dir = store_dir("qwen");
+    fill_store(model, &dir, Some(&request(300)), &request_beginning()).await;
 
     let again = load_with_store(model, &dir).await;
     let (_, stats) = again.chat_blocking(&request(300)).expect("a call");
-    let system_tokens = system_tokens(&again);
+    let system_tokens = system_tokens(&again, &request(300).messages[0]);
     assert!(
         stats.reused_tokens > system_tokens,
         "{system_tokens}: {stats:?}"
@@ -527,38 +543,29 @@ async fn a_beginning_finished_by_one_decoding_step_is_read_back_on_qwen() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_stored_beginning_serves_a_prompt_that_parts_from_it_before_its_end() {
     let model = EmbeddedModel::QwenCoder1_5B;
-    let dir = std::env::temp_dir().join(format!("tacos-prompt-store-part-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+    let dir = store_dir("part");
     // Instructions long enough to be fed in several chunks (as a mission's are).
     let system = ChatMessage::system(
         "Every drone keeps three metres from the next and reports its battery, its position \
          and the action it is on. "
             .repeat(40),
     );
-    let with_user = |user: &str| ChatRequest {
-        messages: vec![system.clone(), ChatMessage::user(user)],
-        ..request(300)
+    let beginning = PromptBeginning {
+        messages: vec![system.clone()],
+        user_opening: "## World\nLandmarks: park_1 (1, 2), car_3 (5, 6)".into(),
     };
-    let first = load_with_store(model, &dir).await;
-    first
-        .warm_up(&PromptBeginning {
-            messages: vec![system.clone()],
-            user_opening: "## World\nLandmarks: park_1 (1, 2), car_3 (5, 6)".into(),
-        })
-        .await
-        .expect("warm-up");
-    until_stored(&dir).await;
-    drop(first);
+    fill_store(model, &dir, None, &beginning).await;
 
     let again = load_with_store(model, &dir).await;
-    let other = with_user("## World\nObstacles: tower_1 (9, 9)\nTake off with alfa.");
+    let other = ChatRequest {
+        messages: vec![
+            system.clone(),
+            ChatMessage::user("## World\nObstacles: tower_1 (9, 9)\nTake off with alfa."),
+        ],
+        ..request(300)
+    };
     let (_, stats) = again.chat_blocking(&other).expect("a call");
-    let system_tokens = again
-        .count_prompt_tokens(&ChatRequest {
-            messages: vec![system.clone()],
-            ..request(300)
-        })
-        .expect("count");
+    let system_tokens = system_tokens(&again, &system);
     assert!(
         stats.reused_tokens + 1 >= system_tokens,
         "{system_tokens}: {stats:?}"
