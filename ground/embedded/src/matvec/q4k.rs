@@ -39,6 +39,7 @@ pub(super) fn rows_of<const M: usize>(
     let mut sums = [_mm512_setzero_ps(); M];
     let mut mins = [_mm_setzero_ps(); M];
     for (b, block) in row.chunks_exact(BLOCK_BYTES).enumerate() {
+        super::prefetch_ahead(block.as_ptr(), BLOCK_BYTES);
         let Some(packed) = block[SCALES_AT..SCALES_AT + 12].first_chunk::<12>() else {
             continue;
         };

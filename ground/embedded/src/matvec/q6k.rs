@@ -46,6 +46,7 @@ pub(super) fn rows_of<const M: usize>(
     let mut sums = [_mm512_setzero_ps(); M];
     let mut offsets = [_mm256_setzero_ps(); M];
     for (b, block) in row.chunks_exact(BLOCK_BYTES).enumerate() {
+        super::prefetch_ahead(block.as_ptr(), BLOCK_BYTES);
         let d = f16_to_f32(u16::from_le_bytes([block[D_AT], block[D_AT + 1]]));
         // SAFETY: `block` is 210 bytes: 2 × 64 from QL_AT, 2 × 32 from QH_AT, 16 from
         // SCALES_AT.
