@@ -1,4 +1,4 @@
-//! Q4_K and Q6_K matrix products for decode steps (one to [`MAX_ROWS`] activation rows), read
+//! Q4_K and Q6_K matrix products for decode steps (one to [`MAX_FEED`] activation rows), read
 //! straight from the GGUF's blocks.
 //!
 //! Why not candle's: for a few rows candle repacks Q4_K into tiles of 16 rows with f32 scales
@@ -29,8 +29,16 @@ mod q6k;
 
 /// Values per K-quant block.
 pub const BLOCK_VALUES: usize = 256;
-/// The most activation rows one product takes; more rows (a prompt) go to candle's product.
+/// The activation rows a kernel takes at once (its sums stay in registers).
 pub const MAX_ROWS: usize = 8;
+/// The most activation rows one product takes, [`MAX_ROWS`] at a time against each weight row
+/// (read from memory once, then from cache); more (a prompt) go to candle's product. A decode
+/// step feeds the grammar's forced tokens with the sampled one: the Coordinator's replies force
+/// runs of 11 (`","target":"none","xyz":null},{"task":"T`), which took ~235 ms a step here
+/// against ~280 in candle's product (the models bench's Coordinator probe, Qwen2.5-Coder-1.5B,
+/// 2 threads); the Supervisor's runs of 20–26 took as long either way at 32 (and candle's
+/// attention for them), so they stay with candle's.
+pub const MAX_FEED: usize = 16;
 /// Output rows a thread takes at a time.
 const ROWS_PER_GRAB: usize = 16;
 
@@ -83,7 +91,7 @@ impl Linear {
             return self.candle.forward(x);
         };
         let m = x.elem_count() / matrix.columns;
-        if m > MAX_ROWS || x.dims().last() != Some(&matrix.columns) {
+        if m > MAX_FEED || x.dims().last() != Some(&matrix.columns) {
             return self.candle.forward(x);
         }
         let input = x.flatten_all()?.to_vec1::<f32>()?;
@@ -195,7 +203,7 @@ impl DecodeMatrix {
         let m = x.len() / self.columns;
         let n = rows.len();
         if m == 0
-            || m > MAX_ROWS
+            || m > MAX_FEED
             || x.len() != m * self.columns
             || rows.end > self.rows
             || out.len() != m * n
@@ -213,7 +221,8 @@ impl DecodeMatrix {
             .map(ActivationBlock::quantise)
             .collect();
         let weights = self.tensor.data()?;
-        let row_bytes = self.columns / BLOCK_VALUES * self.format.block_bytes();
+        let blocks = self.columns / BLOCK_VALUES;
+        let row_bytes = blocks * self.format.block_bytes();
         let format = self.format;
         let target = OutputRows(out.as_mut_ptr());
         let first_row = rows.start;
@@ -221,19 +230,17 @@ impl DecodeMatrix {
             let end = (grabs.end * ROWS_PER_GRAB).min(n);
             for r in grabs.start * ROWS_PER_GRAB..end {
                 let at = (first_row + r) * row_bytes;
-                let mut dots = [0f32; MAX_ROWS];
-                row_products(
-                    format,
-                    &weights[at..at + row_bytes],
-                    &activations,
-                    m,
-                    &mut dots,
-                );
-                for (i, dot) in dots[..m].iter().enumerate() {
-                    // SAFETY: `i * n + r` is inside `out` (checked above: m rows of n), and
-                    // each `r` is written by the one grab that holds it: the grabs' ranges do
-                    // not overlap.
-                    unsafe { target.write(i * n + r, *dot) };
+                let row = &weights[at..at + row_bytes];
+                for (c, chunk) in activations.chunks(MAX_ROWS * blocks).enumerate() {
+                    let rows_here = chunk.len() / blocks;
+                    let mut dots = [0f32; MAX_ROWS];
+                    row_products(format, row, chunk, rows_here, &mut dots);
+                    for (i, dot) in dots[..rows_here].iter().enumerate() {
+                        // SAFETY: `(c * MAX_ROWS + i) * n + r` is inside `out` (checked above:
+                        // m rows of n), and each `r` is written by the one grab that holds it:
+                        // the grabs' ranges do not overlap.
+                        unsafe { target.write((c * MAX_ROWS + i) * n + r, *dot) };
+                    }
                 }
             }
         });

@@ -53,7 +53,7 @@ fn dequantised_weights_times_quantised_activations(dtype: GgmlDType) {
         .dequantize(&Device::Cpu)
         .and_then(|t| t.to_vec2::<f32>())
         .expect("dequantised");
-    for m in 1..=MAX_ROWS {
+    for m in 1..=MAX_FEED {
         let x = activations(m, columns);
         let mut out = vec![0f32; m * rows];
         matrix.product(&x, 0..rows, &mut out).expect("product");
@@ -92,7 +92,7 @@ fn agrees_with_candle(dtype: GgmlDType) {
         return;
     };
     let candle = QMatMul::from_arc(tensor.clone()).expect("candle's product");
-    for m in 1..=MAX_ROWS {
+    for m in 1..=MAX_FEED {
         let x = activations(m, columns);
         let mut out = vec![0f32; m * rows];
         matrix.product(&x, 0..rows, &mut out).expect("product");
@@ -126,13 +126,13 @@ fn a_product_of_the_wrong_size_is_an_error() {
         matrix.product(&[0.0; 256], 8..24, &mut out).is_err(),
         "rows past the matrix"
     );
-    let too_many = MAX_ROWS + 1;
+    let too_many = MAX_FEED + 1;
     let mut out_of_too_many = vec![0f32; 16 * too_many];
     assert!(
         matrix
             .product(&vec![0.0; 256 * too_many], 0..16, &mut out_of_too_many)
             .is_err(),
-        "more rows than MAX_ROWS"
+        "more rows than MAX_FEED"
     );
     assert!(matrix.product(&[0.0; 256], 0..16, &mut out).is_ok());
 }
