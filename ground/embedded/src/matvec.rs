@@ -35,10 +35,10 @@ pub const MAX_ROWS: usize = 8;
 /// (read from memory once, then from cache); more (a prompt) go to candle's product. A decode
 /// step feeds the grammar's forced tokens with the sampled one: the Coordinator's replies force
 /// runs of 11 (`","target":"none","xyz":null},{"task":"T`), which took ~235 ms a step here
-/// against ~280 in candle's product (the models bench's Coordinator probe, Qwen2.5-Coder-1.5B,
-/// 2 threads); the Supervisor's runs of 20–26 took as long either way at 32 (and candle's
-/// attention for them), so they stay with candle's.
-pub const MAX_FEED: usize = 16;
+/// against ~280 in candle's product, the Supervisor's runs of 20–26 as long either way (the
+/// models bench's probes, Qwen2.5-Coder-1.5B, 2 threads). Up to 32, candle's product for a few
+/// rows (which repacks the matrices on first use: ~0.65 s once) is not needed while decoding.
+pub const MAX_FEED: usize = 32;
 /// Output rows a thread takes at a time.
 const ROWS_PER_GRAB: usize = 16;
 
@@ -364,27 +364,32 @@ fn rows_of<K: Kernel>(
     }
 }
 
-/// A block's integer dot product with its sub-block scales: the four 64-value vectors of
-/// unsigned weights against the activation's values in the same order (`vpdpbusd`: 16 sums of
-/// four products each), each lane times its sub-block's scale, the four added.
+/// A block's integer dot product with one activation row, each group of values times its
+/// scale: 16 lanes to add up. `weights[k]` (unsigned, below 64) against the activation's `k`-th
+/// 64 values in the same order (`vpdpbusd`: 16 sums of four products each, at most 4 · 63 · 127
+/// = 32,004 in size); two such vectors pack into one of 16-bit lanes, which `vpmaddwd` multiplies
+/// by `pair_scales` (each kernel's layout of its scales to match) and adds in pairs. Two packs
+/// and two multiplies where four 32-bit multiplies took eight micro-operations of the port the
+/// dot products need too.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
 #[inline]
 fn scaled_block_dot(
     weights: &[std::arch::x86_64::__m512i; 4],
-    lane_scales: &[std::arch::x86_64::__m512i; 4],
+    pair_scales: &[std::arch::x86_64::__m512i; 2],
     values: &[i8; BLOCK_VALUES],
 ) -> std::arch::x86_64::__m512i {
     use std::arch::x86_64::*;
     let zero = _mm512_setzero_si512();
-    let mut total = zero;
-    for (k, x) in values.as_chunks::<64>().0.iter().enumerate() {
+    let mut dots = [zero; 4];
+    for ((dot, w), x) in dots.iter_mut().zip(weights).zip(values.as_chunks::<64>().0) {
         // SAFETY: `x` is 64 bytes.
         let xs = unsafe { _mm512_loadu_si512(x.as_ptr() as *const _) };
-        let dot = _mm512_dpbusd_epi32(zero, weights[k], xs);
-        total = _mm512_add_epi32(total, _mm512_mullo_epi32(dot, lane_scales[k]));
+        *dot = _mm512_dpbusd_epi32(zero, *w, xs);
     }
-    total
+    let first = _mm512_madd_epi16(_mm512_packs_epi32(dots[0], dots[1]), pair_scales[0]);
+    let second = _mm512_madd_epi16(_mm512_packs_epi32(dots[2], dots[3]), pair_scales[1]);
+    _mm512_add_epi32(first, second)
 }
 
 /// How far ahead of the block being read the kernels ask for the weights.

@@ -20,12 +20,22 @@ const QH_AT: usize = 128;
 const SCALES_AT: usize = 192;
 const D_AT: usize = 208;
 
-/// Spreads four of the 16 scales (from `first`) over four lanes each, sign-extended.
-#[target_feature(enable = "avx512f")]
-fn spread(scales: __m128i, first: i8) -> __m512i {
-    let (a, b, c, d) = (first, first + 1, first + 2, first + 3);
-    let order = _mm_setr_epi8(a, a, a, a, b, b, b, b, c, c, c, c, d, d, d, d);
-    _mm512_cvtepi8_epi32(_mm_shuffle_epi8(scales, order))
+/// The 16-bit scales of a packed pair of sums vectors (`_mm512_packs_epi32(first, second)`:
+/// per 128-bit lane `L`, four sums of `first` then four of `second`), for the vectors of values
+/// 64·`k`… and 64·(`k` + 1)… (`first_scale` = 4·`k`): lane `j` of such a vector sums values
+/// 4·`j`…, under scale 4·`k` + `j` / 4.
+#[target_feature(enable = "avx512f,avx512bw")]
+fn pair_scales(scales: __m128i, first_scale: i8) -> __m512i {
+    let s = |i: i8| first_scale + i;
+    let (a, b, c, d) = (s(0), s(4), s(1), s(5));
+    let (e, f, g, h) = (s(2), s(6), s(3), s(7));
+    #[rustfmt::skip]
+    let order = _mm256_setr_epi8(
+        a, a, a, a, b, b, b, b, c, c, c, c, d, d, d, d,
+        e, e, e, e, f, f, f, f, g, g, g, g, h, h, h, h,
+    );
+    let bytes = _mm256_shuffle_epi8(_mm256_broadcastsi128_si256(scales), order);
+    _mm512_cvtepi8_epi16(bytes)
 }
 
 /// The dot products of one weight row (`row`: whole Q6_K blocks, `blocks` of them) with `M`
@@ -79,16 +89,11 @@ pub(super) fn rows_of<const M: usize>(
                 _mm512_slli_epi16(high_top, 4),
             );
         }
-        let lane_scales = [
-            spread(scales, 0),
-            spread(scales, 4),
-            spread(scales, 8),
-            spread(scales, 12),
-        ];
+        let pair_scales = [pair_scales(scales, 0), pair_scales(scales, 8)];
         let scale_words = _mm256_cvtepi8_epi16(scales);
         for i in 0..M {
             let a = &activations[i * blocks + b];
-            let total = scaled_block_dot(&weights, &lane_scales, &a.natural);
+            let total = scaled_block_dot(&weights, &pair_scales, &a.natural);
             sums[i] = _mm512_fmadd_ps(
                 _mm512_cvtepi32_ps(total),
                 _mm512_set1_ps(d * a.scale),
