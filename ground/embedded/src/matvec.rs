@@ -1,5 +1,6 @@
-//! Q4_K and Q6_K matrix products for decode steps (one to [`MAX_FEED`] activation rows), read
-//! straight from the GGUF's blocks.
+//! Q4_K and Q6_K matrix products read straight from the GGUF's blocks: for decode steps (one to
+//! [`MAX_FEED`] activation rows) on AVX-512 VNNI, and where the CPU has AMX, from
+//! [`AMX_MIN_ROWS`] rows on (forced runs, a prompt's chunks) on its tiles (`amx`).
 //!
 //! Why not candle's: for a few rows candle repacks Q4_K into tiles of 16 rows with f32 scales
 //! and mins, 1.33× the GGUF's bytes, and its tile kernel does per activation row nearly all
@@ -23,6 +24,8 @@ use candle_core::quantized::{GgmlDType, QMatMul, QTensor};
 use candle_core::{Module, Tensor};
 
 #[cfg(target_arch = "x86_64")]
+mod amx;
+#[cfg(target_arch = "x86_64")]
 mod q4k;
 #[cfg(target_arch = "x86_64")]
 mod q6k;
@@ -31,14 +34,21 @@ mod q6k;
 pub const BLOCK_VALUES: usize = 256;
 /// The activation rows a kernel takes at once (its sums stay in registers).
 pub const MAX_ROWS: usize = 8;
-/// The most activation rows one product takes, [`MAX_ROWS`] at a time against each weight row
-/// (read from memory once, then from cache); more (a prompt) go to candle's product. A decode
+/// The most activation rows the VNNI kernels take, [`MAX_ROWS`] at a time against each weight
+/// row (read from memory once, then from cache); more (a prompt) go to the AMX products where
+/// they run, else to candle's product. A decode
 /// step feeds the grammar's forced tokens with the sampled one: the Coordinator's replies force
 /// runs of 11 (`","target":"none","xyz":null},{"task":"T`), which took ~235 ms a step here
 /// against ~280 in candle's product, the Supervisor's runs of 20–26 as long either way (the
 /// models bench's probes, Qwen2.5-Coder-1.5B, 2 threads). Up to 32, candle's product for a few
 /// rows (which repacks the matrices on first use: ~0.65 s once) is not needed while decoding.
 pub const MAX_FEED: usize = 32;
+/// The fewest activation rows a product takes on AMX tiles where it can: fewer go to the
+/// VNNI kernels, which need no unpacking into tiles. Measured on 8960 × 1536 and 1536 × 8960
+/// matrices (2 threads, ms, AMX / VNNI): Q4_K at 4 rows 0.75–0.86 / 0.47–0.56, at 8 0.69–0.84
+/// / 0.81, at 12 0.87–0.98 / 1.16–1.28, at 26 1.23–1.48 / 2.78–2.88; Q6_K at 8 1.10 / 0.92, at
+/// 12 1.27 / 1.48, at 26 1.85 / 3.06.
+const AMX_MIN_ROWS: usize = 10;
 /// Output rows a thread takes at a time.
 const ROWS_PER_GRAB: usize = 16;
 
@@ -91,7 +101,7 @@ impl Linear {
             return self.candle.forward(x);
         };
         let m = x.elem_count() / matrix.columns;
-        if m > MAX_FEED || x.dims().last() != Some(&matrix.columns) {
+        if !matrix.takes(m) || x.dims().last() != Some(&matrix.columns) {
             return self.candle.forward(x);
         }
         let input = x.flatten_all()?.to_vec1::<f32>()?;
@@ -134,8 +144,18 @@ impl ActivationBlock {
             sums16: [0; 16],
             scale,
         };
-        for (q, v) in block.natural.iter_mut().zip(x) {
-            *q = (v * inverse).round().clamp(-127.0, 127.0) as i8;
+        #[cfg(target_arch = "x86_64")]
+        let rounded = cpu_has_kernel_here() && {
+            // SAFETY: the CPU has AVX-512 F and BW (checked just before).
+            unsafe { round_to_bytes(x, inverse, &mut block.natural) };
+            true
+        };
+        #[cfg(not(target_arch = "x86_64"))]
+        let rounded = false;
+        if !rounded {
+            for (q, v) in block.natural.iter_mut().zip(x) {
+                *q = (v * inverse).round().clamp(-127.0, 127.0) as i8;
+            }
         }
         let q = &block.natural;
         for half in 0..2 {
@@ -153,6 +173,40 @@ impl ActivationBlock {
             *sum = block.sums16[2 * s] + block.sums16[2 * s + 1];
         }
         block
+    }
+}
+
+/// `out[i] = round(x[i] · inverse)` within ±127, rounded half away from zero as `f32::round`
+/// does (the scalar loop's result, bit for bit: a prompt's chunk quantises ~10⁷ values a
+/// layer, and the scalar `round` was a tenth of a prompt's time on the AMX products).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw")]
+fn round_to_bytes(x: &[f32], inverse: f32, out: &mut [i8; BLOCK_VALUES]) {
+    use std::arch::x86_64::*;
+    assert_eq!(x.len(), BLOCK_VALUES, "an activation block");
+    let inverse = _mm512_set1_ps(inverse);
+    let half = _mm512_set1_ps(0.5);
+    let one = _mm512_set1_ps(1.0);
+    let limit = _mm512_set1_ps(127.0);
+    for (values, bytes) in x.chunks_exact(16).zip(out.chunks_exact_mut(16)) {
+        // SAFETY: 16 floats in, 16 bytes out.
+        unsafe {
+            let v = _mm512_mul_ps(_mm512_loadu_ps(values.as_ptr()), inverse);
+            let whole = _mm512_roundscale_ps::<{ _MM_FROUND_TO_ZERO | _MM_FROUND_NO_EXC }>(v);
+            // |v − trunc(v)| is exact; at a half or more, one more away from zero.
+            let away =
+                _mm512_cmp_ps_mask::<_CMP_GE_OQ>(_mm512_abs_ps(_mm512_sub_ps(v, whole)), half);
+            let signed_one = _mm512_or_ps(one, _mm512_and_ps(v, _mm512_set1_ps(-0.0)));
+            let rounded = _mm512_mask_add_ps(whole, away, whole, signed_one);
+            let clamped = _mm512_max_ps(
+                _mm512_min_ps(rounded, limit),
+                _mm512_sub_ps(_mm512_setzero_ps(), limit),
+            );
+            _mm_storeu_si128(
+                bytes.as_mut_ptr() as *mut _,
+                _mm512_cvtepi32_epi8(_mm512_cvttps_epi32(clamped)),
+            );
+        }
     }
 }
 
@@ -191,9 +245,15 @@ impl DecodeMatrix {
         })
     }
 
+    /// Whether [`DecodeMatrix::product`] takes `m` activation rows: up to [`MAX_FEED`], any
+    /// number where the AMX products run.
+    pub fn takes(&self, m: usize) -> bool {
+        (1..=MAX_FEED).contains(&m) || (m > 0 && amx_here())
+    }
+
     /// `out[i][r - rows.start] = Σ_c x[i][c] · W[r][c]` for the output rows `rows` and the
-    /// `x.len() / columns` rows of `x` (1..=[`MAX_ROWS`]); `out` holds as many rows of
-    /// `rows.len()` values.
+    /// `x.len() / columns` rows of `x` (see [`DecodeMatrix::takes`]); `out` holds as many rows
+    /// of `rows.len()` values.
     pub fn product(
         &self,
         x: &[f32],
@@ -202,8 +262,7 @@ impl DecodeMatrix {
     ) -> candle_core::Result<()> {
         let m = x.len() / self.columns;
         let n = rows.len();
-        if m == 0
-            || m > MAX_FEED
+        if !self.takes(m)
             || x.len() != m * self.columns
             || rows.end > self.rows
             || out.len() != m * n
@@ -226,6 +285,27 @@ impl DecodeMatrix {
         let format = self.format;
         let target = OutputRows(out.as_mut_ptr());
         let first_row = rows.start;
+        #[cfg(target_arch = "x86_64")]
+        if amx_here() && (m >= AMX_MIN_ROWS || m > MAX_FEED) && n.is_multiple_of(amx::TILE_ROWS) {
+            let packed = amx::PackedActivations::new(&activations, m, blocks, format);
+            candle_core::utils::barrier_pool().execute_chunked(n / amx::TILE_ROWS, |groups| {
+                // SAFETY: `amx_here()` said yes; `out` holds m rows of n (checked above), and
+                // each thread writes only the columns of its own groups.
+                unsafe {
+                    amx::product(
+                        format,
+                        &weights,
+                        row_bytes,
+                        first_row,
+                        groups,
+                        &packed,
+                        target.pointer(),
+                        n,
+                    )
+                }
+            });
+            return Ok(());
+        }
         candle_core::utils::barrier_pool().execute_chunked(n.div_ceil(ROWS_PER_GRAB), |grabs| {
             let end = (grabs.end * ROWS_PER_GRAB).min(n);
             for r in grabs.start * ROWS_PER_GRAB..end {
@@ -258,6 +338,10 @@ unsafe impl Send for OutputRows {}
 unsafe impl Sync for OutputRows {}
 
 impl OutputRows {
+    fn pointer(self) -> *mut f32 {
+        self.0
+    }
+
     /// # Safety
     /// `at` is inside the buffer and no other thread touches it during the call.
     unsafe fn write(self, at: usize, value: f32) {
@@ -423,6 +507,26 @@ fn enabled() -> bool {
         let off = std::env::var("TACOS_EMBEDDED_MATVEC").is_ok_and(|v| v == "candle");
         !off && cpu_has_kernel()
     })
+}
+
+/// Whether the AMX products run here: the CPU has them, Linux grants the tiles, and
+/// `TACOS_EMBEDDED_MATVEC` is neither `candle` nor `vnni` (the VNNI kernels alone, to compare).
+fn amx_here() -> bool {
+    static HERE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *HERE.get_or_init(|| {
+        let vnni_only = std::env::var("TACOS_EMBEDDED_MATVEC").is_ok_and(|v| v == "vnni");
+        #[cfg(target_arch = "x86_64")]
+        let amx = amx::available();
+        #[cfg(not(target_arch = "x86_64"))]
+        let amx = false;
+        enabled() && !vnni_only && amx
+    })
+}
+
+/// [`cpu_has_kernel`], asked once.
+fn cpu_has_kernel_here() -> bool {
+    static HAS: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *HAS.get_or_init(cpu_has_kernel)
 }
 
 #[cfg(target_arch = "x86_64")]

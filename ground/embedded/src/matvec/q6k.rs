@@ -47,48 +47,14 @@ pub(super) fn rows_of<const M: usize>(
     blocks: usize,
     dots: &mut [f32; MAX_ROWS],
 ) {
-    let nibble = _mm512_set1_epi8(0x0F);
-    let two_bits = _mm512_set1_epi8(0x03);
-    // Per 16-bit lane: the low half of the vector (values 0–31) shifts `qh` by 0 (or 4), the
-    // high half (values 32–63) by 2 (or 6).
-    let shifts_low = _mm512_inserti64x4(_mm512_set1_epi16(0), _mm256_set1_epi16(2), 1);
-    let shifts_high = _mm512_inserti64x4(_mm512_set1_epi16(4), _mm256_set1_epi16(6), 1);
     let mut sums = [_mm512_setzero_ps(); M];
     let mut offsets = [_mm256_setzero_ps(); M];
     for (b, block) in row.chunks_exact(BLOCK_BYTES).enumerate() {
         super::prefetch_ahead(block.as_ptr(), BLOCK_BYTES);
         let d = f16_to_f32(u16::from_le_bytes([block[D_AT], block[D_AT + 1]]));
-        // SAFETY: `block` is 210 bytes: 2 × 64 from QL_AT, 2 × 32 from QH_AT, 16 from
-        // SCALES_AT.
-        let (ql, qh, scales) = unsafe {
-            let p = block.as_ptr();
-            (
-                [
-                    _mm512_loadu_si512(p.add(QL_AT) as *const _),
-                    _mm512_loadu_si512(p.add(QL_AT + 64) as *const _),
-                ],
-                [
-                    _mm256_loadu_si256(p.add(QH_AT) as *const _),
-                    _mm256_loadu_si256(p.add(QH_AT + 32) as *const _),
-                ],
-                _mm_loadu_si128(p.add(SCALES_AT) as *const _),
-            )
-        };
-        // The four 64-value vectors of the block, in order, and their lanes' scales.
-        let mut weights = [_mm512_setzero_si512(); 4];
-        for half in 0..2 {
-            let high_bits = _mm512_broadcast_i64x4(qh[half]);
-            let low_top = _mm512_and_si512(_mm512_srlv_epi16(high_bits, shifts_low), two_bits);
-            let high_top = _mm512_and_si512(_mm512_srlv_epi16(high_bits, shifts_high), two_bits);
-            weights[2 * half] = _mm512_or_si512(
-                _mm512_and_si512(ql[half], nibble),
-                _mm512_slli_epi16(low_top, 4),
-            );
-            weights[2 * half + 1] = _mm512_or_si512(
-                _mm512_and_si512(_mm512_srli_epi16(ql[half], 4), nibble),
-                _mm512_slli_epi16(high_top, 4),
-            );
-        }
+        let weights = block_values(block);
+        // SAFETY: `block` is 210 bytes: 16 from SCALES_AT.
+        let scales = unsafe { _mm_loadu_si128(block.as_ptr().add(SCALES_AT) as *const _) };
         let pair_scales = [pair_scales(scales, 0), pair_scales(scales, 8)];
         let scale_words = _mm256_cvtepi8_epi16(scales);
         for i in 0..M {
@@ -117,7 +83,53 @@ pub(super) fn rows_of<const M: usize>(
     }
 }
 
+/// The four 64-value vectors of a block (`block`: its 210 bytes), in order: the 6-bit values,
+/// unsigned (stored plus 32).
+#[target_feature(enable = "avx512f,avx512bw")]
+pub(super) fn block_values(block: &[u8]) -> [__m512i; 4] {
+    assert!(
+        block.len() >= BLOCK_BYTES,
+        "a Q6_K block of {} bytes",
+        block.len()
+    );
+    let nibble = _mm512_set1_epi8(0x0F);
+    let two_bits = _mm512_set1_epi8(0x03);
+    // Per 16-bit lane: the low half of the vector (values 0–31) shifts `qh` by 0 (or 4), the
+    // high half (values 32–63) by 2 (or 6).
+    let shifts_low = _mm512_inserti64x4(_mm512_set1_epi16(0), _mm256_set1_epi16(2), 1);
+    let shifts_high = _mm512_inserti64x4(_mm512_set1_epi16(4), _mm256_set1_epi16(6), 1);
+    // SAFETY: `block` is 210 bytes (checked): 2 × 64 from QL_AT, 2 × 32 from QH_AT.
+    let (ql, qh) = unsafe {
+        let p = block.as_ptr();
+        (
+            [
+                _mm512_loadu_si512(p.add(QL_AT) as *const _),
+                _mm512_loadu_si512(p.add(QL_AT + 64) as *const _),
+            ],
+            [
+                _mm256_loadu_si256(p.add(QH_AT) as *const _),
+                _mm256_loadu_si256(p.add(QH_AT + 32) as *const _),
+            ],
+        )
+    };
+    let mut weights = [_mm512_setzero_si512(); 4];
+    for half in 0..2 {
+        let high_bits = _mm512_broadcast_i64x4(qh[half]);
+        let low_top = _mm512_and_si512(_mm512_srlv_epi16(high_bits, shifts_low), two_bits);
+        let high_top = _mm512_and_si512(_mm512_srlv_epi16(high_bits, shifts_high), two_bits);
+        weights[2 * half] = _mm512_or_si512(
+            _mm512_and_si512(ql[half], nibble),
+            _mm512_slli_epi16(low_top, 4),
+        );
+        weights[2 * half + 1] = _mm512_or_si512(
+            _mm512_and_si512(_mm512_srli_epi16(ql[half], 4), nibble),
+            _mm512_slli_epi16(high_top, 4),
+        );
+    }
+    weights
+}
+
 #[target_feature(enable = "f16c")]
-fn f16_to_f32(h: u16) -> f32 {
+pub(super) fn f16_to_f32(h: u16) -> f32 {
     _mm_cvtss_f32(_mm_cvtph_ps(_mm_cvtsi32_si128(h as i32)))
 }

@@ -27,6 +27,19 @@ fn activations(m: usize, columns: usize) -> Vec<f32> {
 
 const FORMATS: [GgmlDType; 2] = [GgmlDType::Q4K, GgmlDType::Q6K];
 
+/// The numbers of activation rows to check: every one the VNNI kernels take (from
+/// `AMX_MIN_ROWS` on, the AMX products where they run), and where AMX runs, a prompt's sizes
+/// too: past `MAX_FEED`, past one pass of eight tiles (128), a partial last tile.
+fn feeds() -> Vec<usize> {
+    let mut feeds: Vec<usize> = (1..=MAX_FEED).collect();
+    if amx_here() {
+        feeds.extend([MAX_FEED + 1, 40, 129, 300]);
+    } else {
+        eprintln!("no AMX here (or TACOS_EMBEDDED_MATVEC): products of up to {MAX_FEED} rows");
+    }
+    feeds
+}
+
 /// This machine's kernel, or `None` (and a line saying why) on a CPU without AVX-512 VNNI.
 fn matrix_here(tensor: &Arc<QTensor>) -> Option<DecodeMatrix> {
     let matrix = DecodeMatrix::new(tensor);
@@ -53,7 +66,7 @@ fn dequantised_weights_times_quantised_activations(dtype: GgmlDType) {
         .dequantize(&Device::Cpu)
         .and_then(|t| t.to_vec2::<f32>())
         .expect("dequantised");
-    for m in 1..=MAX_FEED {
+    for m in feeds() {
         let x = activations(m, columns);
         let mut out = vec![0f32; m * rows];
         matrix.product(&x, 0..rows, &mut out).expect("product");
@@ -92,7 +105,9 @@ fn agrees_with_candle(dtype: GgmlDType) {
         return;
     };
     let candle = QMatMul::from_arc(tensor.clone()).expect("candle's product");
-    for m in 1..=MAX_FEED {
+    // From 32 rows on candle's Q4_K product runs on AMX tiles too, configured once per thread:
+    // ours, on the same pool's threads, must leave that configuration as it found it.
+    for m in feeds() {
         let x = activations(m, columns);
         let mut out = vec![0f32; m * rows];
         matrix.product(&x, 0..rows, &mut out).expect("product");
@@ -128,12 +143,13 @@ fn a_product_of_the_wrong_size_is_an_error() {
     );
     let too_many = MAX_FEED + 1;
     let mut out_of_too_many = vec![0f32; 16 * too_many];
-    assert!(
-        matrix
-            .product(&vec![0.0; 256 * too_many], 0..16, &mut out_of_too_many)
-            .is_err(),
-        "more rows than MAX_FEED"
+    let of_too_many = matrix.product(&vec![0.0; 256 * too_many], 0..16, &mut out_of_too_many);
+    assert_eq!(
+        of_too_many.is_ok(),
+        amx_here(),
+        "more rows than MAX_FEED: taken only by the AMX products"
     );
+    assert!(matrix.product(&[], 0..16, &mut []).is_err(), "no rows");
     assert!(matrix.product(&[0.0; 256], 0..16, &mut out).is_ok());
 }
 
