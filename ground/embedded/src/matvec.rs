@@ -44,11 +44,12 @@ pub const MAX_ROWS: usize = 8;
 /// rows (which repacks the matrices on first use: ~0.65 s once) is not needed while decoding.
 pub const MAX_FEED: usize = 32;
 /// The fewest activation rows a product takes on AMX tiles where it can: fewer go to the
-/// VNNI kernels, which need no unpacking into tiles. Measured on 8960 × 1536 and 1536 × 8960
-/// matrices (2 threads, ms, AMX / VNNI): Q4_K at 4 rows 0.75–0.86 / 0.47–0.56, at 8 0.69–0.84
-/// / 0.81, at 12 0.87–0.98 / 1.16–1.28, at 26 1.23–1.48 / 2.78–2.88; Q6_K at 8 1.10 / 0.92, at
-/// 12 1.27 / 1.48, at 26 1.85 / 3.06.
-const AMX_MIN_ROWS: usize = 10;
+/// VNNI kernels, which need no unpacking into tiles. Measured (2 threads) on twenty 8960 × 1536
+/// Q4_K matrices in turn, the weights streamed from memory as in a decode step, ms a matrix,
+/// AMX / VNNI: 11 rows 1.48 / 1.28, 16 rows 1.57 / 1.74, 26 rows 1.92 / 3.05 (one row: 0.53);
+/// in the models bench's mission calls the Coordinator's forced runs of 11 took as long either
+/// way, the Supervisor's of 20–26 ~0.3 s less a call on AMX.
+const AMX_MIN_ROWS: usize = 16;
 /// Output rows a thread takes at a time.
 const ROWS_PER_GRAB: usize = 16;
 

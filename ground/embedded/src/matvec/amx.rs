@@ -280,6 +280,19 @@ unsafe fn product_on_tiles(
             let tiles = pass..(pass + TILES_PER_PASS).min(activations.tiles);
             let mut totals = [[_mm512_setzero_ps(); TILES_PER_PASS]; TILE_ROWS];
             for next in 0..=blocks {
+                if pass == 0 && next < blocks {
+                    // The next group's rows follow this group's: ask for a block's share of
+                    // them while this one is multiplied (the hardware's prefetcher alone left
+                    // the tiles waiting on memory in a decode step's product).
+                    let share = TILE_ROWS * block_bytes;
+                    let ahead = group_bytes
+                        .as_ptr()
+                        .wrapping_add(group_bytes.len() + next * share);
+                    // A prefetch is a hint: past the matrix's end it does not fault.
+                    for line in (0..share).step_by(64) {
+                        _mm_prefetch::<_MM_HINT_T0>(ahead.wrapping_add(line) as *const i8);
+                    }
+                }
                 if next < blocks {
                     let into = &mut unpacked[next % 2];
                     for (r, row) in group_bytes.chunks_exact(row_bytes).enumerate() {
