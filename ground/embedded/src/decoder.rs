@@ -337,6 +337,8 @@ impl Decoder {
 
 /// Attention of `q` (batch, query heads, seq, head size) over `k` and `v` (batch, key/value
 /// heads, positions, head size), `mask` added to the scores when given; (batch, seq, width).
+/// The mask is [`causal_mask`]'s for the `seq` new tokens, which the AVX-512 softmax
+/// (`decode_attention::causal_softmax`) applies without reading it.
 ///
 /// Grouped-query attention without copying each key/value head once per query head (candle's
 /// `repeat_kv`, which at 2,000 positions copied about 700 MB per generated token): query head h
@@ -352,10 +354,25 @@ pub(crate) fn grouped_attention(
     let (b, n_head, seq, head_dim) = q.dims4()?;
     let n_rep = n_head / n_kv_head;
     let q = q.reshape((b, n_kv_head, n_rep * seq, head_dim))?;
-    let mut att = (q.matmul(&k.t()?)? / (head_dim as f64).sqrt())?;
+    let scores = q.matmul(&k.t()?)?;
+    let total = scores.dim(3)?;
+    // The mask given is the causal one (or none, for one new token): the same rows as
+    // `causal_softmax` computes.
+    if mask.is_some() || seq == 1 {
+        let mut weights = scores.flatten_all()?.to_vec1::<f32>()?;
+        let scale = 1.0 / (head_dim as f32).sqrt();
+        if crate::decode_attention::causal_softmax(&mut weights, total, seq, scale) {
+            let att = Tensor::from_vec(weights, scores.shape(), scores.device())?;
+            return att
+                .matmul(v)?
+                .reshape((b, n_head, seq, head_dim))?
+                .transpose(1, 2)?
+                .reshape((b, seq, n_head * head_dim));
+        }
+    }
+    let mut att = (scores / (head_dim as f64).sqrt())?;
     if let Some(mask) = mask {
         // The same mask for each query head of the group: broadcast over a group axis.
-        let total = att.dim(3)?;
         att = att
             .reshape((b, n_kv_head, n_rep, seq, total))?
             .broadcast_add(&mask.unsqueeze(2)?)?
@@ -477,7 +494,7 @@ mod tests {
         let device = Device::Cpu;
         // Qwen2.5-Coder-1.5B's shape (12 query heads over 2 key/value heads, 128 wide): a
         // prompt of 5 after 7 cached positions, with the causal mask, then one generated token.
-        for (seq, past) in [(5, 7), (1, 12)] {
+        for (seq, past) in [(5, 7), (1, 12), (40, 100)] {
             let total = seq + past;
             let q = Tensor::randn(0f32, 1.0, (1, 12, seq, 128), &device).expect("q");
             let k = Tensor::randn(0f32, 1.0, (1, 2, total, 128), &device).expect("k");
