@@ -169,7 +169,10 @@ struct TilesInUse {
 
 impl TilesInUse {
     /// All eight 16 × 64 bytes: see [`multiply`].
-    fn take() -> TilesInUse {
+    ///
+    /// # Safety
+    /// [`available`] said yes (else the instructions fault).
+    unsafe fn take() -> TilesInUse {
         let mut previous = TileConfig {
             palette: 0,
             start_row: 0,
@@ -189,7 +192,7 @@ impl TilesInUse {
             ours.rows[t] = TILE_ROWS as u8;
         }
         // SAFETY: both point at 64 bytes, aligned to 64 as the instructions ask; the CPU has
-        // AMX (the callers checked `available`).
+        // AMX (the caller's promise).
         unsafe {
             asm!("sttilecfg [{}]", in(reg) &mut previous, options(nostack));
             asm!("ldtilecfg [{}]", in(reg) &ours, options(nostack));
@@ -200,7 +203,8 @@ impl TilesInUse {
 
 impl Drop for TilesInUse {
     fn drop(&mut self) {
-        // SAFETY: as in `take`; a palette of 0 means no configuration was loaded before.
+        // SAFETY: only `take` makes a `TilesInUse`, on a CPU with AMX; `previous` is 64
+        // bytes aligned to 64; a palette of 0 means no configuration was loaded before.
         unsafe {
             if self.previous.palette == 0 {
                 asm!("tilerelease", options(nostack));
@@ -216,8 +220,9 @@ impl Drop for TilesInUse {
 /// matrix's blocks, `row_bytes` a row's.
 ///
 /// # Safety
-/// [`available`] said yes; `out` holds `activations.rows()` rows of `out_stride` values and no
-/// other thread writes the columns of these groups.
+/// [`available`] said yes; `out` holds as many rows of `out_stride` values as `activations`
+/// has rows, `out_stride` ≥ 16 × `groups.end`, and no other thread writes the columns of these
+/// groups.
 #[allow(clippy::too_many_arguments)]
 pub unsafe fn product(
     format: Format,
@@ -259,7 +264,8 @@ unsafe fn product_on_tiles(
     let block_bytes = format.block_bytes();
     let blocks = activations.blocks;
     assert_eq!(row_bytes, blocks * block_bytes, "a row's blocks");
-    let _tiles = TilesInUse::take();
+    // SAFETY: the caller's promise (`available`).
+    let _tiles = unsafe { TilesInUse::take() };
     let empty = || WeightTiles {
         low: [[0; TILE_BYTES]; PIECES],
         high: [[0; TILE_BYTES]; PIECES],
