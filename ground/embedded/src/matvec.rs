@@ -137,27 +137,33 @@ impl ActivationBlock {
     /// Quantises 256 values to bytes with one scale (largest magnitude to 127).
     pub fn quantise(x: &[f32]) -> ActivationBlock {
         debug_assert_eq!(x.len(), BLOCK_VALUES);
-        let largest = x.iter().fold(0f32, |m, v| m.max(v.abs()));
-        let scale = if largest > 0.0 { largest / 127.0 } else { 1.0 };
-        let inverse = 1.0 / scale;
         let mut block = ActivationBlock {
             natural: [0; BLOCK_VALUES],
             q4k_order: [0; BLOCK_VALUES],
             sums32: [0; 8],
             sums16: [0; 16],
-            scale,
+            scale: 1.0,
         };
         #[cfg(target_arch = "x86_64")]
         let rounded = cpu_has_kernel_here() && {
             // SAFETY: the CPU has AVX-512 F and BW (checked just before).
-            unsafe { round_to_bytes(x, inverse, &mut block.natural) };
+            block.scale = unsafe { round_to_bytes(x, &mut block.natural, &mut block.sums16) };
             true
         };
         #[cfg(not(target_arch = "x86_64"))]
         let rounded = false;
         if !rounded {
+            let largest = x.iter().fold(0f32, |m, v| m.max(v.abs()));
+            block.scale = scale_of(largest);
+            let inverse = 1.0 / block.scale;
             for (q, v) in block.natural.iter_mut().zip(x) {
                 *q = (v * inverse).round().clamp(-127.0, 127.0) as i8;
+            }
+            for (s, sum) in block.sums16.iter_mut().enumerate() {
+                *sum = block.natural[16 * s..16 * s + 16]
+                    .iter()
+                    .map(|&v| v as i16)
+                    .sum();
             }
         }
         let q = &block.natural;
@@ -169,9 +175,6 @@ impl ActivationBlock {
                     .copy_from_slice(&q[from..from + 32]);
             }
         }
-        for (s, sum) in block.sums16.iter_mut().enumerate() {
-            *sum = q[16 * s..16 * s + 16].iter().map(|&v| v as i16).sum();
-        }
         for (s, sum) in block.sums32.iter_mut().enumerate() {
             *sum = block.sums16[2 * s] + block.sums16[2 * s + 1];
         }
@@ -179,19 +182,42 @@ impl ActivationBlock {
     }
 }
 
-/// `out[i] = round(x[i] · inverse)` within ±127, rounded half away from zero as `f32::round`
-/// does (the scalar loop's result, bit for bit: a prompt's chunk quantises ~10⁷ values a
-/// layer, and the scalar `roundf` calls were 1–2 % of a prefill's profile).
+/// The scale that takes a block's largest magnitude to 127.
+fn scale_of(largest: f32) -> f32 {
+    if largest > 0.0 { largest / 127.0 } else { 1.0 }
+}
+
+/// `out[i] = round(x[i] / scale)` within ±127 with the block's scale (returned), rounded half
+/// away from zero as `f32::round` does, and each 16 values' sum in `sums`: the scalar loops'
+/// results, bit for bit. A prompt's chunk quantises ~10⁷ values a layer: the scalar largest
+/// magnitude (a chain of dependent `maxss`) and `roundf` calls were a third of a product with
+/// 8,960 columns.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512bw")]
-fn round_to_bytes(x: &[f32], inverse: f32, out: &mut [i8; BLOCK_VALUES]) {
+fn round_to_bytes(x: &[f32], out: &mut [i8; BLOCK_VALUES], sums: &mut [i16; 16]) -> f32 {
     use std::arch::x86_64::*;
     assert_eq!(x.len(), BLOCK_VALUES, "an activation block");
-    let inverse = _mm512_set1_ps(inverse);
+    // Four chains of maxima; `max(|v|, m)` gives m for a NaN, as `f32::max` does.
+    let mut largest = [_mm512_setzero_ps(); 4];
+    for (i, values) in x.chunks_exact(16).enumerate() {
+        // SAFETY: 16 floats.
+        let v = unsafe { _mm512_loadu_ps(values.as_ptr()) };
+        largest[i % 4] = _mm512_max_ps(_mm512_abs_ps(v), largest[i % 4]);
+    }
+    let largest = _mm512_max_ps(
+        _mm512_max_ps(largest[0], largest[1]),
+        _mm512_max_ps(largest[2], largest[3]),
+    );
+    let scale = scale_of(_mm512_reduce_max_ps(largest));
+    let inverse = _mm512_set1_ps(1.0 / scale);
     let half = _mm512_set1_ps(0.5);
     let one = _mm512_set1_ps(1.0);
     let limit = _mm512_set1_ps(127.0);
-    for (values, bytes) in x.chunks_exact(16).zip(out.chunks_exact_mut(16)) {
+    for ((values, bytes), sum) in x
+        .chunks_exact(16)
+        .zip(out.chunks_exact_mut(16))
+        .zip(sums.iter_mut())
+    {
         // SAFETY: 16 floats in, 16 bytes out.
         unsafe {
             let v = _mm512_mul_ps(_mm512_loadu_ps(values.as_ptr()), inverse);
@@ -205,12 +231,12 @@ fn round_to_bytes(x: &[f32], inverse: f32, out: &mut [i8; BLOCK_VALUES]) {
                 _mm512_min_ps(rounded, limit),
                 _mm512_sub_ps(_mm512_setzero_ps(), limit),
             );
-            _mm_storeu_si128(
-                bytes.as_mut_ptr() as *mut _,
-                _mm512_cvtepi32_epi8(_mm512_cvttps_epi32(clamped)),
-            );
+            let whole = _mm512_cvttps_epi32(clamped);
+            _mm_storeu_si128(bytes.as_mut_ptr() as *mut _, _mm512_cvtepi32_epi8(whole));
+            *sum = _mm512_reduce_add_epi32(whole) as i16;
         }
     }
+    scale
 }
 
 /// A Q4_K or Q6_K matrix (rows × columns, columns a multiple of 256) whose products with a

@@ -30,6 +30,8 @@ pub const TILE_ROWS: usize = 16;
 const PIECES: usize = BLOCK_VALUES / 64;
 /// Bytes of a full tile (16 rows of 64 bytes).
 const TILE_BYTES: usize = 1024;
+/// Pairs of Q4_K's 32-value sub-blocks in a block: one `vpdpwssd` each for the mins.
+const PAIRS: usize = 4;
 /// Activation tiles one pass over a group of weight rows takes (128 rows): their bytes, at
 /// most 1.1 MB for Qwen2.5-Coder-1.5B's widest matrix, stay in the core's cache while the
 /// group's blocks are unpacked once for all of them.
@@ -43,6 +45,7 @@ pub fn available() -> bool {
         cpu_has_amx()
             && std::arch::is_x86_feature_detected!("avx512bw")
             && std::arch::is_x86_feature_detected!("avx512vbmi")
+            && std::arch::is_x86_feature_detected!("avx512vnni")
             && tiles_granted()
     })
 }
@@ -89,6 +92,10 @@ pub struct PackedActivations {
     bytes: Vec<u8>,
     /// Per block, per (padded) row: the row's scale for that block (0 for padding).
     scales: Vec<f32>,
+    /// Q4_K only: per block, per tile, per pair of 32-value sub-blocks `(2p, 2p + 1)`, the 16
+    /// rows' sums of those sub-blocks as two 16-bit halves (`vpdpwssd`'s operand; see
+    /// [`block_value`]). Padding rows are zero.
+    sub_sums: Vec<i32>,
     rows: usize,
     tiles: usize,
     blocks: usize,
@@ -107,10 +114,20 @@ impl PackedActivations {
         let tiles = rows.div_ceil(TILE_ROWS);
         let mut bytes = vec![0u8; blocks * tiles * PIECES * TILE_BYTES];
         let mut scales = vec![0f32; blocks * tiles * TILE_ROWS];
+        let mut sub_sums = match format {
+            Format::Q4K => vec![0i32; blocks * tiles * PAIRS * TILE_ROWS],
+            Format::Q6K => Vec::new(),
+        };
         for (i, row) in activations.chunks_exact(blocks).enumerate() {
             let (tile, in_tile) = (i / TILE_ROWS, i % TILE_ROWS);
             for (b, block) in row.iter().enumerate() {
                 scales[b * tiles * TILE_ROWS + i] = block.scale;
+                if format == Format::Q4K {
+                    for (pair, sums) in block.sums32.chunks_exact(2).enumerate() {
+                        let at = ((b * tiles + tile) * PAIRS + pair) * TILE_ROWS + in_tile;
+                        sub_sums[at] = pack_words(sums[0], sums[1]);
+                    }
+                }
                 let values = match format {
                     Format::Q4K => &block.q4k_order,
                     Format::Q6K => &block.natural,
@@ -127,6 +144,7 @@ impl PackedActivations {
         PackedActivations {
             bytes,
             scales,
+            sub_sums,
             rows,
             tiles,
             blocks,
@@ -135,20 +153,26 @@ impl PackedActivations {
 }
 
 /// A group of 16 weight rows of one block, unpacked for the tiles: per piece, 16 rows of 64
-/// bytes each — `low` and `high` the low byte and the high bits of the scaled values, `mins`
-/// (Q4_K) each value's sub-block min — and each row's float scales.
+/// bytes each — `low` and `high` the low byte and the high bits of the scaled values — and
+/// each row's float scales and (Q4_K) its sub-blocks' mins, a pair of them per 32 bits.
 #[repr(C, align(64))]
 struct WeightTiles {
     low: [[u8; TILE_BYTES]; PIECES],
     high: [[u8; TILE_BYTES]; PIECES],
-    mins: [[u8; TILE_BYTES]; PIECES],
     d: [f32; TILE_ROWS],
     dmin: [f32; TILE_ROWS],
+    min_pairs: [[i32; PAIRS]; TILE_ROWS],
 }
 
-/// The three accumulators as stored: per tile, 16 weight rows of 16 activation rows.
+/// The accumulators as stored: per activation tile of a pair, the low bytes' and the high
+/// bits' sums, each 16 weight rows of 16 activation rows.
 #[repr(C, align(64))]
-struct Sums([[i32; TILE_ROWS * TILE_ROWS]; 3]);
+struct Sums([[i32; TILE_ROWS * TILE_ROWS]; 4]);
+
+/// Two signed 16-bit values in the halves of 32 bits, `low` first (`vpdpwssd`'s pairs).
+fn pack_words(low: i16, high: i16) -> i32 {
+    (low as u16 as u32 | (high as u16 as u32) << 16) as i32
+}
 
 /// The tile configuration `ldtilecfg` reads (64 bytes, palette 1).
 #[repr(C, align(64))]
@@ -249,7 +273,7 @@ pub unsafe fn product(
     }
 }
 
-#[target_feature(enable = "avx512f,avx512bw,avx512vbmi,fma,f16c")]
+#[target_feature(enable = "avx512f,avx512bw,avx512vbmi,avx512vnni,fma,f16c")]
 #[allow(clippy::too_many_arguments)]
 unsafe fn product_on_tiles(
     format: Format,
@@ -269,15 +293,15 @@ unsafe fn product_on_tiles(
     let empty = || WeightTiles {
         low: [[0; TILE_BYTES]; PIECES],
         high: [[0; TILE_BYTES]; PIECES],
-        mins: [[0; TILE_BYTES]; PIECES],
         d: [0.0; TILE_ROWS],
         dmin: [0.0; TILE_ROWS],
+        min_pairs: [[0; PAIRS]; TILE_ROWS],
     };
     // Two: a block is unpacked while the tiles read the one before. A tile load waits for
     // the stores to its bytes to reach the cache; loading the block just written stalled on
     // them (half the time of a product of a few rows).
     let mut unpacked = Box::new([empty(), empty()]);
-    let mut sums = Sums([[0; TILE_ROWS * TILE_ROWS]; 3]);
+    let mut sums = Sums([[0; TILE_ROWS * TILE_ROWS]; 4]);
     for group in groups {
         let first_row = row_start + group * TILE_ROWS;
         let rows_at = first_row * row_bytes;
@@ -313,160 +337,271 @@ unsafe fn product_on_tiles(
                     continue;
                 };
                 let unpacked = &unpacked[b % 2];
-                for (slot, tile) in tiles.clone().enumerate() {
-                    let at = (b * activations.tiles + tile) * PIECES * TILE_BYTES;
-                    let pieces = &activations.bytes[at..at + PIECES * TILE_BYTES];
-                    // SAFETY: `pieces` holds four tiles, `unpacked` four of each kind, `sums`
-                    // three; the tiles are configured (`_tiles`).
-                    unsafe { multiply(format, pieces, unpacked, &mut sums) };
-                    let scales_at = b * activations.tiles * TILE_ROWS + tile * TILE_ROWS;
-                    // SAFETY: 16 scales from `scales_at`: each block has `tiles` × 16.
-                    let scales =
-                        unsafe { _mm512_loadu_ps(activations.scales.as_ptr().add(scales_at)) };
-                    for (r, total) in totals.iter_mut().enumerate() {
-                        let value = block_value(format, &sums, unpacked, r);
-                        total[slot] = _mm512_fmadd_ps(value, scales, total[slot]);
+                // Two activation tiles at a time: each weight tile loaded serves both.
+                for first in tiles.clone().step_by(2) {
+                    let pair = first + 1 < tiles.end;
+                    let at = (b * activations.tiles + first) * PIECES * TILE_BYTES;
+                    let pieces =
+                        &activations.bytes[at..at + (1 + pair as usize) * PIECES * TILE_BYTES];
+                    // SAFETY: `pieces` holds four tiles per activation tile, `unpacked` four
+                    // of each kind, `sums` four; the tiles are configured (`_tiles`).
+                    unsafe { multiply(format, pieces, pair, unpacked, &mut sums) };
+                    for (half, tile) in (first..tiles.end).take(1 + pair as usize).enumerate() {
+                        let slot = tile - tiles.start;
+                        let scales_at = (b * activations.tiles + tile) * TILE_ROWS;
+                        // SAFETY: 16 scales from `scales_at`: each block has `tiles` × 16.
+                        let scales =
+                            unsafe { _mm512_loadu_ps(activations.scales.as_ptr().add(scales_at)) };
+                        let sub_sums = (format == Format::Q4K).then(|| {
+                            let at = (b * activations.tiles + tile) * PAIRS * TILE_ROWS;
+                            let sums = &activations.sub_sums[at..at + PAIRS * TILE_ROWS];
+                            // SAFETY: four rows of 16 from `at`, each block's tile has them.
+                            [0, 1, 2, 3].map(|pair| unsafe {
+                                _mm512_loadu_si512(sums.as_ptr().add(pair * TILE_ROWS) as *const _)
+                            })
+                        });
+                        for (r, total) in totals.iter_mut().enumerate() {
+                            let value =
+                                block_value(&sums, 2 * half, unpacked, sub_sums.as_ref(), r);
+                            total[slot] = _mm512_fmadd_ps(value, scales, total[slot]);
+                        }
                     }
                 }
             }
-            for (r, total) in totals.iter().enumerate() {
-                for (slot, tile) in tiles.clone().enumerate() {
-                    let mut lanes = [0f32; TILE_ROWS];
-                    // SAFETY: `lanes` is 16 floats.
-                    unsafe { _mm512_storeu_ps(lanes.as_mut_ptr(), total[slot]) };
-                    let first = tile * TILE_ROWS;
-                    let last = (first + TILE_ROWS).min(activations.rows);
-                    for (i, value) in (first..last).zip(lanes) {
-                        // SAFETY: `i` is an activation row, `group * 16 + r` a column of this
-                        // thread's groups: inside `out` and written by no other thread.
-                        unsafe { *out.add(i * out_stride + group * TILE_ROWS + r) = value };
-                    }
+            // Each activation row's 16 values of this group as one store (a scalar store per
+            // value, a cache line at a time per activation row, was a third of a product with
+            // 8,960 outputs a row).
+            for (slot, tile) in tiles.clone().enumerate() {
+                let by_activation = transpose(totals.map(|total| total[slot]));
+                let first = tile * TILE_ROWS;
+                let last = (first + TILE_ROWS).min(activations.rows);
+                for (i, values) in (first..last).zip(by_activation) {
+                    // SAFETY: `i` is an activation row, `group * 16 ..` 16 columns of this
+                    // thread's groups: inside `out` and written by no other thread.
+                    unsafe {
+                        _mm512_storeu_ps(out.add(i * out_stride + group * TILE_ROWS), values)
+                    };
                 }
             }
         }
     }
 }
 
-/// The three (Q6_K: two) accumulators of one activation tile against the unpacked weights,
-/// summed over a whole block, into `sums`.
+/// The 16 × 16 transpose: lane `j` of row `i` to lane `i` of row `j`.
+#[target_feature(enable = "avx512f")]
+fn transpose(rows: [__m512; TILE_ROWS]) -> [__m512; TILE_ROWS] {
+    // Pairs of rows interleaved by 32 then 64 bits: `quads[4g + j]`'s 128-bit lane `l` holds
+    // column 4l + j of rows 4g..4g + 4.
+    let pairs: [__m512; TILE_ROWS] = std::array::from_fn(|k| {
+        let (a, b) = (rows[k & !1], rows[k | 1]);
+        if k % 2 == 0 {
+            _mm512_unpacklo_ps(a, b)
+        } else {
+            _mm512_unpackhi_ps(a, b)
+        }
+    });
+    let quads: [__m512; TILE_ROWS] = std::array::from_fn(|k| {
+        let (g, j) = (k / 4, k % 4);
+        let a = _mm512_castps_pd(pairs[4 * g + j / 2]);
+        let b = _mm512_castps_pd(pairs[4 * g + j / 2 + 2]);
+        _mm512_castpd_ps(if j % 2 == 0 {
+            _mm512_unpacklo_pd(a, b)
+        } else {
+            _mm512_unpackhi_pd(a, b)
+        })
+    });
+    // Then the 128-bit lanes: column 4l + j is lane l of quads[j], [4 + j], [8 + j], [12 + j].
+    let mut columns = [_mm512_setzero_ps(); TILE_ROWS];
+    for j in 0..4 {
+        let (a, b, c, d) = (quads[j], quads[4 + j], quads[8 + j], quads[12 + j]);
+        let ab_low = _mm512_shuffle_f32x4::<0x44>(a, b);
+        let ab_high = _mm512_shuffle_f32x4::<0xEE>(a, b);
+        let cd_low = _mm512_shuffle_f32x4::<0x44>(c, d);
+        let cd_high = _mm512_shuffle_f32x4::<0xEE>(c, d);
+        columns[j] = _mm512_shuffle_f32x4::<0x88>(ab_low, cd_low);
+        columns[4 + j] = _mm512_shuffle_f32x4::<0xDD>(ab_low, cd_low);
+        columns[8 + j] = _mm512_shuffle_f32x4::<0x88>(ab_high, cd_high);
+        columns[12 + j] = _mm512_shuffle_f32x4::<0xDD>(ab_high, cd_high);
+    }
+    columns
+}
+
+/// One piece (64 values) of [`multiply`]'s program for two activation tiles (`{x}`, and
+/// 4,096 bytes on): tmm6 and tmm7 the weights' low bytes and high bits, tmm4 and tmm5 the
+/// activation tiles, tmm0–1 the first tile's sums, tmm2–3 the second's. `$high` multiplies
+/// the high bits (Q6_K's are signed).
+macro_rules! piece_of_two {
+    ($high:literal, $at:literal) => {
+        concat!(
+            "tileloadd tmm6, [{lo} + {s}*1 + ",
+            $at,
+            "]\n",
+            "tileloadd tmm4, [{x} + {s}*1 + ",
+            $at,
+            "]\n",
+            "tdpbusd tmm0, tmm6, tmm4\n",
+            "tileloadd tmm7, [{hi} + {s}*1 + ",
+            $at,
+            "]\n",
+            $high,
+            " tmm1, tmm7, tmm4\n",
+            "tileloadd tmm5, [{x} + {s}*1 + 4096 + ",
+            $at,
+            "]\n",
+            "tdpbusd tmm2, tmm6, tmm5\n",
+            $high,
+            " tmm3, tmm7, tmm5\n",
+        )
+    };
+}
+
+/// One piece of [`multiply`]'s program for one activation tile, on tmm2–4 or tmm5–7 (`$x`
+/// the activations, `$lo` and `$hi` the weights): a piece's loads then need not wait for the
+/// products reading the piece before (tiles are not renamed). Sums in tmm0–1.
+macro_rules! piece_of_one {
+    ($high:literal, $at:literal, $x:literal, $lo:literal, $hi:literal) => {
+        concat!(
+            "tileloadd ",
+            $x,
+            ", [{x} + {s}*1 + ",
+            $at,
+            "]\n",
+            "tileloadd ",
+            $lo,
+            ", [{lo} + {s}*1 + ",
+            $at,
+            "]\n",
+            "tdpbusd tmm0, ",
+            $lo,
+            ", ",
+            $x,
+            "\n",
+            "tileloadd ",
+            $hi,
+            ", [{hi} + {s}*1 + ",
+            $at,
+            "]\n",
+            $high,
+            " tmm1, ",
+            $hi,
+            ", ",
+            $x,
+            "\n",
+        )
+    };
+}
+
+/// The tile program of [`multiply`]: a whole block's four pieces for two activation tiles or
+/// one, then the sums stored.
+macro_rules! tile_program {
+    (two, $high:literal) => {
+        concat!(
+            "tilezero tmm0\n",
+            "tilezero tmm1\n",
+            "tilezero tmm2\n",
+            "tilezero tmm3\n",
+            piece_of_two!($high, "0"),
+            piece_of_two!($high, "1024"),
+            piece_of_two!($high, "2048"),
+            piece_of_two!($high, "3072"),
+            "tilestored [{out} + {s}*1], tmm0\n",
+            "tilestored [{out} + {s}*1 + 1024], tmm1\n",
+            "tilestored [{out} + {s}*1 + 2048], tmm2\n",
+            "tilestored [{out} + {s}*1 + 3072], tmm3\n",
+        )
+    };
+    (one, $high:literal) => {
+        concat!(
+            "tilezero tmm0\n",
+            "tilezero tmm1\n",
+            piece_of_one!($high, "0", "tmm2", "tmm3", "tmm4"),
+            piece_of_one!($high, "1024", "tmm5", "tmm6", "tmm7"),
+            piece_of_one!($high, "2048", "tmm2", "tmm3", "tmm4"),
+            piece_of_one!($high, "3072", "tmm5", "tmm6", "tmm7"),
+            "tilestored [{out} + {s}*1], tmm0\n",
+            "tilestored [{out} + {s}*1 + 1024], tmm1\n",
+        )
+    };
+}
+
+/// The sums of one activation tile, or of two (`pair`), against the unpacked weights over a
+/// whole block, into `sums`: per tile, the low bytes' then the high bits' (products with
+/// Q6_K's signed high bytes are `tdpbssd`). Each weight tile loaded serves both activation
+/// tiles of a pair, and the four accumulators' products do not wait on one another.
 ///
 /// # Safety
-/// Tiles configured by [`TilesInUse::take`]; `pieces` is four tiles.
-unsafe fn multiply(format: Format, pieces: &[u8], unpacked: &WeightTiles, sums: &mut Sums) {
+/// Tiles configured by [`TilesInUse::take`]; `pieces` is four tiles per activation tile.
+#[rustfmt::skip]
+unsafe fn multiply(
+    format: Format,
+    pieces: &[u8],
+    pair: bool,
+    unpacked: &WeightTiles,
+    sums: &mut Sums,
+) {
     let x = pieces.as_ptr();
-    let (low, high, mins) = (
-        unpacked.low.as_ptr(),
-        unpacked.high.as_ptr(),
-        unpacked.mins.as_ptr(),
-    );
+    let (lo, hi) = (unpacked.low.as_ptr(), unpacked.high.as_ptr());
     let out = sums.0.as_mut_ptr();
     // SAFETY: every load reads 16 rows of 64 bytes at a stride of 64 from the start of a
-    // 1,024-byte tile (`pieces`' four, `unpacked`'s fields of four), every store writes one of
-    // `sums`' three 1,024-byte tiles.
+    // 1,024-byte tile (`pieces`' four or eight, `unpacked`'s fields of four), every store
+    // writes one of `sums`' four 1,024-byte tiles.
     unsafe {
-        match format {
-            // tmm0–2 the sums of the low bytes, the high bits and the mins; the activations
-            // alternate between tmm3 and tmm7 so that a piece's load need not wait for the
-            // products reading the piece before (tiles are not renamed).
-            Format::Q4K => asm!(
-                "tilezero tmm0",
-                "tilezero tmm1",
-                "tilezero tmm2",
-                "tileloadd tmm3, [{x} + {s}*1]",
-                "tileloadd tmm4, [{lo} + {s}*1]",
-                "tdpbusd tmm0, tmm4, tmm3",
-                "tileloadd tmm5, [{hi} + {s}*1]",
-                "tdpbusd tmm1, tmm5, tmm3",
-                "tileloadd tmm6, [{mn} + {s}*1]",
-                "tdpbusd tmm2, tmm6, tmm3",
-                "tileloadd tmm7, [{x} + {s}*1 + 1024]",
-                "tileloadd tmm4, [{lo} + {s}*1 + 1024]",
-                "tdpbusd tmm0, tmm4, tmm7",
-                "tileloadd tmm5, [{hi} + {s}*1 + 1024]",
-                "tdpbusd tmm1, tmm5, tmm7",
-                "tileloadd tmm6, [{mn} + {s}*1 + 1024]",
-                "tdpbusd tmm2, tmm6, tmm7",
-                "tileloadd tmm3, [{x} + {s}*1 + 2048]",
-                "tileloadd tmm4, [{lo} + {s}*1 + 2048]",
-                "tdpbusd tmm0, tmm4, tmm3",
-                "tileloadd tmm5, [{hi} + {s}*1 + 2048]",
-                "tdpbusd tmm1, tmm5, tmm3",
-                "tileloadd tmm6, [{mn} + {s}*1 + 2048]",
-                "tdpbusd tmm2, tmm6, tmm3",
-                "tileloadd tmm7, [{x} + {s}*1 + 3072]",
-                "tileloadd tmm4, [{lo} + {s}*1 + 3072]",
-                "tdpbusd tmm0, tmm4, tmm7",
-                "tileloadd tmm5, [{hi} + {s}*1 + 3072]",
-                "tdpbusd tmm1, tmm5, tmm7",
-                "tileloadd tmm6, [{mn} + {s}*1 + 3072]",
-                "tdpbusd tmm2, tmm6, tmm7",
-                "tilestored [{out} + {s}*1], tmm0",
-                "tilestored [{out} + {s}*1 + 1024], tmm1",
-                "tilestored [{out} + {s}*1 + 2048], tmm2",
-                x = in(reg) x,
-                lo = in(reg) low,
-                hi = in(reg) high,
-                mn = in(reg) mins,
-                out = in(reg) out,
-                s = in(reg) 64usize,
-                options(nostack),
+        match (format, pair) {
+            (Format::Q4K, true) => asm!(
+                tile_program!(two, "tdpbusd"),
+                x = in(reg) x, lo = in(reg) lo, hi = in(reg) hi, out = in(reg) out,
+                s = in(reg) 64usize, options(nostack),
             ),
-            // tmm0–1 the sums of the low bytes and the (signed) high bytes; the weights
-            // alternate between tmm4–5 and tmm6 with tmm2.
-            Format::Q6K => asm!(
-                "tilezero tmm0",
-                "tilezero tmm1",
-                "tileloadd tmm3, [{x} + {s}*1]",
-                "tileloadd tmm4, [{lo} + {s}*1]",
-                "tdpbusd tmm0, tmm4, tmm3",
-                "tileloadd tmm5, [{hi} + {s}*1]",
-                "tdpbssd tmm1, tmm5, tmm3",
-                "tileloadd tmm7, [{x} + {s}*1 + 1024]",
-                "tileloadd tmm6, [{lo} + {s}*1 + 1024]",
-                "tdpbusd tmm0, tmm6, tmm7",
-                "tileloadd tmm2, [{hi} + {s}*1 + 1024]",
-                "tdpbssd tmm1, tmm2, tmm7",
-                "tileloadd tmm3, [{x} + {s}*1 + 2048]",
-                "tileloadd tmm4, [{lo} + {s}*1 + 2048]",
-                "tdpbusd tmm0, tmm4, tmm3",
-                "tileloadd tmm5, [{hi} + {s}*1 + 2048]",
-                "tdpbssd tmm1, tmm5, tmm3",
-                "tileloadd tmm7, [{x} + {s}*1 + 3072]",
-                "tileloadd tmm6, [{lo} + {s}*1 + 3072]",
-                "tdpbusd tmm0, tmm6, tmm7",
-                "tileloadd tmm2, [{hi} + {s}*1 + 3072]",
-                "tdpbssd tmm1, tmm2, tmm7",
-                "tilestored [{out} + {s}*1], tmm0",
-                "tilestored [{out} + {s}*1 + 1024], tmm1",
-                x = in(reg) x,
-                lo = in(reg) low,
-                hi = in(reg) high,
-                out = in(reg) out,
-                s = in(reg) 64usize,
-                options(nostack),
+            (Format::Q6K, true) => asm!(
+                tile_program!(two, "tdpbssd"),
+                x = in(reg) x, lo = in(reg) lo, hi = in(reg) hi, out = in(reg) out,
+                s = in(reg) 64usize, options(nostack),
+            ),
+            (Format::Q4K, false) => asm!(
+                tile_program!(one, "tdpbusd"),
+                x = in(reg) x, lo = in(reg) lo, hi = in(reg) hi, out = in(reg) out,
+                s = in(reg) 64usize, options(nostack),
+            ),
+            (Format::Q6K, false) => asm!(
+                tile_program!(one, "tdpbssd"),
+                x = in(reg) x, lo = in(reg) lo, hi = in(reg) hi, out = in(reg) out,
+                s = in(reg) 64usize, options(nostack),
             ),
         }
     }
 }
 
-/// Weight row `r`'s sums for the 16 activation rows of a tile, times its block scales.
-#[target_feature(enable = "avx512f,avx512bw")]
+/// Weight row `r`'s sums for the 16 activation rows of a tile (`sums` from `first`: the low
+/// bytes', then the high bits'), times its block scales. For Q4_K, `sub_sums` the tile's
+/// sub-block sums in pairs ([`PackedActivations`]): the mins' term `dmin · Σ m·sum` is four
+/// `vpdpwssd` on the vector units, which the tiles would have taken a third accumulator for.
+#[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
 #[inline]
-fn block_value(format: Format, sums: &Sums, unpacked: &WeightTiles, r: usize) -> __m512 {
+fn block_value(
+    sums: &Sums,
+    first: usize,
+    unpacked: &WeightTiles,
+    sub_sums: Option<&[__m512i; PAIRS]>,
+    r: usize,
+) -> __m512 {
     let row = |k: usize| {
         // SAFETY: row `r` (below 16) of a 16 × 16 tile.
         unsafe { _mm512_loadu_si512(sums.0[k].as_ptr().add(r * TILE_ROWS) as *const _) }
     };
-    let scaled = _mm512_add_epi32(row(0), _mm512_slli_epi32(row(1), 8));
+    let scaled = _mm512_add_epi32(row(first), _mm512_slli_epi32(row(first + 1), 8));
     let value = _mm512_mul_ps(_mm512_cvtepi32_ps(scaled), _mm512_set1_ps(unpacked.d[r]));
-    match format {
-        Format::Q4K => _mm512_fnmadd_ps(
-            _mm512_cvtepi32_ps(row(2)),
-            _mm512_set1_ps(unpacked.dmin[r]),
-            value,
-        ),
-        Format::Q6K => value,
+    let Some(sub_sums) = sub_sums else {
+        return value;
+    };
+    let mut mins = _mm512_setzero_si512();
+    for (pair, sums) in sub_sums.iter().enumerate() {
+        mins = _mm512_dpwssd_epi32(mins, *sums, _mm512_set1_epi32(unpacked.min_pairs[r][pair]));
     }
+    _mm512_fnmadd_ps(
+        _mm512_cvtepi32_ps(mins),
+        _mm512_set1_ps(unpacked.dmin[r]),
+        value,
+    )
 }
 
 /// Row `r` of a Q4_K block into the tiles. The pieces follow the kernel's load order: the low
@@ -488,6 +623,8 @@ fn unpack_q4k(block: &[u8], r: usize, unpacked: &mut WeightTiles) {
     ])));
     unpacked.d[r] = _mm_cvtss_f32(d);
     unpacked.dmin[r] = _mm_cvtss_f32(_mm_shuffle_ps::<1>(d, d));
+    let min = |s: usize| (mins >> (8 * s)) as u8 as i16;
+    unpacked.min_pairs[r] = [0, 1, 2, 3].map(|pair| pack_words(min(2 * pair), min(2 * pair + 1)));
     let nibble = _mm512_set1_epi8(0x0F);
     // SAFETY: the block is 144 bytes: 128 from 16.
     let (first, second) = unsafe {
@@ -496,9 +633,8 @@ fn unpack_q4k(block: &[u8], r: usize, unpacked: &mut WeightTiles) {
             _mm512_loadu_si512(block.as_ptr().add(80) as *const _),
         )
     };
-    // Words 0–7: the sub-blocks' scales; bytes 0–7: their mins.
+    // Words 0–7: the sub-blocks' scales.
     let scale_words = _mm512_cvtepu8_epi16(_mm256_set1_epi64x(scales as i64));
-    let min_bytes = _mm512_set1_epi64(mins as i64);
     #[rustfmt::skip]
     let counting = _mm512_set_epi16(
         15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0,
@@ -527,19 +663,10 @@ fn unpack_q4k(block: &[u8], r: usize, unpacked: &mut WeightTiles) {
         let low_at = _mm512_add_epi8(_mm512_add_epi8(values, values), second_half);
         let low = _mm512_permutexvar_epi8(low_at, products);
         let high = _mm512_permutexvar_epi8(_mm512_add_epi8(low_at, one), products);
-        let mins = _mm512_permutexvar_epi8(
-            _mm512_mask_blend_epi8(
-                u64::MAX << 32,
-                _mm512_set1_epi8(a as i8),
-                _mm512_set1_epi8(b as i8),
-            ),
-            min_bytes,
-        );
         // SAFETY: row `r` (below 16) of 1,024-byte tiles: 64 bytes from `at`.
         unsafe {
             _mm512_storeu_si512(unpacked.low[piece].as_mut_ptr().add(at) as *mut _, low);
             _mm512_storeu_si512(unpacked.high[piece].as_mut_ptr().add(at) as *mut _, high);
-            _mm512_storeu_si512(unpacked.mins[piece].as_mut_ptr().add(at) as *mut _, mins);
         }
     }
 }
