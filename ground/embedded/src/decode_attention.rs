@@ -11,12 +11,14 @@
 //! candle's attention is used). Measured with the same probes: the cached Coordinator call
 //! 8.1–9.3 s before, 6.5–6.8 s after (179 tokens, 81 steps).
 //!
-//! Prompts keep candle's products for their scores and weighted values, but take their softmax
-//! from here too ([`causal_softmax`]): a restarted Supervisor call's 259 prompt tokens at 1,541
-//! cached positions 2.8–3.0 → 2.5 s; a cold warm-up of 2,095 tokens takes 21.1 s with it and
-//! the AMX products, 27.7 s with candle's products and softmax.
+//! The cache holds bf16 (`decoder::KV_DTYPE`): each key and value row is widened to f32 as it
+//! is read, the queries stay f32. More new tokens take `prompt_attention` (AMX tiles) where
+//! the CPU has them, else candle's products with this module's softmax ([`causal_softmax`]:
+//! a restarted Supervisor call's 259 prompt tokens at 1,541 cached positions 2.8–3.0 → 2.5 s
+//! before the tiles).
 
 use candle_core::{CpuStorage, Result, Storage, Tensor};
+use half::slice::HalfFloatSliceExt;
 
 /// The most new tokens a step may feed here; more (a prompt) use candle's attention.
 pub const MAX_TOKENS: usize = 8;
@@ -24,12 +26,12 @@ pub const MAX_TOKENS: usize = 8;
 /// Lanes of the arithmetic: a 512-bit vector of f32.
 const LANES: usize = 16;
 
-/// Attention of `q` (1, heads, new tokens, head size) over the first `total` positions of the
-/// keys and values `k`, `v` (1, key/value heads, `total`, head size; views of the cache's
-/// buffers), the new tokens being the last positions, each seeing itself and what precedes it.
-/// Returns (1, new tokens, heads × head size), or `None` when this does not apply (more than
-/// [`MAX_TOKENS`] new tokens, not f32 on the CPU, a layout other than the cache's, a head size
-/// other than 64 or 128, a CPU without AVX-512): the caller uses candle's.
+/// Attention of `q` (1, heads, new tokens, head size; f32) over the first `total` positions of
+/// the keys and values `k`, `v` (1, key/value heads, `total`, head size; bf16 views of the
+/// cache's buffers), the new tokens being the last positions, each seeing itself and what
+/// precedes it. Returns (1, new tokens, heads × head size), or `None` when this does not apply
+/// (more than [`MAX_TOKENS`] new tokens, not bf16 on the CPU, a layout other than the cache's,
+/// a head size other than 64 or 128, a CPU without AVX-512): the caller uses another.
 pub fn decode_attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Option<Tensor>> {
     let (b, n_head, seq, head_dim) = q.dims4()?;
     let (kb, n_kv_head, total, k_dim) = k.dims4()?;
@@ -50,14 +52,26 @@ pub fn decode_attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Option<Ten
     let queries = q.flatten_all()?.to_vec1::<f32>()?;
     let (k_storage, k_layout) = k.storage_and_layout();
     let (v_storage, v_layout) = v.storage_and_layout();
-    let (Storage::Cpu(CpuStorage::F32(k_data)), Storage::Cpu(CpuStorage::F32(v_data))) =
+    let (Storage::Cpu(CpuStorage::BF16(k_data)), Storage::Cpu(CpuStorage::BF16(v_data))) =
         (&*k_storage, &*v_storage)
     else {
         return Ok(None);
     };
     let (Some(keys), Some(values)) = (
-        CacheView::of(k_data, k_layout, n_kv_head, total, head_dim),
-        CacheView::of(v_data, v_layout, n_kv_head, total, head_dim),
+        CacheView::of(
+            k_data.reinterpret_cast(),
+            k_layout,
+            n_kv_head,
+            total,
+            head_dim,
+        ),
+        CacheView::of(
+            v_data.reinterpret_cast(),
+            v_layout,
+            n_kv_head,
+            total,
+            head_dim,
+        ),
     ) else {
         return Ok(None);
     };
@@ -134,21 +148,23 @@ struct Shape {
 }
 
 /// A key or value buffer: `n_heads` heads of `total` rows of `head_dim`, rows contiguous.
-struct CacheView<'a> {
-    data: &'a [f32],
+pub(crate) struct CacheView<'a, T> {
+    data: &'a [T],
     head_stride: usize,
     total: usize,
     head_dim: usize,
 }
 
-impl<'a> CacheView<'a> {
-    fn of(
-        data: &'a [f32],
+impl<'a, T> CacheView<'a, T> {
+    /// The view of `data` laid out by `layout` (candle's, in elements), or `None` when its
+    /// rows are not contiguous or it is too short.
+    pub(crate) fn of(
+        data: &'a [T],
         layout: &candle_core::Layout,
         n_heads: usize,
         total: usize,
         head_dim: usize,
-    ) -> Option<CacheView<'a>> {
+    ) -> Option<CacheView<'a, T>> {
         let &[_, head_stride, row_stride, 1] = layout.stride() else {
             return None;
         };
@@ -165,29 +181,35 @@ impl<'a> CacheView<'a> {
     }
 
     /// Head `h`'s rows, contiguous.
-    fn head(&self, h: usize) -> &'a [f32] {
+    pub(crate) fn head(&self, h: usize) -> &'a [T] {
         let start = h * self.head_stride;
         &self.data[start..start + self.total * self.head_dim]
     }
 }
 
-/// `out`'s pointer shared by the pool's tasks, each writing its own rows.
-#[derive(Clone, Copy)]
-struct Output(*mut f32);
+/// A buffer's pointer shared by the pool's tasks, each writing its own elements.
+pub(crate) struct Output<T>(pub(crate) *mut T);
 
-// SAFETY: the tasks write disjoint rows (see `decode_attention`), and the pool's call returns
+impl<T> Clone for Output<T> {
+    fn clone(&self) -> Self {
+        *self
+    }
+}
+impl<T> Copy for Output<T> {}
+
+// SAFETY: the tasks write disjoint elements (see the callers), and the pool's call returns
 // only when every task is done.
-unsafe impl Send for Output {}
-unsafe impl Sync for Output {}
+unsafe impl<T> Send for Output<T> {}
+unsafe impl<T> Sync for Output<T> {}
 
-impl Output {
-    fn at(self, offset: usize) -> *mut f32 {
+impl<T> Output<T> {
+    pub(crate) fn at(self, offset: usize) -> *mut T {
         self.0.wrapping_add(offset)
     }
 
     /// # Safety
     /// `at..at + row.len()` is inside the buffer and no other task writes it.
-    unsafe fn write(self, at: usize, row: &[f32]) {
+    pub(crate) unsafe fn write(self, at: usize, row: &[T]) {
         unsafe { std::ptr::copy_nonoverlapping(row.as_ptr(), self.0.add(at), row.len()) };
     }
 }
@@ -206,7 +228,7 @@ fn cpu_has_avx512() -> bool {
 
 /// The group's output rows (query row `r` = the group's query head `r / seq`, new token
 /// `r % seq`), each `head_dim` long.
-fn group(shape: &Shape, queries: &[f32], keys: &[f32], values: &[f32]) -> Vec<f32> {
+fn group(shape: &Shape, queries: &[f32], keys: &[u16], values: &[u16]) -> Vec<f32> {
     #[cfg(target_arch = "x86_64")]
     {
         // SAFETY: `decode_attention` is only taken when `cpu_has_avx512()`.
@@ -220,6 +242,9 @@ fn group(shape: &Shape, queries: &[f32], keys: &[f32], values: &[f32]) -> Vec<f3
 }
 
 #[cfg(target_arch = "x86_64")]
+pub(crate) use avx512::causal_softmax_row;
+
+#[cfg(target_arch = "x86_64")]
 mod avx512 {
     use super::{LANES, Shape};
     use std::arch::x86_64::*;
@@ -228,7 +253,7 @@ mod avx512 {
     /// `values` the head's `total` rows. Returns the output rows in the order of `queries`.
     /// Head sizes of 64 and 128 (4 or 8 vectors, the output rows' sums kept in registers).
     #[target_feature(enable = "avx512f")]
-    pub fn group(shape: &Shape, queries: &[f32], keys: &[f32], values: &[f32]) -> Vec<f32> {
+    pub fn group(shape: &Shape, queries: &[f32], keys: &[u16], values: &[u16]) -> Vec<f32> {
         match shape.head_dim / LANES {
             4 => group_of::<4>(shape, queries, keys, values),
             _ => group_of::<8>(shape, queries, keys, values),
@@ -239,8 +264,8 @@ mod avx512 {
     fn group_of<const VECTORS: usize>(
         shape: &Shape,
         queries: &[f32],
-        keys: &[f32],
-        values: &[f32],
+        keys: &[u16],
+        values: &[u16],
     ) -> Vec<f32> {
         let &Shape {
             n_rep,
@@ -260,7 +285,7 @@ mod avx512 {
             .chunks_exact(VECTORS)
             .enumerate()
         {
-            let key: [__m512; VECTORS] = load(key);
+            let key: [__m512; VECTORS] = load_bf16(key);
             for (r, query) in queries
                 .as_chunks::<LANES>()
                 .0
@@ -291,7 +316,7 @@ mod avx512 {
                 .zip(values.as_chunks::<LANES>().0.chunks_exact(VECTORS))
             {
                 let weight = _mm512_set1_ps(*weight);
-                let value: [__m512; VECTORS] = load(value);
+                let value: [__m512; VECTORS] = load_bf16(value);
                 for (a, v) in acc.iter_mut().zip(value) {
                     *a = _mm512_fmadd_ps(weight, v, *a);
                 }
@@ -305,21 +330,22 @@ mod avx512 {
         out
     }
 
-    /// `VECTORS` vectors from as many 16-value chunks.
+    /// `VECTORS` vectors of f32 from as many chunks of 16 bf16 (a bf16 is an f32's high half).
     #[target_feature(enable = "avx512f")]
     #[inline]
-    fn load<const VECTORS: usize>(chunks: &[[f32; LANES]]) -> [__m512; VECTORS] {
+    fn load_bf16<const VECTORS: usize>(chunks: &[[u16; LANES]]) -> [__m512; VECTORS] {
         let mut vectors = [_mm512_setzero_ps(); VECTORS];
         for (v, c) in vectors.iter_mut().zip(chunks) {
-            // SAFETY: `c` is 16 f32.
-            *v = unsafe { _mm512_loadu_ps(c.as_ptr()) };
+            // SAFETY: `c` is 16 u16.
+            let bits = unsafe { _mm256_loadu_si256(c.as_ptr() as *const _) };
+            *v = _mm512_castsi512_ps(_mm512_slli_epi32::<16>(_mm512_cvtepu16_epi32(bits)));
         }
         vectors
     }
 
     /// A prompt's attention weights in place: see [`super::causal_softmax`].
     #[target_feature(enable = "avx512f")]
-    pub fn causal_softmax_row(row: &mut [f32], visible: usize, scale: f32) {
+    pub(crate) fn causal_softmax_row(row: &mut [f32], visible: usize, scale: f32) {
         let (seen, unseen) = row.split_at_mut(visible);
         let inverse = _mm512_set1_ps(1.0 / softmax_numerators(seen, scale));
         let (chunks, rest) = seen.as_chunks_mut::<LANES>();
@@ -408,17 +434,17 @@ mod tests {
         Tensor::from_vec(values, dims, &Device::Cpu).expect("tensor")
     }
 
-    /// Keys and values as the cache holds them: views of the first `total` rows of buffers with
-    /// room for more.
+    /// Keys and values as the cache holds them: bf16 views of the first `total` rows of
+    /// buffers with room for more.
     fn cache_views(n_kv: usize, total: usize, d: usize) -> (Tensor, Tensor) {
         let room = total + 13;
-        let k = filled((1, n_kv, room, d), 1)
-            .narrow(2, 0, total)
-            .expect("k view");
-        let v = filled((1, n_kv, room, d), 2)
-            .narrow(2, 0, total)
-            .expect("v view");
-        (k, v)
+        let view = |seed| {
+            filled((1, n_kv, room, d), seed)
+                .to_dtype(crate::decoder::KV_DTYPE)
+                .and_then(|t| t.narrow(2, 0, total))
+                .expect("view")
+        };
+        (view(1), view(2))
     }
 
     #[test]
@@ -437,7 +463,10 @@ mod tests {
                     .expect("applies to the cache's layout");
                 let mask =
                     (seq > 1).then(|| causal_mask(seq, total - seq, &Device::Cpu).expect("mask"));
-                let theirs = grouped_attention(&q, &k, &v, mask.as_ref(), n_kv).expect("candle's");
+                // Candle's on the same values in f32 (a bf16 is exactly an f32).
+                let f32s = |t: &Tensor| t.to_dtype(candle_core::DType::F32).expect("f32");
+                let theirs = grouped_attention(&q, &f32s(&k), &f32s(&v), mask.as_ref(), n_kv)
+                    .expect("candle's");
                 assert_eq!(ours.dims(), theirs.dims());
                 let ours = ours
                     .flatten_all()

@@ -13,11 +13,25 @@ use candle_nn::Embedding;
 
 use crate::catalogue::Architecture;
 use crate::decode_attention::decode_attention;
+
+/// The attention of many new tokens on AMX tiles where the CPU has them (`prompt_attention`),
+/// else none: candle's products take them.
+fn prompt_attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Option<Tensor>> {
+    #[cfg(target_arch = "x86_64")]
+    {
+        crate::prompt_attention::prompt_attention(q, k, v)
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = (q, k, v);
+        Ok(None)
+    }
+}
 use crate::matvec::Linear;
 use crate::output::{BLOCK_ROWS, OutputProjection};
 
 /// The longest sequence (prompt and reply) a call may have, whatever the model was trained for:
-/// bounds the rotary tables and the key/value cache (Qwen2.5-Coder-1.5B: 57 KB per token).
+/// bounds the rotary tables and the key/value cache (Qwen2.5-Coder-1.5B: 28 KB per token).
 pub const MAX_WINDOW: usize = 8192;
 
 struct Layer {
@@ -69,6 +83,12 @@ pub struct KvCache {
 
 /// The smallest room a buffer is given (positions).
 const MIN_CAPACITY: usize = 512;
+
+/// The type the cache holds keys and values in. bf16, not f32: a decode step's attention reads
+/// the whole cache (2,000 positions of Qwen2.5-Coder-1.5B: 115 MB in f32), and bf16 is what
+/// the AMX tiles multiply (`prompt_attention`). The model's own training type; the keys and
+/// values are rounded once, when written.
+pub const KV_DTYPE: DType = DType::BF16;
 
 impl KvCache {
     /// The tokens whose keys and values are held, in order.
@@ -124,6 +144,7 @@ fn append_kv(
     window: usize,
 ) -> Result<(Tensor, Tensor)> {
     let end = pos + k.dim(2)?;
+    let (k, v) = (&k.to_dtype(KV_DTYPE)?, &v.to_dtype(KV_DTYPE)?);
     let capacity = match slot {
         Some((kb, _)) => kb.dim(2)?,
         None => 0,
@@ -321,7 +342,13 @@ impl Decoder {
         let (k, v) = append_kv(kv, &k, &v, pos, self.window)?;
         let y = match decode_attention(&q, &k, &v)? {
             Some(y) => y,
-            None => grouped_attention(&q, &k, &v, mask, self.n_kv_head)?,
+            None => match prompt_attention(&q, &k, &v)? {
+                Some(y) => y,
+                None => {
+                    let (k, v) = (k.to_dtype(DType::F32)?, v.to_dtype(DType::F32)?);
+                    grouped_attention(&q, &k, &v, mask, self.n_kv_head)?
+                }
+            },
         };
         l.wo.forward(&y)
     }
@@ -336,7 +363,9 @@ impl Decoder {
 }
 
 /// Attention of `q` (batch, query heads, seq, head size) over `k` and `v` (batch, key/value
-/// heads, positions, head size), `mask` added to the scores when given; (batch, seq, width).
+/// heads, positions, head size; f32), `mask` added to the scores when given; (batch, seq,
+/// width). Candle's products: what [`Decoder::forward`] falls back on where `decode_attention`
+/// and `prompt_attention` do not run (a CPU without AVX-512 or AMX), and the tests' reference.
 /// The mask is [`causal_mask`]'s for the `seq` new tokens, which the AVX-512 softmax
 /// (`decode_attention::causal_softmax`) applies without reading it.
 ///
@@ -518,7 +547,8 @@ mod tests {
     }
 
     fn positions(t: &Tensor) -> Vec<f32> {
-        t.flatten_all()
+        t.to_dtype(DType::F32)
+            .and_then(|t| t.flatten_all())
             .expect("flat")
             .to_vec1::<f32>()
             .expect("values")
@@ -527,7 +557,13 @@ mod tests {
     #[test]
     fn keys_and_values_written_in_place_are_those_concatenated() {
         let device = Device::Cpu;
-        let chunk = |seq| Tensor::randn(0f32, 1.0, (1, 2, seq, 4), &device).expect("chunk");
+        // Values a bf16 holds exactly: the cache keeps them as they are.
+        let chunk = |seq| {
+            Tensor::randn(0f32, 1.0, (1, 2, seq, 4), &device)
+                .and_then(|t| t.to_dtype(KV_DTYPE))
+                .and_then(|t| t.to_dtype(DType::F32))
+                .expect("chunk")
+        };
         // A prompt of 300, 400 more (past the first buffer's room), then one at a time.
         let chunks: Vec<(Tensor, Tensor)> = [300, 400, 1, 1]
             .iter()
@@ -562,7 +598,12 @@ mod tests {
     #[test]
     fn a_prefix_copy_shares_nothing_with_its_cache() {
         let device = Device::Cpu;
-        let chunk = |seq| Tensor::randn(0f32, 1.0, (1, 2, seq, 4), &device).expect("chunk");
+        let chunk = |seq| {
+            Tensor::randn(0f32, 1.0, (1, 2, seq, 4), &device)
+                .and_then(|t| t.to_dtype(KV_DTYPE))
+                .and_then(|t| t.to_dtype(DType::F32))
+                .expect("chunk")
+        };
         let mut cache = KvCache::default();
         let (k, v) = (chunk(10), chunk(10));
         cache.layers = vec![None];

@@ -37,9 +37,13 @@ mod engine;
 pub mod fetch;
 mod matvec;
 mod output;
+#[cfg(target_arch = "x86_64")]
+mod prompt_attention;
 mod prompt_store;
 mod sampling;
 pub mod template;
+#[cfg(target_arch = "x86_64")]
+mod tiles;
 mod tokenizer;
 
 use std::path::PathBuf;

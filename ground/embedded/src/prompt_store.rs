@@ -4,7 +4,8 @@
 //! mission's first Coordinator call, and reading it back well under a second.
 //!
 //! One entry is two files named by the model, the weights' format and a hash of the tokens:
-//! `NAME.safetensors` (each layer's keys `k.I` and values `v.I`, f32, exactly the held positions)
+//! `NAME.safetensors` (each layer's keys `k.I` and values `v.I`, bf16 as the cache holds them,
+//! exactly the held positions)
 //! and `NAME.tokens` (the token ids, u32 little-endian), written after the tensors, so a
 //! `.tokens` file means a whole entry. Both are written to a temporary name and renamed. An
 //! entry is trusted only once its last position, computed again by this decoder from the rest,
@@ -17,18 +18,18 @@ use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::SystemTime;
 
-use candle_core::{Device, Tensor};
+use candle_core::{DType, Device, Tensor};
 use sha2::{Digest, Sha256};
 
 use crate::decoder::KvCache;
 use crate::lock;
 
-/// Entries kept in the directory (Qwen2.5-Coder-1.5B: ~57 KB a token, so ~115 MB for a
+/// Entries kept in the directory (Qwen2.5-Coder-1.5B: ~28 KB a token, so ~57 MB for a
 /// 2,000-token beginning; a mission uses two, the Coordinator's and the Supervisor's).
 pub const MAX_ENTRIES: usize = 6;
 
 /// Bumped when the files' layout changes.
-const LAYOUT: &str = "kv1";
+const LAYOUT: &str = "kv2";
 
 /// The largest relative difference (see [`Difference`]) of the first layer's keys and values at
 /// a stored position from the same position computed again: they depend only on the token, the
@@ -292,7 +293,7 @@ fn from_tensors(mut tensors: HashMap<String, Tensor>, tokens: Vec<u32>) -> Resul
         };
         for t in [&k, &v] {
             let positions = t.dims4().map_err(|e| e.to_string())?.2;
-            if positions != tokens.len() || t.dtype() != candle_core::DType::F32 {
+            if positions != tokens.len() || t.dtype() != crate::decoder::KV_DTYPE {
                 return Err(format!(
                     "layer {i}: {positions} positions of {:?} for {} tokens",
                     t.dtype(),
@@ -365,7 +366,8 @@ pub fn difference(a: &[(Tensor, Tensor)], b: &[(Tensor, Tensor)]) -> Difference 
         let norm = |t: &Tensor| -> candle_core::Result<f32> {
             Ok(t.sqr()?.sum_all()?.to_scalar::<f32>()?.sqrt())
         };
-        Ok(norm(&(x - y)?)? / norm(x)?.max(1e-12))
+        let (x, y) = (x.to_dtype(DType::F32)?, y.to_dtype(DType::F32)?);
+        Ok(norm(&(&x - &y)?)? / norm(&x)?.max(1e-12))
     };
     let apart = Difference {
         first_layer: f32::INFINITY,
@@ -397,7 +399,8 @@ mod tests {
         let n = tokens.len();
         let layer = || {
             let t = Tensor::full(fill, (1, 2, n, 4), &Device::Cpu).expect("tensor");
-            Some((t.clone(), (t * 2.0).expect("scaled")))
+            let kv = |t: Tensor| t.to_dtype(crate::decoder::KV_DTYPE).expect("bf16");
+            Some((kv(t.clone()), kv((t * 2.0).expect("scaled"))))
         };
         KvCache::from_layers(vec![layer(), layer()], tokens)
     }

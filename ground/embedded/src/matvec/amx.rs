@@ -19,71 +19,28 @@
 
 use std::arch::asm;
 use std::arch::x86_64::*;
-use std::sync::OnceLock;
 
 use super::{ActivationBlock, BLOCK_VALUES, Format};
+pub use crate::tiles::TILE_ROWS;
+use crate::tiles::{TILE_BYTES, TilesInUse, transpose};
 
-/// Rows of a tile: weight rows of the accumulators and of the weight tiles, activation rows of
-/// the accumulators' columns.
-pub const TILE_ROWS: usize = 16;
+/// Whether the CPU has AMX with 8-bit products and the vector instructions these products use,
+/// and this process may use the tiles.
+pub fn available() -> bool {
+    crate::tiles::int8_available()
+        && std::arch::is_x86_feature_detected!("avx512bw")
+        && std::arch::is_x86_feature_detected!("avx512vbmi")
+        && std::arch::is_x86_feature_detected!("avx512vnni")
+}
+
 /// 64-value pieces of a 256-value block: one instruction each.
 const PIECES: usize = BLOCK_VALUES / 64;
-/// Bytes of a full tile (16 rows of 64 bytes).
-const TILE_BYTES: usize = 1024;
 /// Pairs of Q4_K's 32-value sub-blocks in a block: one `vpdpwssd` each for the mins.
 const PAIRS: usize = 4;
 /// Activation tiles one pass over a group of weight rows takes (128 rows): their bytes, at
 /// most 1.1 MB for Qwen2.5-Coder-1.5B's widest matrix, stay in the core's cache while the
 /// group's blocks are unpacked once for all of them.
 const TILES_PER_PASS: usize = 8;
-
-/// Whether the CPU has AMX with 8-bit products and this process may use its tiles (Linux asks
-/// each process to request them: `arch_prctl(ARCH_REQ_XCOMP_PERM)`); asked once.
-pub fn available() -> bool {
-    static AVAILABLE: OnceLock<bool> = OnceLock::new();
-    *AVAILABLE.get_or_init(|| {
-        cpu_has_amx()
-            && std::arch::is_x86_feature_detected!("avx512bw")
-            && std::arch::is_x86_feature_detected!("avx512vbmi")
-            && std::arch::is_x86_feature_detected!("avx512vnni")
-            && tiles_granted()
-    })
-}
-
-fn cpu_has_amx() -> bool {
-    // CPUID leaf 7, sub-leaf 0, EDX: bit 24 AMX-TILE, bit 25 AMX-INT8.
-    let leaf7 = __cpuid_count(7, 0);
-    let tile = leaf7.edx & (1 << 24) != 0;
-    let int8 = leaf7.edx & (1 << 25) != 0;
-    tile && int8
-}
-
-#[cfg(target_os = "linux")]
-fn tiles_granted() -> bool {
-    const SYS_ARCH_PRCTL: i64 = 158;
-    const ARCH_REQ_XCOMP_PERM: i64 = 0x1023;
-    const XFEATURE_XTILEDATA: i64 = 18;
-    let result: i64;
-    // SAFETY: the system call asks the kernel to let this process use the tile registers; it
-    // reads and writes none of the program's memory, and clobbers only rax, rcx and r11.
-    unsafe {
-        asm!(
-            "syscall",
-            inlateout("rax") SYS_ARCH_PRCTL => result,
-            in("rdi") ARCH_REQ_XCOMP_PERM,
-            in("rsi") XFEATURE_XTILEDATA,
-            lateout("rcx") _,
-            lateout("r11") _,
-            options(nostack),
-        );
-    }
-    result == 0
-}
-
-#[cfg(not(target_os = "linux"))]
-fn tiles_granted() -> bool {
-    false
-}
 
 /// The activation rows quantised and laid out as the tiles take them: per block, per tile of
 /// 16 rows, per 64-value piece, 16 groups of four values, each group for the 16 rows in turn
@@ -172,71 +129,6 @@ struct Sums([[i32; TILE_ROWS * TILE_ROWS]; 4]);
 /// Two signed 16-bit values in the halves of 32 bits, `low` first (`vpdpwssd`'s pairs).
 fn pack_words(low: i16, high: i16) -> i32 {
     (low as u16 as u32 | (high as u16 as u32) << 16) as i32
-}
-
-/// The tile configuration `ldtilecfg` reads (64 bytes, palette 1).
-#[repr(C, align(64))]
-struct TileConfig {
-    palette: u8,
-    start_row: u8,
-    reserved: [u8; 14],
-    bytes_per_row: [u16; 16],
-    rows: [u8; 16],
-}
-
-/// The tiles a thread uses for its part of a product, and the configuration they replace: a
-/// thread of candle's pool that ran candle's own AMX kernel keeps that kernel's configuration
-/// and expects it still there, so it is put back when done.
-struct TilesInUse {
-    previous: TileConfig,
-}
-
-impl TilesInUse {
-    /// All eight 16 × 64 bytes: see [`multiply`].
-    ///
-    /// # Safety
-    /// [`available`] said yes (else the instructions fault).
-    unsafe fn take() -> TilesInUse {
-        let mut previous = TileConfig {
-            palette: 0,
-            start_row: 0,
-            reserved: [0; 14],
-            bytes_per_row: [0; 16],
-            rows: [0; 16],
-        };
-        let mut ours = TileConfig {
-            palette: 1,
-            start_row: 0,
-            reserved: [0; 14],
-            bytes_per_row: [0; 16],
-            rows: [0; 16],
-        };
-        for t in 0..8 {
-            ours.bytes_per_row[t] = 64;
-            ours.rows[t] = TILE_ROWS as u8;
-        }
-        // SAFETY: both point at 64 bytes, aligned to 64 as the instructions ask; the CPU has
-        // AMX (the caller's promise).
-        unsafe {
-            asm!("sttilecfg [{}]", in(reg) &mut previous, options(nostack));
-            asm!("ldtilecfg [{}]", in(reg) &ours, options(nostack));
-        }
-        TilesInUse { previous }
-    }
-}
-
-impl Drop for TilesInUse {
-    fn drop(&mut self) {
-        // SAFETY: only `take` makes a `TilesInUse`, on a CPU with AMX; `previous` is 64
-        // bytes aligned to 64; a palette of 0 means no configuration was loaded before.
-        unsafe {
-            if self.previous.palette == 0 {
-                asm!("tilerelease", options(nostack));
-            } else {
-                asm!("ldtilecfg [{}]", in(reg) &self.previous, options(nostack));
-            }
-        }
-    }
 }
 
 /// `out[i · out_stride + r] = Σ_c x[i][c] · W[row_start + r][c]` for the 16-row groups
@@ -385,45 +277,6 @@ unsafe fn product_on_tiles(
             }
         }
     }
-}
-
-/// The 16 × 16 transpose: lane `j` of row `i` to lane `i` of row `j`.
-#[target_feature(enable = "avx512f")]
-fn transpose(rows: [__m512; TILE_ROWS]) -> [__m512; TILE_ROWS] {
-    // Pairs of rows interleaved by 32 then 64 bits: `quads[4g + j]`'s 128-bit lane `l` holds
-    // column 4l + j of rows 4g..4g + 4.
-    let pairs: [__m512; TILE_ROWS] = std::array::from_fn(|k| {
-        let (a, b) = (rows[k & !1], rows[k | 1]);
-        if k % 2 == 0 {
-            _mm512_unpacklo_ps(a, b)
-        } else {
-            _mm512_unpackhi_ps(a, b)
-        }
-    });
-    let quads: [__m512; TILE_ROWS] = std::array::from_fn(|k| {
-        let (g, j) = (k / 4, k % 4);
-        let a = _mm512_castps_pd(pairs[4 * g + j / 2]);
-        let b = _mm512_castps_pd(pairs[4 * g + j / 2 + 2]);
-        _mm512_castpd_ps(if j % 2 == 0 {
-            _mm512_unpacklo_pd(a, b)
-        } else {
-            _mm512_unpackhi_pd(a, b)
-        })
-    });
-    // Then the 128-bit lanes: column 4l + j is lane l of quads[j], [4 + j], [8 + j], [12 + j].
-    let mut columns = [_mm512_setzero_ps(); TILE_ROWS];
-    for j in 0..4 {
-        let (a, b, c, d) = (quads[j], quads[4 + j], quads[8 + j], quads[12 + j]);
-        let ab_low = _mm512_shuffle_f32x4::<0x44>(a, b);
-        let ab_high = _mm512_shuffle_f32x4::<0xEE>(a, b);
-        let cd_low = _mm512_shuffle_f32x4::<0x44>(c, d);
-        let cd_high = _mm512_shuffle_f32x4::<0xEE>(c, d);
-        columns[j] = _mm512_shuffle_f32x4::<0x88>(ab_low, cd_low);
-        columns[4 + j] = _mm512_shuffle_f32x4::<0xDD>(ab_low, cd_low);
-        columns[8 + j] = _mm512_shuffle_f32x4::<0x88>(ab_high, cd_high);
-        columns[12 + j] = _mm512_shuffle_f32x4::<0xDD>(ab_high, cd_high);
-    }
-    columns
 }
 
 /// One piece (64 values) of [`multiply`]'s program for two activation tiles (`{x}`, and
