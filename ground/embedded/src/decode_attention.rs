@@ -20,6 +20,8 @@
 use candle_core::{CpuStorage, Result, Storage, Tensor};
 use half::slice::HalfFloatSliceExt;
 
+use crate::pool::Shared;
+
 /// The most new tokens a step may feed here; more (a prompt) use candle's attention.
 pub const MAX_TOKENS: usize = 8;
 
@@ -83,7 +85,7 @@ pub fn decode_attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Option<Ten
         scale: 1.0 / (head_dim as f32).sqrt(),
     };
     let mut out = vec![0f32; seq * n_head * head_dim];
-    let target = Output(out.as_mut_ptr());
+    let target = Shared(out.as_mut_ptr());
     let group_queries = shape.n_rep * seq * head_dim;
     candle_core::utils::barrier_pool().execute_chunked(n_kv_head, |groups| {
         for g in groups {
@@ -118,7 +120,7 @@ pub fn causal_softmax(scores: &mut [f32], total: usize, seq: usize, scale: f32) 
         return false;
     }
     let rows = scores.len() / total;
-    let target = Output(scores.as_mut_ptr());
+    let target = Shared(scores.as_mut_ptr());
     candle_core::utils::barrier_pool().execute_chunked(rows, |range| {
         for r in range {
             // SAFETY: row `r` is inside `scores` (rows × total), and each row belongs to one
@@ -184,33 +186,6 @@ impl<'a, T> CacheView<'a, T> {
     pub(crate) fn head(&self, h: usize) -> &'a [T] {
         let start = h * self.head_stride;
         &self.data[start..start + self.total * self.head_dim]
-    }
-}
-
-/// A buffer's pointer shared by the pool's tasks, each writing its own elements.
-pub(crate) struct Output<T>(pub(crate) *mut T);
-
-impl<T> Clone for Output<T> {
-    fn clone(&self) -> Self {
-        *self
-    }
-}
-impl<T> Copy for Output<T> {}
-
-// SAFETY: the tasks write disjoint elements (see the callers), and the pool's call returns
-// only when every task is done.
-unsafe impl<T> Send for Output<T> {}
-unsafe impl<T> Sync for Output<T> {}
-
-impl<T> Output<T> {
-    pub(crate) fn at(self, offset: usize) -> *mut T {
-        self.0.wrapping_add(offset)
-    }
-
-    /// # Safety
-    /// `at..at + row.len()` is inside the buffer and no other task writes it.
-    pub(crate) unsafe fn write(self, at: usize, row: &[T]) {
-        unsafe { std::ptr::copy_nonoverlapping(row.as_ptr(), self.0.add(at), row.len()) };
     }
 }
 

@@ -37,6 +37,7 @@ mod engine;
 pub mod fetch;
 mod matvec;
 mod output;
+mod pool;
 #[cfg(target_arch = "x86_64")]
 mod prompt_attention;
 mod prompt_store;

@@ -23,6 +23,8 @@ use std::sync::Arc;
 use candle_core::quantized::{GgmlDType, QMatMul, QTensor};
 use candle_core::{Module, Tensor};
 
+use crate::pool::Shared;
+
 #[cfg(target_arch = "x86_64")]
 mod amx;
 #[cfg(target_arch = "x86_64")]
@@ -304,19 +306,15 @@ impl DecodeMatrix {
                 self.columns
             );
         }
-        let activations: Vec<ActivationBlock> = x
-            .chunks_exact(BLOCK_VALUES)
-            .map(ActivationBlock::quantise)
-            .collect();
         let weights = self.tensor.data()?;
         let blocks = self.columns / BLOCK_VALUES;
         let row_bytes = blocks * self.format.block_bytes();
         let format = self.format;
-        let target = OutputRows(out.as_mut_ptr());
+        let target = Shared(out.as_mut_ptr());
         let first_row = rows.start;
         #[cfg(target_arch = "x86_64")]
         if amx_here() && m >= AMX_MIN_ROWS && n.is_multiple_of(amx::TILE_ROWS) {
-            let packed = amx::PackedActivations::new(&activations, m, blocks, format);
+            let packed = amx::PackedActivations::new(x, m, blocks, format);
             candle_core::utils::barrier_pool().execute_chunked(n / amx::TILE_ROWS, |groups| {
                 // SAFETY: `amx_here()` said yes; `out` holds m rows of n (checked above), and
                 // each thread writes only the columns of its own groups.
@@ -328,13 +326,17 @@ impl DecodeMatrix {
                         first_row,
                         groups,
                         &packed,
-                        target.pointer(),
+                        target.at(0),
                         n,
                     )
                 }
             });
             return Ok(());
         }
+        let activations: Vec<ActivationBlock> = x
+            .chunks_exact(BLOCK_VALUES)
+            .map(ActivationBlock::quantise)
+            .collect();
         candle_core::utils::barrier_pool().execute_chunked(n.div_ceil(ROWS_PER_GRAB), |grabs| {
             let end = (grabs.end * ROWS_PER_GRAB).min(n);
             for r in grabs.start * ROWS_PER_GRAB..end {
@@ -348,33 +350,12 @@ impl DecodeMatrix {
                         // SAFETY: `(c * MAX_ROWS + i) * n + r` is inside `out` (checked above:
                         // m rows of n), and each `r` is written by the one grab that holds it:
                         // the grabs' ranges do not overlap.
-                        unsafe { target.write((c * MAX_ROWS + i) * n + r, *dot) };
+                        unsafe { target.write((c * MAX_ROWS + i) * n + r, &[*dot]) };
                     }
                 }
             }
         });
         Ok(())
-    }
-}
-
-/// `out`'s pointer shared by the pool's threads, each writing its own elements.
-#[derive(Clone, Copy)]
-struct OutputRows(*mut f32);
-
-// SAFETY: the threads write disjoint elements (see `DecodeMatrix::product`), and the pool's call
-// returns only when every thread is done.
-unsafe impl Send for OutputRows {}
-unsafe impl Sync for OutputRows {}
-
-impl OutputRows {
-    fn pointer(self) -> *mut f32 {
-        self.0
-    }
-
-    /// # Safety
-    /// `at` is inside the buffer and no other thread touches it during the call.
-    unsafe fn write(self, at: usize, value: f32) {
-        unsafe { *self.0.add(at) = value };
     }
 }
 

@@ -22,7 +22,8 @@ use std::arch::x86_64::*;
 use candle_core::{CpuStorage, Result, Storage, Tensor};
 use half::slice::HalfFloatSliceExt;
 
-use crate::decode_attention::{CacheView, Output, causal_softmax_row};
+use crate::decode_attention::{CacheView, causal_softmax_row};
+use crate::pool::Shared;
 use crate::tiles::{TILE_BYTES, TILE_ROWS, TilesInUse, bf16_available};
 
 /// Keys per tile of values (pairs of keys per 32 bits).
@@ -95,7 +96,7 @@ pub fn prompt_attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Option<Ten
     let row_tiles = rows.div_ceil(TILE_ROWS);
     // Each head's keys and values laid out for the tiles, one task a head.
     let mut laid_out: Vec<LaidOut> = (0..n_kv_head).map(|_| LaidOut::default()).collect();
-    let heads = Output(laid_out.as_mut_ptr());
+    let heads = Shared(laid_out.as_mut_ptr());
     candle_core::utils::barrier_pool().execute_chunked(n_kv_head, |range| {
         for g in range {
             // SAFETY: `g` is below `n_kv_head`, the length of `laid_out`, and each head belongs
@@ -104,7 +105,7 @@ pub fn prompt_attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Option<Ten
         }
     });
     let mut out = vec![0f32; seq * n_head * head_dim];
-    let target = Output(out.as_mut_ptr());
+    let target = Shared(out.as_mut_ptr());
     // Then the query rows, 16 at a time, over every head.
     candle_core::utils::barrier_pool().execute_chunked(n_kv_head * row_tiles, |range| {
         let mut scratch = Scratch::new(&shape);

@@ -21,6 +21,7 @@ use std::arch::asm;
 use std::arch::x86_64::*;
 
 use super::{ActivationBlock, BLOCK_VALUES, Format};
+use crate::pool::Shared;
 pub use crate::tiles::TILE_ROWS;
 use crate::tiles::{TILE_BYTES, TilesInUse, transpose};
 
@@ -59,45 +60,61 @@ pub struct PackedActivations {
 }
 
 impl PackedActivations {
-    /// `activations`: `rows` rows of `blocks` blocks each; Q4_K's pieces are its load order
+    /// `x`: `rows` rows of `blocks` blocks of values, quantised here (`ActivationBlock`), a
+    /// block column per task on candle's pool; Q4_K's pieces are in its load order
     /// (`ActivationBlock::q4k_order`), Q6_K's the values in order.
-    pub fn new(
-        activations: &[ActivationBlock],
-        rows: usize,
-        blocks: usize,
-        format: Format,
-    ) -> PackedActivations {
-        assert_eq!(activations.len(), rows * blocks, "activation blocks");
+    pub fn new(x: &[f32], rows: usize, blocks: usize, format: Format) -> PackedActivations {
+        assert_eq!(x.len(), rows * blocks * BLOCK_VALUES, "activations");
         let tiles = rows.div_ceil(TILE_ROWS);
-        let mut bytes = vec![0u8; blocks * tiles * PIECES * TILE_BYTES];
-        let mut scales = vec![0f32; blocks * tiles * TILE_ROWS];
-        let mut sub_sums = match format {
-            Format::Q4K => vec![0i32; blocks * tiles * PAIRS * TILE_ROWS],
-            Format::Q6K => Vec::new(),
+        let (block_bytes, block_scales) = (tiles * PIECES * TILE_BYTES, tiles * TILE_ROWS);
+        let block_sums = match format {
+            Format::Q4K => tiles * PAIRS * TILE_ROWS,
+            Format::Q6K => 0,
         };
-        for (i, row) in activations.chunks_exact(blocks).enumerate() {
-            let (tile, in_tile) = (i / TILE_ROWS, i % TILE_ROWS);
-            for (b, block) in row.iter().enumerate() {
-                scales[b * tiles * TILE_ROWS + i] = block.scale;
-                if format == Format::Q4K {
-                    for (pair, sums) in block.sums32.chunks_exact(2).enumerate() {
-                        let at = ((b * tiles + tile) * PAIRS + pair) * TILE_ROWS + in_tile;
-                        sub_sums[at] = pack_words(sums[0], sums[1]);
-                    }
-                }
-                let values = match format {
-                    Format::Q4K => &block.q4k_order,
-                    Format::Q6K => &block.natural,
+        let mut bytes = vec![0u8; blocks * block_bytes];
+        let mut scales = vec![0f32; blocks * block_scales];
+        let mut sub_sums = vec![0i32; blocks * block_sums];
+        let shared = (
+            Shared(bytes.as_mut_ptr()),
+            Shared(scales.as_mut_ptr()),
+            Shared(sub_sums.as_mut_ptr()),
+        );
+        candle_core::utils::barrier_pool().execute_chunked(blocks, |range| {
+            for b in range {
+                // SAFETY: block `b`'s parts of the three buffers (each `blocks` parts long),
+                // filled by this task alone.
+                let (bytes, scales, sub_sums) = unsafe {
+                    (
+                        shared.0.part(b * block_bytes, block_bytes),
+                        shared.1.part(b * block_scales, block_scales),
+                        shared.2.part(b * block_sums, block_sums),
+                    )
                 };
-                for (piece, values) in values.chunks_exact(64).enumerate() {
-                    let at = ((b * tiles + tile) * PIECES + piece) * TILE_BYTES + 4 * in_tile;
-                    for (group, four) in values.chunks_exact(4).enumerate() {
-                        let four = [four[0] as u8, four[1] as u8, four[2] as u8, four[3] as u8];
-                        bytes[at + 64 * group..at + 64 * group + 4].copy_from_slice(&four);
+                for (i, scale) in scales[..rows].iter_mut().enumerate() {
+                    let at = (i * blocks + b) * BLOCK_VALUES;
+                    let block = ActivationBlock::quantise(&x[at..at + BLOCK_VALUES]);
+                    let (tile, in_tile) = (i / TILE_ROWS, i % TILE_ROWS);
+                    *scale = block.scale;
+                    if format == Format::Q4K {
+                        for (pair, sums) in block.sums32.chunks_exact(2).enumerate() {
+                            sub_sums[(tile * PAIRS + pair) * TILE_ROWS + in_tile] =
+                                pack_words(sums[0], sums[1]);
+                        }
+                    }
+                    let values = match format {
+                        Format::Q4K => &block.q4k_order,
+                        Format::Q6K => &block.natural,
+                    };
+                    for (piece, values) in values.chunks_exact(64).enumerate() {
+                        let at = (tile * PIECES + piece) * TILE_BYTES + 4 * in_tile;
+                        for (group, four) in values.chunks_exact(4).enumerate() {
+                            let four = [four[0] as u8, four[1] as u8, four[2] as u8, four[3] as u8];
+                            bytes[at + 64 * group..at + 64 * group + 4].copy_from_slice(&four);
+                        }
                     }
                 }
             }
-        }
+        });
         PackedActivations {
             bytes,
             scales,
