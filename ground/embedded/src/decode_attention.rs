@@ -17,9 +17,9 @@
 //! a restarted Supervisor call's 259 prompt tokens at 1,541 cached positions 2.8–3.0 → 2.5 s
 //! before the tiles).
 
-use candle_core::{CpuStorage, Result, Storage, Tensor};
-use half::slice::HalfFloatSliceExt;
+use candle_core::{Result, Tensor};
 
+use crate::cache_view::{Shape, attend_in_place};
 use crate::pool::Shared;
 
 /// The most new tokens a step may feed here; more (a prompt) use candle's attention.
@@ -35,73 +35,26 @@ const LANES: usize = 16;
 /// (more than [`MAX_TOKENS`] new tokens, not bf16 on the CPU, a layout other than the cache's,
 /// a head size other than 64 or 128, a CPU without AVX-512): the caller uses another.
 pub fn decode_attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Option<Tensor>> {
-    let (b, n_head, seq, head_dim) = q.dims4()?;
-    let (kb, n_kv_head, total, k_dim) = k.dims4()?;
-    if b != 1
-        || kb != 1
-        || seq == 0
-        || seq > MAX_TOKENS
-        || seq > total
-        || k_dim != head_dim
-        || v.dims4()? != k.dims4()?
-        || !(head_dim == 64 || head_dim == 128)
-        || n_kv_head == 0
-        || !n_head.is_multiple_of(n_kv_head)
-        || !cpu_has_avx512()
-    {
-        return Ok(None);
-    }
-    let queries = q.flatten_all()?.to_vec1::<f32>()?;
-    let (k_storage, k_layout) = k.storage_and_layout();
-    let (v_storage, v_layout) = v.storage_and_layout();
-    let (Storage::Cpu(CpuStorage::BF16(k_data)), Storage::Cpu(CpuStorage::BF16(v_data))) =
-        (&*k_storage, &*v_storage)
-    else {
-        return Ok(None);
+    let applies = |shape: &Shape| {
+        shape.seq <= MAX_TOKENS && matches!(shape.head_dim, 64 | 128) && cpu_has_avx512()
     };
-    let (Some(keys), Some(values)) = (
-        CacheView::of(
-            k_data.reinterpret_cast(),
-            k_layout,
-            n_kv_head,
-            total,
-            head_dim,
-        ),
-        CacheView::of(
-            v_data.reinterpret_cast(),
-            v_layout,
-            n_kv_head,
-            total,
-            head_dim,
-        ),
-    ) else {
-        return Ok(None);
-    };
-    let shape = Shape {
-        n_rep: n_head / n_kv_head,
-        seq,
-        total,
-        head_dim,
-        scale: 1.0 / (head_dim as f32).sqrt(),
-    };
-    let mut out = vec![0f32; seq * n_head * head_dim];
-    let target = Shared(out.as_mut_ptr());
-    let group_queries = shape.n_rep * seq * head_dim;
-    candle_core::utils::barrier_pool().execute_chunked(n_kv_head, |groups| {
-        for g in groups {
-            let queries = &queries[g * group_queries..(g + 1) * group_queries];
-            let group_out = group(&shape, queries, keys.head(g), values.head(g));
-            for (r, row) in group_out.chunks_exact(head_dim).enumerate() {
-                let (head, token) = (g * shape.n_rep + r / seq, r % seq);
-                let at = (token * n_head + head) * head_dim;
-                // SAFETY: `at..at + head_dim` is inside `out` (token < seq, head < n_head), and
-                // each (token, head) belongs to one group: no two tasks write the same element.
-                unsafe { target.write(at, row) };
+    attend_in_place(q, k, v, applies, |shape, queries, keys, values| {
+        let mut out = vec![0f32; shape.seq * shape.n_head * shape.head_dim];
+        let target = Shared(out.as_mut_ptr());
+        let group_queries = shape.rows() * shape.head_dim;
+        candle_core::utils::barrier_pool().execute_chunked(shape.n_kv_head, |groups| {
+            for g in groups {
+                let queries = &queries[g * group_queries..(g + 1) * group_queries];
+                let group_out = group(shape, queries, keys.head(g), values.head(g));
+                for (r, row) in group_out.chunks_exact(shape.head_dim).enumerate() {
+                    // SAFETY: row `r` of head `g` is inside `out`, and each (token, head)
+                    // belongs to one group: no two tasks write the same element.
+                    unsafe { target.write(shape.out_at(g, r), row) };
+                }
             }
-        }
-    });
-    drop((k_storage, v_storage));
-    Tensor::from_vec(out, (1, seq, n_head * head_dim), q.device()).map(Some)
+        });
+        out
+    })
 }
 
 /// A prompt's attention weights, in place of its scores: `scores` holds rows of `total`
@@ -137,56 +90,6 @@ pub fn causal_softmax(scores: &mut [f32], total: usize, seq: usize, scale: f32) 
         }
     });
     true
-}
-
-/// What one group's attention needs to know.
-struct Shape {
-    /// Query heads per key/value head.
-    n_rep: usize,
-    seq: usize,
-    total: usize,
-    head_dim: usize,
-    scale: f32,
-}
-
-/// A key or value buffer: `n_heads` heads of `total` rows of `head_dim`, rows contiguous.
-pub(crate) struct CacheView<'a, T> {
-    data: &'a [T],
-    head_stride: usize,
-    total: usize,
-    head_dim: usize,
-}
-
-impl<'a, T> CacheView<'a, T> {
-    /// The view of `data` laid out by `layout` (candle's, in elements), or `None` when its
-    /// rows are not contiguous or it is too short.
-    pub(crate) fn of(
-        data: &'a [T],
-        layout: &candle_core::Layout,
-        n_heads: usize,
-        total: usize,
-        head_dim: usize,
-    ) -> Option<CacheView<'a, T>> {
-        let &[_, head_stride, row_stride, 1] = layout.stride() else {
-            return None;
-        };
-        let last = (n_heads - 1) * head_stride + total * head_dim;
-        let data = data.get(layout.start_offset()..)?;
-        (row_stride == head_dim && head_stride >= total * head_dim && last <= data.len()).then_some(
-            CacheView {
-                data,
-                head_stride,
-                total,
-                head_dim,
-            },
-        )
-    }
-
-    /// Head `h`'s rows, contiguous.
-    pub(crate) fn head(&self, h: usize) -> &'a [T] {
-        let start = h * self.head_stride;
-        &self.data[start..start + self.total * self.head_dim]
-    }
 }
 
 /// Whether this CPU runs [`avx512`]'s arithmetic (else candle's attention is used).
@@ -248,6 +151,7 @@ mod avx512 {
             total,
             head_dim,
             scale,
+            ..
         } = shape;
         debug_assert_eq!(head_dim, VECTORS * LANES);
         let rows = n_rep * seq;
@@ -398,29 +302,9 @@ mod avx512 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::cache_view::test_inputs::{cache_views, filled};
     use crate::decoder::{causal_mask, grouped_attention};
     use candle_core::Device;
-
-    fn filled(dims: (usize, usize, usize, usize), seed: usize) -> Tensor {
-        let n = dims.0 * dims.1 * dims.2 * dims.3;
-        let values: Vec<f32> = (0..n)
-            .map(|i| (((i + seed) * 2654435761) % 2001) as f32 / 1000.0 - 1.0)
-            .collect();
-        Tensor::from_vec(values, dims, &Device::Cpu).expect("tensor")
-    }
-
-    /// Keys and values as the cache holds them: bf16 views of the first `total` rows of
-    /// buffers with room for more.
-    fn cache_views(n_kv: usize, total: usize, d: usize) -> (Tensor, Tensor) {
-        let room = total + 13;
-        let view = |seed| {
-            filled((1, n_kv, room, d), seed)
-                .to_dtype(crate::decoder::KV_DTYPE)
-                .and_then(|t| t.narrow(2, 0, total))
-                .expect("view")
-        };
-        (view(1), view(2))
-    }
 
     #[test]
     fn the_attention_of_new_tokens_is_candles() {

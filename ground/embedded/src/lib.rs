@@ -29,6 +29,7 @@
 //! ```
 
 mod byte_view;
+mod cache_view;
 mod caches;
 pub mod catalogue;
 mod decode_attention;

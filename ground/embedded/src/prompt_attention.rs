@@ -19,10 +19,10 @@
 use std::arch::asm;
 use std::arch::x86_64::*;
 
-use candle_core::{CpuStorage, Result, Storage, Tensor};
-use half::slice::HalfFloatSliceExt;
+use candle_core::{Result, Tensor};
 
-use crate::decode_attention::{CacheView, causal_softmax_row};
+use crate::cache_view::{CacheView, Shape, attend_in_place};
+use crate::decode_attention::causal_softmax_row;
 use crate::pool::Shared;
 use crate::tiles::{TILE_BYTES, TILE_ROWS, TilesInUse, bf16_available};
 
@@ -44,113 +44,56 @@ pub fn available() -> bool {
 /// new tokens, heads × head size), or `None` when this does not apply (no AMX bf16 here, not
 /// the cache's layout or type, a head size not a multiple of 64): the caller uses candle's.
 pub fn prompt_attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Option<Tensor>> {
-    let (b, n_head, seq, head_dim) = q.dims4()?;
-    let (kb, n_kv_head, total, k_dim) = k.dims4()?;
-    if b != 1
-        || kb != 1
-        || seq == 0
-        || seq > total
-        || k_dim != head_dim
-        || v.dims4()? != k.dims4()?
-        || !head_dim.is_multiple_of(KEYS_PER_CHUNK * 2)
-        || n_kv_head == 0
-        || !n_head.is_multiple_of(n_kv_head)
-        || !available()
-    {
-        return Ok(None);
-    }
-    let queries = q.flatten_all()?.to_vec1::<f32>()?;
-    let (k_storage, k_layout) = k.storage_and_layout();
-    let (v_storage, v_layout) = v.storage_and_layout();
-    let (Storage::Cpu(CpuStorage::BF16(k_data)), Storage::Cpu(CpuStorage::BF16(v_data))) =
-        (&*k_storage, &*v_storage)
-    else {
-        return Ok(None);
-    };
-    let (Some(keys), Some(values)) = (
-        CacheView::of(
-            k_data.reinterpret_cast(),
-            k_layout,
-            n_kv_head,
-            total,
-            head_dim,
-        ),
-        CacheView::of(
-            v_data.reinterpret_cast(),
-            v_layout,
-            n_kv_head,
-            total,
-            head_dim,
-        ),
-    ) else {
-        return Ok(None);
-    };
-    let shape = Shape {
-        n_rep: n_head / n_kv_head,
-        seq,
-        total,
-        head_dim,
-        scale: 1.0 / (head_dim as f32).sqrt(),
-    };
-    let rows = shape.n_rep * seq;
+    let applies = |shape: &Shape| shape.head_dim.is_multiple_of(KEYS_PER_CHUNK * 2) && available();
+    attend_in_place(q, k, v, applies, |shape, queries, keys, values| {
+        // SAFETY: `available()` said yes.
+        unsafe { attend(shape, queries, keys, values) }
+    })
+}
+
+/// # Safety
+/// [`available`] said yes.
+unsafe fn attend(
+    shape: &Shape,
+    queries: &[f32],
+    keys: &CacheView<u16>,
+    values: &CacheView<u16>,
+) -> Vec<f32> {
+    let (rows, head_dim) = (shape.rows(), shape.head_dim);
     let row_tiles = rows.div_ceil(TILE_ROWS);
     // Each head's keys and values laid out for the tiles, one task a head.
-    let mut laid_out: Vec<LaidOut> = (0..n_kv_head).map(|_| LaidOut::default()).collect();
+    let mut laid_out: Vec<LaidOut> = (0..shape.n_kv_head).map(|_| LaidOut::default()).collect();
     let heads = Shared(laid_out.as_mut_ptr());
-    candle_core::utils::barrier_pool().execute_chunked(n_kv_head, |range| {
+    candle_core::utils::barrier_pool().execute_chunked(shape.n_kv_head, |range| {
         for g in range {
             // SAFETY: `g` is below `n_kv_head`, the length of `laid_out`, and each head belongs
-            // to one task; `available()` said yes.
-            unsafe { *heads.at(g) = LaidOut::new(&shape, keys.head(g), values.head(g)) };
+            // to one task; `available()` said yes (the caller's promise).
+            unsafe { *heads.at(g) = LaidOut::new(shape, keys.head(g), values.head(g)) };
         }
     });
-    let mut out = vec![0f32; seq * n_head * head_dim];
+    let mut out = vec![0f32; shape.seq * shape.n_head * head_dim];
     let target = Shared(out.as_mut_ptr());
     // Then the query rows, 16 at a time, over every head.
-    candle_core::utils::barrier_pool().execute_chunked(n_kv_head * row_tiles, |range| {
-        let mut scratch = Scratch::new(&shape);
+    candle_core::utils::barrier_pool().execute_chunked(shape.n_kv_head * row_tiles, |range| {
+        let mut scratch = Scratch::new(shape);
         for task in range {
             let (g, tile) = (task / row_tiles, task % row_tiles);
-            let group_rows = shape.n_rep * seq * head_dim;
-            let queries = &queries[g * group_rows..(g + 1) * group_rows];
+            let queries = &queries[g * rows * head_dim..(g + 1) * rows * head_dim];
             let first = tile * TILE_ROWS;
-            // SAFETY: `available()` said yes.
-            let rows_out = unsafe { scratch.rows(&shape, &laid_out[g], queries, first) };
-            for (i, row) in rows_out.chunks_exact(head_dim).enumerate() {
-                let r = first + i;
-                if r >= rows {
-                    break;
-                }
-                let (head, token) = (g * shape.n_rep + r / seq, r % seq);
-                // SAFETY: inside `out` (token < seq, head < n_head); each (token, head) is
-                // one query row of one task.
-                unsafe { target.write((token * n_head + head) * head_dim, row) };
+            // SAFETY: `available()` said yes (the caller's promise).
+            let rows_out = unsafe { scratch.rows(shape, &laid_out[g], queries, first) };
+            for (r, row) in (first..rows).zip(rows_out.chunks_exact(head_dim)) {
+                // SAFETY: row `r` of head `g` is inside `out`; each is one task's.
+                unsafe { target.write(shape.out_at(g, r), row) };
             }
         }
     });
-    drop((k_storage, v_storage));
-    Tensor::from_vec(out, (1, seq, n_head * head_dim), q.device()).map(Some)
+    out
 }
 
-/// What one head's attention needs to know.
-struct Shape {
-    /// Query heads per key/value head.
-    n_rep: usize,
-    seq: usize,
-    total: usize,
-    head_dim: usize,
-    scale: f32,
-}
-
-impl Shape {
-    /// Keys of query row `r` (token `r % seq`) sees.
-    fn visible(&self, r: usize) -> usize {
-        self.total - self.seq + r % self.seq + 1
-    }
-
-    fn padded_keys(&self) -> usize {
-        self.total.div_ceil(KEY_PADDING) * KEY_PADDING
-    }
+/// Keys the laid-out keys hold: the positions, padded to whole programs of four key tiles.
+fn padded_keys(shape: &Shape) -> usize {
+    shape.total.div_ceil(KEY_PADDING) * KEY_PADDING
 }
 
 /// One head's keys and values as the tiles take them (bf16 pairs per 32 bits), zero past the
@@ -169,7 +112,7 @@ impl LaidOut {
     #[target_feature(enable = "avx512f,avx512bw")]
     unsafe fn new(shape: &Shape, keys: &[u16], values: &[u16]) -> LaidOut {
         let (d, total) = (shape.head_dim, shape.total);
-        let padded = shape.padded_keys();
+        let padded = padded_keys(shape);
         let key_tiles = padded / TILE_ROWS;
         let chunks = d / KEYS_PER_CHUNK;
         let mut laid = LaidOut {
@@ -254,7 +197,7 @@ struct Scratch {
 
 impl Scratch {
     fn new(shape: &Shape) -> Scratch {
-        let padded = shape.padded_keys();
+        let padded = padded_keys(shape);
         Scratch {
             queries: vec![0; TILE_ROWS * shape.head_dim],
             scores: vec![0.0; TILE_ROWS * padded],
@@ -277,11 +220,11 @@ impl Scratch {
         first: usize,
     ) -> &[f32] {
         let d = shape.head_dim;
-        let rows = shape.n_rep * shape.seq;
+        let rows = shape.rows();
         let last = (first + TILE_ROWS).min(rows);
         self.queries.fill(0);
         to_bf16(&queries[first * d..last * d], &mut self.queries);
-        let padded = shape.padded_keys();
+        let padded = padded_keys(shape);
         let seen = (first..last).map(|r| shape.visible(r)).max().unwrap_or(0);
         let key_tiles = seen.div_ceil(KEY_PADDING) * TILES_AT_ONCE;
         let chunks = d / KEYS_PER_CHUNK;
@@ -449,28 +392,9 @@ unsafe fn weighted_values(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::decoder::{KV_DTYPE, causal_mask, grouped_attention};
+    use crate::cache_view::test_inputs::{cache_views, filled};
+    use crate::decoder::{causal_mask, grouped_attention};
     use candle_core::{DType, Device};
-
-    fn filled(dims: (usize, usize, usize, usize), seed: usize) -> Tensor {
-        let n = dims.0 * dims.1 * dims.2 * dims.3;
-        let values: Vec<f32> = (0..n)
-            .map(|i| (((i + seed) * 2654435761) % 2001) as f32 / 1000.0 - 1.0)
-            .collect();
-        Tensor::from_vec(values, dims, &Device::Cpu).expect("tensor")
-    }
-
-    /// Keys and values as the cache holds them: bf16 views of the first `total` rows of
-    /// buffers with room for more.
-    fn cache_views(n_kv: usize, total: usize, d: usize) -> (Tensor, Tensor) {
-        let view = |seed| {
-            filled((1, n_kv, total + 13, d), seed)
-                .to_dtype(KV_DTYPE)
-                .and_then(|t| t.narrow(2, 0, total))
-                .expect("view")
-        };
-        (view(1), view(2))
-    }
 
     fn values(t: &Tensor) -> Vec<f32> {
         t.flatten_all()
