@@ -41,6 +41,11 @@ impl LlmBackend for SlowSupervisor {
             } else {
                 let released = self.release.notified();
                 self.pending.send_replace(true);
+                // Parked here as a model call is at its first wait, so that the drop the test
+                // provokes cancels the call, whichever thread runs it: without it, a thread
+                // that lost its core right after `pending` resumed only once the test had
+                // released the call, and answered within the poll the abort waits out.
+                tokio::task::yield_now().await;
                 released.await;
                 self.returned.store(true, Ordering::SeqCst);
                 CYCLE

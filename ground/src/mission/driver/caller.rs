@@ -85,6 +85,11 @@ impl Caller {
                 told(so_far);
             };
             let reply = self.backend.chat_streamed(&request, &progress).await;
+            // A reply that comes back within the poll in which the engine dropped this call (a
+            // backend that answers without waiting, or a thread that lost its core between a
+            // call's start and its first wait) would otherwise be logged, checked and repaired
+            // in that same poll: the abort takes effect at the first await. This is one.
+            tokio::task::yield_now().await;
             drop(in_flight);
             let mut effects = Vec::new();
             let next = match reply {
