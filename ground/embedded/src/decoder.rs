@@ -13,20 +13,6 @@ use candle_nn::Embedding;
 
 use crate::catalogue::Architecture;
 use crate::decode_attention::decode_attention;
-
-/// The attention of many new tokens on AMX tiles where the CPU has them (`prompt_attention`),
-/// else none: candle's products take them.
-fn prompt_attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Option<Tensor>> {
-    #[cfg(target_arch = "x86_64")]
-    {
-        crate::prompt_attention::prompt_attention(q, k, v)
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        let _ = (q, k, v);
-        Ok(None)
-    }
-}
 use crate::matvec::Linear;
 use crate::output::{BLOCK_ROWS, OutputProjection};
 
@@ -362,6 +348,20 @@ impl Decoder {
     }
 }
 
+/// The attention of many new tokens on AMX tiles where the CPU has them (`prompt_attention`),
+/// else none: candle's products take them.
+fn prompt_attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Option<Tensor>> {
+    #[cfg(target_arch = "x86_64")]
+    {
+        crate::prompt_attention::prompt_attention(q, k, v)
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = (q, k, v);
+        Ok(None)
+    }
+}
+
 /// Attention of `q` (batch, query heads, seq, head size) over `k` and `v` (batch, key/value
 /// heads, positions, head size; f32), `mask` added to the scores when given; (batch, seq,
 /// width). Candle's products: what [`Decoder::forward`] falls back on where `decode_attention`
@@ -546,6 +546,15 @@ mod tests {
         }
     }
 
+    /// Random keys or values (1, 2 heads, `seq`, 4) a bf16 holds exactly: the cache keeps
+    /// them as they are.
+    fn held_exactly(seq: usize, device: &Device) -> Tensor {
+        Tensor::randn(0f32, 1.0, (1, 2, seq, 4), device)
+            .and_then(|t| t.to_dtype(KV_DTYPE))
+            .and_then(|t| t.to_dtype(DType::F32))
+            .expect("chunk")
+    }
+
     fn positions(t: &Tensor) -> Vec<f32> {
         t.to_dtype(DType::F32)
             .and_then(|t| t.flatten_all())
@@ -557,13 +566,7 @@ mod tests {
     #[test]
     fn keys_and_values_written_in_place_are_those_concatenated() {
         let device = Device::Cpu;
-        // Values a bf16 holds exactly: the cache keeps them as they are.
-        let chunk = |seq| {
-            Tensor::randn(0f32, 1.0, (1, 2, seq, 4), &device)
-                .and_then(|t| t.to_dtype(KV_DTYPE))
-                .and_then(|t| t.to_dtype(DType::F32))
-                .expect("chunk")
-        };
+        let chunk = |seq| held_exactly(seq, &device);
         // A prompt of 300, 400 more (past the first buffer's room), then one at a time.
         let chunks: Vec<(Tensor, Tensor)> = [300, 400, 1, 1]
             .iter()
@@ -598,12 +601,7 @@ mod tests {
     #[test]
     fn a_prefix_copy_shares_nothing_with_its_cache() {
         let device = Device::Cpu;
-        let chunk = |seq| {
-            Tensor::randn(0f32, 1.0, (1, 2, seq, 4), &device)
-                .and_then(|t| t.to_dtype(KV_DTYPE))
-                .and_then(|t| t.to_dtype(DType::F32))
-                .expect("chunk")
-        };
+        let chunk = |seq| held_exactly(seq, &device);
         let mut cache = KvCache::default();
         let (k, v) = (chunk(10), chunk(10));
         cache.layers = vec![None];

@@ -229,13 +229,14 @@ impl Scratch {
         let key_tiles = seen.div_ceil(KEY_PADDING) * TILES_AT_ONCE;
         let chunks = d / KEYS_PER_CHUNK;
         // SAFETY: tiles available (the caller's promise); the pointers and strides stay inside
-        // the buffers: see `scores_of` and `weighted_values`.
+        // the buffers: see the two calls of `four_tile_products`.
         let _tiles = unsafe { TilesInUse::take() };
         for tile in (0..key_tiles).step_by(TILES_AT_ONCE) {
-            // SAFETY: `queries` holds 16 rows of d bf16; `laid.keys` the tiles of every chunk
-            // for `padded / 16` key tiles (from `tile`, four); `scores` 16 rows of `padded`.
+            // The scores. SAFETY: `queries` holds 16 rows of d bf16 (d / 32 ≥ 2 chunks);
+            // `laid.keys` the tiles of every chunk for `padded / 16` key tiles (from `tile`,
+            // four); `scores` 16 rows of `padded`.
             unsafe {
-                scores_of(
+                four_tile_products(
                     self.queries.as_ptr(),
                     d * 2,
                     laid.keys.as_ptr().add(tile * TILE_BYTES / 4),
@@ -263,11 +264,11 @@ impl Scratch {
         }
         let dim_tiles = d / TILE_ROWS;
         for dim_tile in (0..dim_tiles).step_by(TILES_AT_ONCE) {
-            // SAFETY: `weights` 16 rows of `padded` bf16, `width / 32` chunks of them used;
-            // `laid.values` per chunk `dim_tiles` tiles (from `dim_tile`, four); `out` 16 rows
-            // of d f32 (from column `16 · dim_tile`, 64).
+            // The weighted values. SAFETY: `weights` 16 rows of `padded` bf16, `width / 32` ≥ 2
+            // chunks of them used; `laid.values` per chunk `dim_tiles` tiles (from `dim_tile`,
+            // four); `out` 16 rows of d f32 (from column `16 · dim_tile`, 64).
             unsafe {
-                weighted_values(
+                four_tile_products(
                     self.weights.as_ptr(),
                     padded * 2,
                     laid.values.as_ptr().add(dim_tile * TILE_BYTES / 4),
@@ -303,25 +304,28 @@ fn to_bf16(from: &[f32], to: &mut [u16]) {
     }
 }
 
-/// Scores of 16 query rows against four key tiles (64 keys): `C_j += Q_c · K_{c,j}` over the
-/// `chunks` chunks of 32 dimensions, stored at `scores` (16 rows, `scores_stride` bytes apart,
-/// 64 floats each). `keys` points at chunk 0's first tile; a chunk's tiles are
-/// `chunk_stride` bytes after the previous chunk's, its four tiles 1,024 bytes apart.
+/// `C_j = Σ_c A_c · B_{c,j}` for four tiles `j` over `chunks` chunks `c` on AMX bf16 tiles,
+/// stored at `out` (16 rows, `out_stride` bytes apart, 64 floats each): a row of `A` holds 32
+/// bf16 of a chunk (`a`'s rows `a_stride` bytes apart, chunk `c` at byte `64·c`), a `B` tile is
+/// 1,024 bytes of bf16 pairs. `b` points at chunk 0's first tile, a chunk's tiles are
+/// `chunk_stride` bytes after the previous chunk's, its four tiles 1,024 bytes apart. The
+/// scores (`A` the queries, `B` the laid-out keys: four tiles of 16 keys) and the weighted
+/// values (`A` the weights, `B` the laid-out values: four tiles of 16 dimensions) are both this.
 ///
 /// # Safety
-/// Tiles configured by [`TilesInUse::take`] on a CPU with AMX-BF16; every address read or
-/// written is inside its buffer.
-unsafe fn scores_of(
-    queries: *const u16,
-    query_stride: usize,
-    keys: *const u32,
+/// Tiles configured by [`TilesInUse::take`] on a CPU with AMX-BF16; `chunks` > 0; every address
+/// read or written is inside its buffer.
+unsafe fn four_tile_products(
+    a: *const u16,
+    a_stride: usize,
+    b: *const u32,
     chunk_stride: usize,
     chunks: usize,
-    scores: *mut f32,
-    scores_stride: usize,
+    out: *mut f32,
+    out_stride: usize,
 ) {
-    // SAFETY: the caller's promises. tmm0–3 the four key tiles' sums, tmm4 the queries'
-    // chunk, tmm5–7 and tmm5 again the key tiles.
+    // SAFETY: the caller's promises. tmm0–3 the four sums, tmm4 `A`'s chunk, tmm5–7 and tmm5
+    // again the `B` tiles.
     unsafe {
         asm!(
             "tilezero tmm0",
@@ -329,63 +333,33 @@ unsafe fn scores_of(
             "tilezero tmm2",
             "tilezero tmm3",
             "2:",
-            "tileloadd tmm4, [{q} + {qs}*1]",
-            "tileloadd tmm5, [{k} + {s}*1]",
+            "tileloadd tmm4, [{a} + {as}*1]",
+            "tileloadd tmm5, [{b} + {s}*1]",
             "tdpbf16ps tmm0, tmm4, tmm5",
-            "tileloadd tmm6, [{k} + {s}*1 + 1024]",
+            "tileloadd tmm6, [{b} + {s}*1 + 1024]",
             "tdpbf16ps tmm1, tmm4, tmm6",
-            "tileloadd tmm7, [{k} + {s}*1 + 2048]",
+            "tileloadd tmm7, [{b} + {s}*1 + 2048]",
             "tdpbf16ps tmm2, tmm4, tmm7",
-            "tileloadd tmm5, [{k} + {s}*1 + 3072]",
+            "tileloadd tmm5, [{b} + {s}*1 + 3072]",
             "tdpbf16ps tmm3, tmm4, tmm5",
-            "add {q}, 64",
-            "add {k}, {cs}",
+            "add {a}, 64",
+            "add {b}, {cs}",
             "dec {n}",
             "jnz 2b",
             "tilestored [{out} + {os}*1], tmm0",
             "tilestored [{out} + {os}*1 + 64], tmm1",
             "tilestored [{out} + {os}*1 + 128], tmm2",
             "tilestored [{out} + {os}*1 + 192], tmm3",
-            q = inout(reg) queries => _,
-            qs = in(reg) query_stride,
-            k = inout(reg) keys => _,
+            a = inout(reg) a => _,
+            as = in(reg) a_stride,
+            b = inout(reg) b => _,
             s = in(reg) 64usize,
             cs = in(reg) chunk_stride,
             n = inout(reg) chunks => _,
-            out = in(reg) scores,
-            os = in(reg) scores_stride,
+            out = in(reg) out,
+            os = in(reg) out_stride,
             options(nostack),
         );
-    }
-}
-
-/// Weighted values of 16 query rows for four tiles of 16 dimensions: `C_j += P_c · V_{c,j}`
-/// over `chunks` chunks of 32 keys, stored at `out` (16 rows, `out_stride` bytes apart, 64
-/// floats each). `values` points at chunk 0's first tile; a chunk's tiles are
-/// `chunk_stride` bytes after the previous chunk's, its four tiles 1,024 bytes apart.
-///
-/// # Safety
-/// As [`scores_of`]; `chunks` > 0.
-unsafe fn weighted_values(
-    weights: *const u16,
-    weight_stride: usize,
-    values: *const u32,
-    chunk_stride: usize,
-    chunks: usize,
-    out: *mut f32,
-    out_stride: usize,
-) {
-    // SAFETY: the caller's promises; the same program as `scores_of`'s.
-    unsafe {
-        scores_of(
-            weights,
-            weight_stride,
-            values,
-            chunk_stride,
-            chunks,
-            out,
-            out_stride,
-        )
     }
 }
 

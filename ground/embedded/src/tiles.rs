@@ -65,6 +65,7 @@ fn request_tiles() -> bool {
 }
 
 /// The tile configuration `ldtilecfg` reads (64 bytes, palette 1).
+#[derive(Default)]
 #[repr(C, align(64))]
 struct TileConfig {
     palette: u8,
@@ -87,19 +88,10 @@ impl TilesInUse {
     /// # Safety
     /// [`int8_available`] or [`bf16_available`] said yes (else the instructions fault).
     pub unsafe fn take() -> TilesInUse {
-        let mut previous = TileConfig {
-            palette: 0,
-            start_row: 0,
-            reserved: [0; 14],
-            bytes_per_row: [0; 16],
-            rows: [0; 16],
-        };
+        let mut previous = TileConfig::default();
         let mut ours = TileConfig {
             palette: 1,
-            start_row: 0,
-            reserved: [0; 14],
-            bytes_per_row: [0; 16],
-            rows: [0; 16],
+            ..TileConfig::default()
         };
         for t in 0..8 {
             ours.bytes_per_row[t] = 64;

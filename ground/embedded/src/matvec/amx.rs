@@ -10,9 +10,10 @@
 //!
 //! How the sub-block scales fit in a tile: a Q4_K value is `d·s·q − dmin·m` (q 4 bits; s and m
 //! 6 bits, one per 32 values; d and dmin one per 256). `s·q` (below 1,024) goes into two byte
-//! tiles, its low byte and its high bits, and `m` into a third: three accumulators sum a whole
-//! 256-value block in four instructions each, and only then are stored and multiplied by the
-//! block's float scales. A Q6_K value is `d·s·(q − 32)` (s signed, one per 16 values):
+//! tiles, its low byte and its high bits: two accumulators sum a whole 256-value block in four
+//! instructions each, and only then are stored and multiplied by the block's float scales; the
+//! mins' term `dmin · Σ m · (sub-block sum)` comes from the activations' sub-block sums on the
+//! vector units (`block_value`). A Q6_K value is `d·s·(q − 32)` (s signed, one per 16 values):
 //! `s·(q − 32)` is within ±4,096, a low byte (unsigned) and a signed high byte, two tiles.
 //! The integers are those the VNNI kernels sum, from the same activation bytes: the results
 //! differ from theirs only in float rounding.
